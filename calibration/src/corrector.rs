@@ -1,0 +1,552 @@
+//! The correction model: a calibration record turned into per-sensor correctors.
+//!
+//! For an output vector `V` a [`SetCorrector`] returns `a = S⁻¹·V + q` in m/s² and, per axis,
+//! the standard uncertainty of `a` by the law of propagation of uncertainty (JCGM 100, the GUM),
+//! from three independent contributions:
+//!
+//! 1. the parameters: `Σ_a = J·Σ_θ·Jᵀ` with `θ = (S row-major, q)` and `J = ∂a/∂θ`. Since
+//!    `d(S⁻¹) = −S⁻¹·dS·S⁻¹`, `∂a_k/∂S_ij = −(S⁻¹)_ki·a′_j` with `a′ = S⁻¹·V`, and
+//!    `∂a_k/∂q_m = δ_km`;
+//! 2. the output noise `Σ_V` stated in the record: `S⁻¹·Σ_V·S⁻ᵀ`;
+//! 3. the set's stated `uncertainty_mps2`, as independent per-axis variances.
+//!
+//! Row k of `J` is linear in `x = (a′₀, a′₁, a′₂, 1)`, so the variance of `a_k` is a quadratic
+//! form `xᵀ·M_k·x` whose 4×4 matrix `M_k` is computed once, when the record is loaded. The sample
+//! path then costs ten multiply-adds per axis for full covariance propagation, with no matrix
+//! product and no allocation.
+//!
+//! Everything that can be wrong with a record is found when it is loaded
+//! ([`Corrector::from_record`]): wrong shape or non-finite values (by
+//! [`CalibrationRecord::validate`]), a sensitivity matrix with condition number above
+//! [`MAX_CONDITION_NUMBER`], a covariance that is not positive semi-definite. Correction itself
+//! cannot fail; non-finite outputs give non-finite accelerations, which the caller flags.
+
+use nalgebra::{Matrix3, SMatrix, SymmetricEigen};
+use triax_protocol::record::{CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind};
+use triax_protocol::SensorId;
+
+/// Largest accepted condition number (2-norm) of a sensitivity matrix.
+///
+/// A MEMS sensitivity matrix is diagonally dominant, with a condition number near 1 (1.1 for the
+/// matrices of the reference paper). A matrix at 10³ would amplify output noise and errors a
+/// thousandfold along its weak direction: such a record is a fitting or typing mistake.
+pub const MAX_CONDITION_NUMBER: f64 = 1e3;
+
+/// Tolerance, relative to the largest eigenvalue, for a covariance eigenvalue below zero
+/// (round-off of a JSON round trip).
+const PSD_TOLERANCE: f64 = 1e-9;
+
+/// Why a record cannot be loaded into a corrector.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LoadError {
+    #[error(transparent)]
+    Invalid(#[from] RecordError),
+    #[error(
+        "sensor {sensor_id}, version {version}: {set}.sensitivity is near-singular: condition \
+         number {condition:.3e} exceeds {MAX_CONDITION_NUMBER:e}"
+    )]
+    IllConditioned {
+        sensor_id: SensorId,
+        version: u64,
+        set: &'static str,
+        condition: f64,
+    },
+    #[error(
+        "sensor {sensor_id}, version {version}: {set}.covariance is not positive semi-definite \
+         (eigenvalue {min_eigenvalue:e})"
+    )]
+    CovarianceNotPositive {
+        sensor_id: SensorId,
+        version: u64,
+        set: &'static str,
+        min_eigenvalue: f64,
+    },
+}
+
+/// A corrected sample: specific force and its per-axis standard uncertainty (k = 1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Corrected {
+    pub accel_mps2: [f64; 3],
+    pub uncertainty_mps2: [f64; 3],
+}
+
+/// Coefficients of a symmetric quadratic form in `x = (x₀, x₁, x₂, x₃)`:
+/// `c[0]x₀² + c[1]x₁² + c[2]x₂² + c[3]x₃² + c[4]x₀x₁ + c[5]x₀x₂ + c[6]x₀x₃ + c[7]x₁x₂ + c[8]x₁x₃
+/// + c[9]x₂x₃` (off-diagonal terms already doubled).
+type QuadForm = [f64; 10];
+
+fn quad_form(m: &SMatrix<f64, 4, 4>) -> QuadForm {
+    // Only the symmetric part matters to a quadratic form.
+    let s = |i: usize, j: usize| m[(i, j)] + m[(j, i)];
+    [
+        m[(0, 0)],
+        m[(1, 1)],
+        m[(2, 2)],
+        m[(3, 3)],
+        s(0, 1),
+        s(0, 2),
+        s(0, 3),
+        s(1, 2),
+        s(1, 3),
+        s(2, 3),
+    ]
+}
+
+/// Evaluates a quadratic form at `(x₀, x₁, x₂, w)`.
+#[inline(always)]
+fn eval(c: &QuadForm, x: [f64; 3], w: f64) -> f64 {
+    let [x0, x1, x2] = x;
+    x0 * (c[0] * x0 + c[4] * x1 + c[5] * x2 + c[6] * w)
+        + x1 * (c[1] * x1 + c[7] * x2 + c[8] * w)
+        + x2 * (c[2] * x2 + c[9] * w)
+        + c[3] * w * w
+}
+
+/// One calibration set ready to apply.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SetCorrector {
+    kind: SetKind,
+    s_inv: [[f64; 3]; 3],
+    offset_mps2: [f64; 3],
+    /// Parameter part of Cov(a_k, a_l) as a quadratic form in (a′, 1), for k ≤ l, indexed by
+    /// [`pair`].
+    param_cov: [QuadForm; 6],
+    /// Noise and stated contributions, which do not depend on the sample: Cov(a_k, a_l).
+    const_cov: [[f64; 3]; 3],
+    domain: Domain,
+    coverage_factor: f64,
+}
+
+/// Index of the (k, l) entry of a symmetric 3×3 matrix stored as its upper triangle.
+#[inline(always)]
+const fn pair(k: usize, l: usize) -> usize {
+    let (k, l) = if k <= l { (k, l) } else { (l, k) };
+    match (k, l) {
+        (0, 0) => 0,
+        (1, 1) => 1,
+        (2, 2) => 2,
+        (0, 1) => 3,
+        (0, 2) => 4,
+        _ => 5,
+    }
+}
+
+impl SetCorrector {
+    fn new(
+        record: &CalibrationRecord,
+        kind: SetKind,
+        name: &'static str,
+    ) -> Result<SetCorrector, LoadError> {
+        let set: &CalibrationSet = record.set(kind);
+        let s = Matrix3::from_fn(|i, j| set.sensitivity[i][j]);
+        let sv = s.singular_values();
+        let condition = sv.max() / sv.min();
+        // A zero matrix gives NaN, refused like an infinite condition number.
+        if condition.is_nan() || condition > MAX_CONDITION_NUMBER {
+            return Err(LoadError::IllConditioned {
+                sensor_id: record.sensor_id.clone(),
+                version: record.version,
+                set: name,
+                condition,
+            });
+        }
+        // Invertible: its condition number is finite.
+        let s_inv = s
+            .try_inverse()
+            .expect("well-conditioned matrix is invertible");
+
+        let mut param_cov = [[0.0; 10]; 6];
+        if let Some(cov) = &set.covariance {
+            let sigma = SMatrix::<f64, 12, 12>::from_fn(|i, j| cov[i][j]);
+            let eig = SymmetricEigen::new(sigma);
+            let max = eig.eigenvalues.max().max(0.0);
+            let min = eig.eigenvalues.min();
+            if min < -PSD_TOLERANCE * max.max(f64::MIN_POSITIVE) {
+                return Err(LoadError::CovarianceNotPositive {
+                    sensor_id: record.sensor_id.clone(),
+                    version: record.version,
+                    set: name,
+                    min_eigenvalue: min,
+                });
+            }
+            // B_k maps x = (a′, 1) to row k of J: J_k = xᵀ·B_k.
+            let b = |k: usize| {
+                let mut m = SMatrix::<f64, 4, 12>::zeros();
+                for j in 0..3 {
+                    for i in 0..3 {
+                        m[(j, 3 * i + j)] = -s_inv[(k, i)];
+                    }
+                }
+                m[(3, 9 + k)] = 1.0;
+                m
+            };
+            for k in 0..3 {
+                for l in k..3 {
+                    let m = b(k) * sigma * b(l).transpose();
+                    param_cov[pair(k, l)] = quad_form(&m);
+                }
+            }
+        }
+
+        let mut const_cov = Matrix3::zeros();
+        if let Some(noise) = record.sensor.output_noise {
+            let sigma_v = Matrix3::from_diagonal(&noise.map(|n| n * n).into());
+            const_cov += s_inv * sigma_v * s_inv.transpose();
+        }
+        for k in 0..3 {
+            const_cov[(k, k)] += set.uncertainty_mps2[k].powi(2);
+        }
+
+        Ok(SetCorrector {
+            kind,
+            s_inv: s_inv.transpose().into(),
+            offset_mps2: set.offset,
+            param_cov,
+            const_cov: const_cov.transpose().into(),
+            domain: set.domain,
+            coverage_factor: set.coverage_factor,
+        })
+    }
+
+    pub fn kind(&self) -> SetKind {
+        self.kind
+    }
+
+    pub fn domain(&self) -> &Domain {
+        &self.domain
+    }
+
+    pub fn coverage_factor(&self) -> f64 {
+        self.coverage_factor
+    }
+
+    /// `S⁻¹·v`: the part of the correction that scales, without the offset.
+    #[inline(always)]
+    pub fn scale(&self, v: [f64; 3]) -> [f64; 3] {
+        let m = &self.s_inv;
+        [
+            m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+            m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+            m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+        ]
+    }
+
+    /// `a = S⁻¹·v + q` without uncertainty.
+    #[inline(always)]
+    pub fn accel(&self, v: [f64; 3]) -> [f64; 3] {
+        let a = self.scale(v);
+        [
+            a[0] + self.offset_mps2[0],
+            a[1] + self.offset_mps2[1],
+            a[2] + self.offset_mps2[2],
+        ]
+    }
+
+    /// `a = S⁻¹·v + q` and its per-axis standard uncertainty, with full covariance propagation.
+    #[inline]
+    pub fn correct(&self, v: [f64; 3]) -> Corrected {
+        let scaled = self.scale(v);
+        let mut accel_mps2 = [0.0; 3];
+        let mut uncertainty_mps2 = [0.0; 3];
+        for k in 0..3 {
+            accel_mps2[k] = scaled[k] + self.offset_mps2[k];
+            let var = eval(&self.param_cov[k], scaled, 1.0) + self.const_cov[k][k];
+            // Round-off can take a zero variance a hair below zero.
+            uncertainty_mps2[k] = var.max(0.0).sqrt();
+        }
+        Corrected {
+            accel_mps2,
+            uncertainty_mps2,
+        }
+    }
+
+    /// Variance of `S⁻¹·v` per axis from the parameters alone (no offset, no noise, no stated
+    /// part): the contribution of a band that the offset does not reach, such as the high band
+    /// of a crossover.
+    #[inline]
+    pub fn scale_param_variance(&self, v: [f64; 3]) -> [f64; 3] {
+        let scaled = self.scale(v);
+        [0, 1, 2].map(|k| eval(&self.param_cov[k], scaled, 0.0).max(0.0))
+    }
+
+    /// Stated and noise variances per axis (independent of the sample).
+    pub fn constant_variance(&self) -> [f64; 3] {
+        [0, 1, 2].map(|k| self.const_cov[k][k])
+    }
+
+    /// The full 3×3 covariance of `a` at output `v`, for quantities that mix axes (tilt).
+    pub fn covariance(&self, v: [f64; 3]) -> [[f64; 3]; 3] {
+        let scaled = self.scale(v);
+        let mut c = [[0.0; 3]; 3];
+        for (k, row) in c.iter_mut().enumerate() {
+            for (l, cell) in row.iter_mut().enumerate() {
+                *cell = eval(&self.param_cov[pair(k, l)], scaled, 1.0) + self.const_cov[k][l];
+            }
+        }
+        c
+    }
+}
+
+/// Whether a record is in force at a given time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Validity {
+    NotYetValid,
+    Valid,
+    Expired,
+}
+
+/// A sensor's calibration, loaded and checked, ready for the sample path.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Corrector {
+    sensor_id: SensorId,
+    version: u64,
+    static_set: SetCorrector,
+    dynamic: SetCorrector,
+    valid_from_ns: i128,
+    valid_until_ns: Option<i128>,
+    output_full_scale: f64,
+}
+
+impl Corrector {
+    /// Checks the record and precomputes everything the sample path needs.
+    pub fn from_record(record: &CalibrationRecord) -> Result<Corrector, LoadError> {
+        record.validate()?;
+        Ok(Corrector {
+            sensor_id: record.sensor_id.clone(),
+            version: record.version,
+            static_set: SetCorrector::new(record, SetKind::Static, "static")?,
+            dynamic: SetCorrector::new(record, SetKind::Dynamic, "dynamic")?,
+            valid_from_ns: record.valid_from.unix_timestamp_nanos(),
+            valid_until_ns: record.valid_until.map(|t| t.unix_timestamp_nanos()),
+            output_full_scale: record.sensor.output_full_scale.unwrap_or(f64::INFINITY),
+        })
+    }
+
+    pub fn sensor_id(&self) -> &SensorId {
+        &self.sensor_id
+    }
+
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    pub fn set(&self, kind: SetKind) -> &SetCorrector {
+        match kind {
+            SetKind::Static => &self.static_set,
+            SetKind::Dynamic => &self.dynamic,
+        }
+    }
+
+    /// Whether the record is in force at `timestamp_ns` (ns since the Unix epoch).
+    pub fn validity_at(&self, timestamp_ns: i64) -> Validity {
+        let t = i128::from(timestamp_ns);
+        if t < self.valid_from_ns {
+            Validity::NotYetValid
+        } else if self.valid_until_ns.is_some_and(|until| t >= until) {
+            Validity::Expired
+        } else {
+            Validity::Valid
+        }
+    }
+
+    /// Whether an output reached the sensor's full scale on any axis.
+    #[inline(always)]
+    pub fn is_clipped(&self, v: [f64; 3]) -> bool {
+        v.iter().any(|x| x.abs() >= self.output_full_scale)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{SVector, Vector3};
+    use rand::{rngs::StdRng, Rng, SeedableRng};
+    use rand_distr::StandardNormal;
+    use triax_protocol::record::sample;
+
+    fn diag_record() -> CalibrationRecord {
+        let mut r = sample::record("hand", 1);
+        for set in [&mut r.static_set, &mut r.dynamic] {
+            set.sensitivity = [[2.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 5.0]];
+            set.offset = [0.1, 0.2, 0.3];
+            set.uncertainty_mps2 = [0.0; 3];
+            set.covariance = None;
+        }
+        r.sensor.output_noise = None;
+        r
+    }
+
+    #[test]
+    fn hand_computed_value_without_uncertainty() {
+        let c = Corrector::from_record(&diag_record()).unwrap();
+        let out = c.set(SetKind::Static).correct([2.0, 4.0, -5.0]);
+        assert_eq!(out.accel_mps2, [1.1, 1.2, -0.7]);
+        assert_eq!(out.uncertainty_mps2, [0.0; 3]);
+    }
+
+    #[test]
+    fn hand_computed_uncertainty() {
+        // Var(S00) = σ², Var(q1) = τ², stated u = 0.05 on z, output noise 0.02 on x.
+        let (sigma, tau) = (0.01, 0.03);
+        let mut r = diag_record();
+        let mut cov = [[0.0; 12]; 12];
+        cov[0][0] = sigma * sigma;
+        cov[10][10] = tau * tau;
+        r.dynamic.covariance = Some(Box::new(cov));
+        r.dynamic.uncertainty_mps2 = [0.0, 0.0, 0.05];
+        r.sensor.output_noise = Some([0.02, 0.0, 0.0]);
+        let c = Corrector::from_record(&r).unwrap();
+        let out = c.set(SetKind::Dynamic).correct([6.0, 4.0, 5.0]);
+        // a′₀ = 6/2 = 3; ∂a₀/∂S₀₀ = −(1/2)·3 = −1.5; noise: 0.02/2 = 0.01.
+        let ux = ((1.5 * sigma).powi(2) + 0.01f64.powi(2)).sqrt();
+        assert!((out.uncertainty_mps2[0] - ux).abs() < 1e-15, "{out:?}");
+        assert!((out.uncertainty_mps2[1] - tau).abs() < 1e-15);
+        assert!((out.uncertainty_mps2[2] - 0.05).abs() < 1e-15);
+        // The static set has no covariance and no stated uncertainty: only noise.
+        let s = c.set(SetKind::Static).correct([6.0, 4.0, 5.0]);
+        assert!((s.uncertainty_mps2[0] - 0.01).abs() < 1e-15);
+        assert_eq!(s.uncertainty_mps2[1], 0.0);
+    }
+
+    #[test]
+    fn refuses_near_singular_and_non_psd() {
+        let mut r = diag_record();
+        r.dynamic.sensitivity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1e-4]];
+        let e = Corrector::from_record(&r).unwrap_err();
+        assert!(
+            matches!(e, LoadError::IllConditioned { set: "dynamic", .. }),
+            "{e}"
+        );
+        assert!(e.to_string().contains("condition number 1.000e4"), "{e}");
+
+        let mut r = diag_record();
+        r.static_set.sensitivity = [[0.0; 3]; 3];
+        assert!(matches!(
+            Corrector::from_record(&r),
+            Err(LoadError::IllConditioned { set: "static", .. })
+        ));
+
+        let mut r = diag_record();
+        let mut cov = [[0.0; 12]; 12];
+        cov[0][0] = 1.0;
+        cov[1][1] = 1.0;
+        cov[0][1] = 2.0;
+        cov[1][0] = 2.0;
+        r.static_set.covariance = Some(Box::new(cov));
+        let e = Corrector::from_record(&r).unwrap_err();
+        assert!(matches!(e, LoadError::CovarianceNotPositive { .. }), "{e}");
+
+        let mut r = diag_record();
+        r.static_set.offset[1] = f64::NAN;
+        assert!(matches!(
+            Corrector::from_record(&r),
+            Err(LoadError::Invalid(RecordError { ref field, .. })) if field == "static.offset[1]"
+        ));
+    }
+
+    #[test]
+    fn validity_window_and_clipping() {
+        let mut r = diag_record();
+        r.valid_until = Some(r.valid_from + time::Duration::seconds(10));
+        r.sensor.output_full_scale = Some(3.0);
+        let c = Corrector::from_record(&r).unwrap();
+        let from = r.valid_from.unix_timestamp_nanos() as i64;
+        assert_eq!(c.validity_at(from - 1), Validity::NotYetValid);
+        assert_eq!(c.validity_at(from), Validity::Valid);
+        assert_eq!(c.validity_at(from + 10_000_000_000), Validity::Expired);
+        assert!(c.is_clipped([0.0, -3.0, 0.0]));
+        assert!(!c.is_clipped([2.9, -2.9, 0.0]));
+    }
+
+    /// A random positive-definite 12×12 covariance with correlations, scaled per parameter.
+    fn random_covariance(rng: &mut StdRng, s_scale: f64, q_scale: f64) -> [[f64; 12]; 12] {
+        let a = SMatrix::<f64, 12, 12>::from_fn(|_, _| rng.sample::<f64, _>(StandardNormal));
+        let mut c = a * a.transpose() / 12.0;
+        for i in 0..12 {
+            let si = if i < 9 { s_scale } else { q_scale };
+            for j in 0..12 {
+                let sj = if j < 9 { s_scale } else { q_scale };
+                c[(i, j)] *= si * sj;
+            }
+        }
+        let c = (c + c.transpose()) / 2.0;
+        let mut out = [[0.0; 12]; 12];
+        for (i, row) in out.iter_mut().enumerate() {
+            for (j, cell) in row.iter_mut().enumerate() {
+                *cell = c[(i, j)];
+            }
+        }
+        out
+    }
+
+    /// JCGM 101: draw the parameters, the output noise and the stated error, push each draw
+    /// through a = S⁻¹V + q exactly, and compare the spread with the GUM propagation.
+    #[test]
+    fn agrees_with_monte_carlo_within_five_percent() {
+        let mut rng = StdRng::seed_from_u64(7);
+        let cases: [(f64, [f64; 3]); 4] = [
+            (0.0, [0.5, -0.2, 9.8]),
+            (0.001, [3.0, 2.0, -1.0]),
+            (0.002, [-9.0, 0.5, 0.1]),
+            (0.0005, [0.0, 0.0, 0.0]),
+        ];
+        for (case, (noise, accel_true)) in cases.into_iter().enumerate() {
+            let mut r = sample::record("mc", 1);
+            r.dynamic.sensitivity = [[0.98, 0.03, -0.02], [0.01, 1.05, 0.04], [-0.03, 0.02, 0.95]];
+            r.dynamic.offset = [0.2, -0.1, 0.05];
+            r.dynamic.uncertainty_mps2 = [0.003, 0.0, 0.006];
+            let cov = random_covariance(&mut rng, 0.004, 0.01);
+            r.dynamic.covariance = Some(Box::new(cov));
+            r.sensor.output_noise = Some([noise, 2.0 * noise, noise]);
+            let c = Corrector::from_record(&r).unwrap();
+            let set = c.set(SetKind::Dynamic);
+
+            let s = Matrix3::from_fn(|i, j| r.dynamic.sensitivity[i][j]);
+            let q = Vector3::from(r.dynamic.offset);
+            let v0 = s * (Vector3::from(accel_true) - q);
+            let analytic = set.correct(v0.into());
+            let analytic_cov = set.covariance(v0.into());
+
+            let sigma = SMatrix::<f64, 12, 12>::from_fn(|i, j| cov[i][j]);
+            let l = sigma.cholesky().unwrap().l();
+            let n = 50_000;
+            let mut sum = Vector3::zeros();
+            let mut sum_sq = Matrix3::zeros();
+            for _ in 0..n {
+                let z = SVector::<f64, 12>::from_fn(|_, _| rng.sample(StandardNormal));
+                let theta = l * z;
+                let s_draw = s + Matrix3::from_fn(|i, j| theta[3 * i + j]);
+                let q_draw = q + Vector3::new(theta[9], theta[10], theta[11]);
+                let noise_v = Vector3::from_fn(|i, _| {
+                    r.sensor.output_noise.unwrap()[i] * rng.sample::<f64, _>(StandardNormal)
+                });
+                let stated = Vector3::from_fn(|i, _| {
+                    r.dynamic.uncertainty_mps2[i] * rng.sample::<f64, _>(StandardNormal)
+                });
+                let a = s_draw.try_inverse().unwrap() * (v0 + noise_v) + q_draw + stated;
+                sum += a;
+                sum_sq += a * a.transpose();
+            }
+            let mean = sum / n as f64;
+            let mc_cov = (sum_sq - mean * mean.transpose() * n as f64) / (n as f64 - 1.0);
+            for k in 0..3 {
+                let mc = mc_cov[(k, k)].sqrt();
+                let gum = analytic.uncertainty_mps2[k];
+                assert!(
+                    (gum / mc - 1.0).abs() < 0.05,
+                    "case {case} axis {k}: GUM {gum:.5} vs Monte Carlo {mc:.5}"
+                );
+                assert!((analytic.accel_mps2[k] - accel_true[k]).abs() < 1e-9);
+                for l in 0..3 {
+                    let scale = (mc_cov[(k, k)] * mc_cov[(l, l)]).sqrt();
+                    assert!(
+                        (analytic_cov[k][l] - mc_cov[(k, l)]).abs() < 0.05 * scale,
+                        "case {case} cov[{k}][{l}]: GUM {:e} vs Monte Carlo {:e}",
+                        analytic_cov[k][l],
+                        mc_cov[(k, l)]
+                    );
+                }
+            }
+        }
+    }
+}

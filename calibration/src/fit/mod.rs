@@ -1,0 +1,1 @@
+//! The lab's static and dynamic fits.

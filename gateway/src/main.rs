@@ -1,0 +1,3 @@
+fn main() {
+    eprintln!("the gateway demo is not built yet");
+}

@@ -1,0 +1,360 @@
+//! The key space: every Zenoh key Triax uses is built and parsed here, and nowhere else.
+//!
+//! ```text
+//! triax/<building>/raw/<sensor>                  RawBatch (binary), sensor node → gateway
+//! triax/<building>/corrected/<sensor>            CorrectedBatch (binary), gateway → consumers
+//! triax/<building>/tilt/<sensor>                 TiltSample (JSON), gateway → consumers
+//! triax/<building>/calibration/push/<sensor>     SignedRecord (JSON), lab → gateway (query)
+//! triax/<building>/calibration/ack/<sensor>      PushAck (JSON), gateway → lab
+//! triax/<building>/calibration/registry          lab registry queryable (catch-up)
+//! triax/<building>/status                        GatewayStatus (JSON), gateway queryable
+//! triax/<building>/alert/<sensor>                Alert (JSON), alerting → operators
+//! ```
+//!
+//! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
+//! a valid Zenoh key expression with no wildcard (`*`, `**`), no verbatim chunk (`@`), no
+//! selector syntax (`?`, `#`, `$`) and no empty chunk, so an id can never widen a subscription.
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+/// First chunk of every Triax key.
+pub const ROOT: &str = "triax";
+
+/// Longest building or sensor id, in bytes.
+pub const MAX_ID_LEN: usize = 64;
+
+/// Why an id was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum IdError {
+    #[error("{kind} id is empty")]
+    Empty { kind: &'static str },
+    #[error("{kind} id {id:?} is {len} bytes long; the limit is {MAX_ID_LEN}")]
+    TooLong {
+        kind: &'static str,
+        id: String,
+        len: usize,
+    },
+    #[error(
+        "{kind} id {id:?} has {found:?} at byte {position}; allowed are A-Z, a-z, 0-9, '_' and '-'"
+    )]
+    BadCharacter {
+        kind: &'static str,
+        id: String,
+        found: char,
+        position: usize,
+    },
+}
+
+fn validate_id(kind: &'static str, id: &str) -> Result<(), IdError> {
+    if id.is_empty() {
+        return Err(IdError::Empty { kind });
+    }
+    if id.len() > MAX_ID_LEN {
+        return Err(IdError::TooLong {
+            kind,
+            id: id.chars().take(MAX_ID_LEN).collect::<String>() + "…",
+            len: id.len(),
+        });
+    }
+    if let Some((position, found)) = id
+        .char_indices()
+        .find(|&(_, c)| !(c.is_ascii_alphanumeric() || c == '_' || c == '-'))
+    {
+        return Err(IdError::BadCharacter {
+            kind,
+            id: id.to_owned(),
+            found,
+            position,
+        });
+    }
+    Ok(())
+}
+
+macro_rules! id_type {
+    ($(#[$doc:meta])* $name:ident, $kind:literal) => {
+        $(#[$doc])*
+        #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+        #[serde(try_from = "String", into = "String")]
+        pub struct $name(String);
+
+        impl $name {
+            /// Validates `id` (1–64 characters from `A–Z a–z 0–9 _ -`).
+            pub fn new(id: impl Into<String>) -> Result<Self, IdError> {
+                let id = id.into();
+                validate_id($kind, &id)?;
+                Ok(Self(id))
+            }
+
+            pub fn as_str(&self) -> &str {
+                &self.0
+            }
+        }
+
+        impl FromStr for $name {
+            type Err = IdError;
+            fn from_str(s: &str) -> Result<Self, IdError> {
+                Self::new(s)
+            }
+        }
+
+        impl TryFrom<String> for $name {
+            type Error = IdError;
+            fn try_from(s: String) -> Result<Self, IdError> {
+                Self::new(s)
+            }
+        }
+
+        impl From<$name> for String {
+            fn from(id: $name) -> String {
+                id.0
+            }
+        }
+
+        impl fmt::Display for $name {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str(&self.0)
+            }
+        }
+
+        impl AsRef<str> for $name {
+            fn as_ref(&self) -> &str {
+                &self.0
+            }
+        }
+    };
+}
+
+id_type!(
+    /// A building: one gateway, one key space.
+    BuildingId,
+    "building"
+);
+id_type!(
+    /// A three-axis sensor, unique within its building and across the lab's registry.
+    SensorId,
+    "sensor"
+);
+
+/// A concrete Triax key.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub enum Key {
+    Raw(BuildingId, SensorId),
+    Corrected(BuildingId, SensorId),
+    Tilt(BuildingId, SensorId),
+    CalibrationPush(BuildingId, SensorId),
+    CalibrationAck(BuildingId, SensorId),
+    CalibrationRegistry(BuildingId),
+    Status(BuildingId),
+    Alert(BuildingId, SensorId),
+}
+
+/// Why a key string is not a Triax key.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum KeyError {
+    #[error("key {key:?} does not start with \"{ROOT}/\"")]
+    WrongRoot { key: String },
+    #[error("key {key:?} has an unknown shape after the building id")]
+    UnknownShape { key: String },
+    #[error("key {key:?}: {source}")]
+    BadId {
+        key: String,
+        #[source]
+        source: IdError,
+    },
+}
+
+impl Key {
+    pub fn building(&self) -> &BuildingId {
+        match self {
+            Key::Raw(b, _)
+            | Key::Corrected(b, _)
+            | Key::Tilt(b, _)
+            | Key::CalibrationPush(b, _)
+            | Key::CalibrationAck(b, _)
+            | Key::CalibrationRegistry(b)
+            | Key::Status(b)
+            | Key::Alert(b, _) => b,
+        }
+    }
+
+    pub fn sensor(&self) -> Option<&SensorId> {
+        match self {
+            Key::Raw(_, s)
+            | Key::Corrected(_, s)
+            | Key::Tilt(_, s)
+            | Key::CalibrationPush(_, s)
+            | Key::CalibrationAck(_, s)
+            | Key::Alert(_, s) => Some(s),
+            Key::CalibrationRegistry(_) | Key::Status(_) => None,
+        }
+    }
+
+    /// Parses a concrete key (no wildcards).
+    pub fn parse(key: &str) -> Result<Key, KeyError> {
+        let chunks: Vec<&str> = key.split('/').collect();
+        if chunks.first() != Some(&ROOT) || chunks.len() < 3 {
+            return Err(KeyError::WrongRoot { key: key.into() });
+        }
+        let bad_id = |source| KeyError::BadId {
+            key: key.into(),
+            source,
+        };
+        let b = BuildingId::new(chunks[1]).map_err(bad_id)?;
+        let sensor = |s: &str| SensorId::new(s).map_err(bad_id);
+        Ok(match chunks[2..] {
+            ["raw", s] => Key::Raw(b, sensor(s)?),
+            ["corrected", s] => Key::Corrected(b, sensor(s)?),
+            ["tilt", s] => Key::Tilt(b, sensor(s)?),
+            ["calibration", "push", s] => Key::CalibrationPush(b, sensor(s)?),
+            ["calibration", "ack", s] => Key::CalibrationAck(b, sensor(s)?),
+            ["calibration", "registry"] => Key::CalibrationRegistry(b),
+            ["status"] => Key::Status(b),
+            ["alert", s] => Key::Alert(b, sensor(s)?),
+            _ => return Err(KeyError::UnknownShape { key: key.into() }),
+        })
+    }
+}
+
+impl fmt::Display for Key {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Key::Raw(b, s) => write!(f, "{ROOT}/{b}/raw/{s}"),
+            Key::Corrected(b, s) => write!(f, "{ROOT}/{b}/corrected/{s}"),
+            Key::Tilt(b, s) => write!(f, "{ROOT}/{b}/tilt/{s}"),
+            Key::CalibrationPush(b, s) => write!(f, "{ROOT}/{b}/calibration/push/{s}"),
+            Key::CalibrationAck(b, s) => write!(f, "{ROOT}/{b}/calibration/ack/{s}"),
+            Key::CalibrationRegistry(b) => write!(f, "{ROOT}/{b}/calibration/registry"),
+            Key::Status(b) => write!(f, "{ROOT}/{b}/status"),
+            Key::Alert(b, s) => write!(f, "{ROOT}/{b}/alert/{s}"),
+        }
+    }
+}
+
+/// Which stream family a wildcard subscription covers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stream {
+    Raw,
+    Corrected,
+    Tilt,
+    CalibrationPush,
+    CalibrationAck,
+    Alert,
+}
+
+impl Stream {
+    fn path(self) -> &'static str {
+        match self {
+            Stream::Raw => "raw",
+            Stream::Corrected => "corrected",
+            Stream::Tilt => "tilt",
+            Stream::CalibrationPush => "calibration/push",
+            Stream::CalibrationAck => "calibration/ack",
+            Stream::Alert => "alert",
+        }
+    }
+}
+
+/// Key expression for every sensor of one stream family in one building,
+/// e.g. `triax/b1/raw/*`.
+pub fn all_sensors(building: &BuildingId, stream: Stream) -> String {
+    format!("{ROOT}/{building}/{}/*", stream.path())
+}
+
+/// Key expression for every sensor of one stream family in every building,
+/// e.g. `triax/*/corrected/*`.
+pub fn all_buildings(stream: Stream) -> String {
+    format!("{ROOT}/*/{}/*", stream.path())
+}
+
+/// Key expression for the registry of every building, served by the lab.
+pub fn all_registries() -> String {
+    format!("{ROOT}/*/calibration/registry")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn b(s: &str) -> BuildingId {
+        BuildingId::new(s).unwrap()
+    }
+    fn s(x: &str) -> SensorId {
+        SensorId::new(x).unwrap()
+    }
+
+    #[test]
+    fn every_key_round_trips() {
+        let keys = [
+            Key::Raw(b("hq"), s("acc-01")),
+            Key::Corrected(b("hq"), s("acc-01")),
+            Key::Tilt(b("hq"), s("acc-01")),
+            Key::CalibrationPush(b("hq"), s("acc-01")),
+            Key::CalibrationAck(b("hq"), s("acc-01")),
+            Key::CalibrationRegistry(b("hq")),
+            Key::Status(b("hq")),
+            Key::Alert(b("hq"), s("acc-01")),
+        ];
+        for k in keys {
+            let text = k.to_string();
+            assert_eq!(Key::parse(&text).unwrap(), k, "{text}");
+        }
+        assert_eq!(
+            Key::Raw(b("B_2"), s("x")).to_string(),
+            "triax/B_2/raw/x",
+            "documented layout"
+        );
+    }
+
+    #[test]
+    fn ids_are_validated() {
+        assert!(matches!(
+            SensorId::new(""),
+            Err(IdError::Empty { kind: "sensor" })
+        ));
+        assert!(matches!(
+            BuildingId::new("a".repeat(65)),
+            Err(IdError::TooLong { len: 65, .. })
+        ));
+        assert!(BuildingId::new("a".repeat(64)).is_ok());
+        for bad in ["a/b", "a*", "**", "a b", "x?y", "$z", "@q", "é"] {
+            let err = SensorId::new(bad).unwrap_err();
+            assert!(matches!(err, IdError::BadCharacter { .. }), "{bad}: {err}");
+        }
+        let msg = SensorId::new("ab/c").unwrap_err().to_string();
+        assert!(msg.contains("'/'") && msg.contains("byte 2"), "{msg}");
+    }
+
+    #[test]
+    fn foreign_keys_are_refused() {
+        for bad in [
+            "",
+            "triax",
+            "triax/hq",
+            "other/hq/raw/s",
+            "triax/hq/raw",
+            "triax/hq/raw/s/extra",
+            "triax/hq/unknown/s",
+            "triax/hq/calibration/other/s",
+        ] {
+            assert!(Key::parse(bad).is_err(), "{bad:?} parsed");
+        }
+        assert!(matches!(
+            Key::parse("triax/h q/raw/s"),
+            Err(KeyError::BadId { .. })
+        ));
+    }
+
+    #[test]
+    fn wildcards() {
+        assert_eq!(all_sensors(&b("hq"), Stream::Raw), "triax/hq/raw/*");
+        assert_eq!(all_buildings(Stream::Corrected), "triax/*/corrected/*");
+        assert_eq!(
+            all_sensors(&b("hq"), Stream::CalibrationPush),
+            "triax/hq/calibration/push/*"
+        );
+        assert_eq!(all_registries(), "triax/*/calibration/registry");
+    }
+}

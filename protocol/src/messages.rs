@@ -1,0 +1,358 @@
+//! The low-rate JSON messages: signed calibration pushes and their acknowledgements, gateway
+//! status, tilt, alerts.
+
+use serde::{Deserialize, Serialize};
+use time::OffsetDateTime;
+
+use crate::batch::Mode;
+use crate::json::{from_json, JsonError, JsonMessage};
+use crate::keys::{BuildingId, SensorId};
+use crate::record::CalibrationRecord;
+
+/// Signature algorithm of [`SignedRecord`].
+pub const SIGNATURE_ALGORITHM: &str = "ed25519";
+
+/// Prefix of every signed message, so a signature made for a record can never be taken for a
+/// signature of anything else.
+pub const SIGNING_CONTEXT: &[u8] = b"triax calibration record v1\0";
+
+/// A calibration record signed by a lab key.
+///
+/// The record travels as the exact JSON text that was signed (`record_json`), so no
+/// canonicalisation is needed: the verifier checks the signature over
+/// `SIGNING_CONTEXT ‖ record_json` bytes, then parses the same bytes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SignedRecord {
+    pub format_version: u32,
+    /// Always [`SIGNATURE_ALGORITHM`].
+    pub algorithm: String,
+    /// Signer's public key, 32 bytes in lowercase hex.
+    pub public_key_hex: String,
+    /// The record's JSON, byte for byte as signed.
+    pub record_json: String,
+    /// Signature, 64 bytes in lowercase hex.
+    pub signature_hex: String,
+}
+
+impl JsonMessage for SignedRecord {
+    const WHAT: &'static str = "signed calibration record";
+}
+
+impl SignedRecord {
+    /// The bytes a signature covers.
+    pub fn signing_message(record_json: &str) -> Vec<u8> {
+        let mut m = SIGNING_CONTEXT.to_vec();
+        m.extend_from_slice(record_json.as_bytes());
+        m
+    }
+
+    /// Parses the enclosed record. Call only after the signature was verified.
+    pub fn record(&self) -> Result<CalibrationRecord, JsonError> {
+        from_json(self.record_json.as_bytes())
+    }
+}
+
+/// A gateway's answer to a calibration push.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PushAck {
+    pub format_version: u32,
+    pub building: BuildingId,
+    pub sensor_id: SensorId,
+    /// Which gateway answered.
+    pub gateway: String,
+    pub outcome: PushOutcome,
+    #[serde(with = "time::serde::rfc3339")]
+    pub at: OffsetDateTime,
+}
+
+impl JsonMessage for PushAck {
+    const WHAT: &'static str = "push acknowledgement";
+}
+
+/// Accepted (the version is durable and in force) or refused with a reason.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "status", rename_all = "snake_case", deny_unknown_fields)]
+pub enum PushOutcome {
+    Accepted {
+        version: u64,
+        /// The same version with the same content was already stored (an idempotent retry).
+        already_stored: bool,
+    },
+    Refused {
+        reason: RefusalReason,
+        detail: String,
+    },
+}
+
+/// Why a push was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RefusalReason {
+    /// The payload is not a signed record.
+    Malformed,
+    /// The signing key is not among the gateway's trusted lab keys.
+    UnknownKey,
+    /// The signature does not verify.
+    BadSignature,
+    /// The record does not load into a corrector.
+    InvalidRecord,
+    /// The record's sensor is not the sensor in the key.
+    WrongSensor,
+    /// Older version, or same version with other content: a replay or a rollback.
+    StaleVersion,
+    /// The record could not be made durable.
+    StoreFailure,
+}
+
+/// Per-sensor state reported by a gateway.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorStatus {
+    pub sensor_id: SensorId,
+    #[serde(
+        default,
+        with = "time::serde::rfc3339::option",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub last_seen: Option<OffsetDateTime>,
+    pub batches: u64,
+    pub samples: u64,
+    /// Batches that came after a jump in sequence numbers.
+    pub gaps: u64,
+    /// Sequence numbers lost in those jumps.
+    pub missing_batches: u64,
+    pub duplicates: u64,
+    /// Malformed payloads on this sensor's key.
+    pub rejects: u64,
+    /// Samples published with any quality flag set.
+    pub flagged_samples: u64,
+    /// Version in force; none when uncalibrated.
+    pub calibration_version: Option<u64>,
+    pub mode: Mode,
+}
+
+/// A gateway's status, answered on `triax/<building>/status`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GatewayStatus {
+    pub format_version: u32,
+    pub building: BuildingId,
+    pub gateway: String,
+    #[serde(with = "time::serde::rfc3339")]
+    pub started_at: OffsetDateTime,
+    #[serde(with = "time::serde::rfc3339")]
+    pub reported_at: OffsetDateTime,
+    /// Payloads that did not decode, on any key.
+    pub malformed: u64,
+    /// Corrected batches not published because the publisher fell behind (drop-oldest).
+    pub dropped: u64,
+    pub pushes_accepted: u64,
+    pub pushes_refused: u64,
+    pub sensors: Vec<SensorStatus>,
+}
+
+impl JsonMessage for GatewayStatus {
+    const WHAT: &'static str = "gateway status";
+    // About 400 bytes a sensor: room for 10 000 sensors.
+    const MAX_BYTES: usize = 8 << 20;
+}
+
+/// Inclination from the low band of a sensor's static-corrected output.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TiltSample {
+    pub format_version: u32,
+    pub sensor_id: SensorId,
+    /// Time of the estimate, ns since the Unix epoch.
+    pub timestamp_ns: i64,
+    /// Rotation about x: atan2(a_y, a_z), degrees.
+    pub roll_deg: f64,
+    /// Rotation about y: atan2(−a_x, √(a_y² + a_z²)), degrees.
+    pub pitch_deg: f64,
+    /// Standard uncertainties (k = 1), degrees.
+    pub roll_uncertainty_deg: f64,
+    pub pitch_uncertainty_deg: f64,
+    pub coverage_factor: f64,
+    pub calibration_version: u64,
+    /// [`crate::batch::flags`] bits of the samples behind this estimate.
+    pub flags: u16,
+}
+
+impl JsonMessage for TiltSample {
+    const WHAT: &'static str = "tilt sample";
+}
+
+/// What an alert is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AlertKind {
+    PeakAcceleration,
+    RmsAcceleration,
+    DominantFrequency,
+    TiltChange,
+    Stale,
+}
+
+/// Decision under uncertainty, ISO/IEC 17025 §7.8.6 style with a guard band of k·u.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AlertLevel {
+    /// The lower bound of the k-interval is above the threshold.
+    Exceeded,
+    /// The k-interval straddles the threshold.
+    Possible,
+    /// No data from the sensor for longer than allowed.
+    Stale,
+}
+
+/// An alert, published on `triax/<building>/alert/<sensor>`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Alert {
+    pub format_version: u32,
+    pub building: BuildingId,
+    pub sensor_id: SensorId,
+    pub kind: AlertKind,
+    pub level: AlertLevel,
+    /// Measured value and its standard uncertainty, in `unit`.
+    pub value: f64,
+    pub standard_uncertainty: f64,
+    pub coverage_factor: f64,
+    pub threshold: f64,
+    pub unit: String,
+    pub window_s: f64,
+    /// Fraction of the window's samples that carried quality flags.
+    pub flagged_fraction: f64,
+    /// The decision rule and any caveat, in words.
+    pub statement: String,
+    #[serde(with = "time::serde::rfc3339")]
+    pub at: OffsetDateTime,
+}
+
+impl JsonMessage for Alert {
+    const WHAT: &'static str = "alert";
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::json::{to_json, JSON_FORMAT_VERSION};
+    use crate::record::sample;
+
+    fn t() -> OffsetDateTime {
+        OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap()
+    }
+
+    fn round_trip<T: JsonMessage + PartialEq + std::fmt::Debug>(m: &T) {
+        let back: T = from_json(&to_json(m)).unwrap();
+        assert_eq!(&back, m);
+    }
+
+    #[test]
+    fn every_json_message_round_trips() {
+        let record_json = String::from_utf8(to_json(&sample::record("acc-1", 4))).unwrap();
+        let signed = SignedRecord {
+            format_version: JSON_FORMAT_VERSION,
+            algorithm: SIGNATURE_ALGORITHM.into(),
+            public_key_hex: "ab".repeat(32),
+            record_json,
+            signature_hex: "cd".repeat(64),
+        };
+        round_trip(&signed);
+        assert_eq!(signed.record().unwrap(), sample::record("acc-1", 4));
+        assert!(SignedRecord::signing_message("{}").starts_with(SIGNING_CONTEXT));
+
+        let b = BuildingId::new("hq").unwrap();
+        let s = SensorId::new("acc-1").unwrap();
+        for outcome in [
+            PushOutcome::Accepted {
+                version: 4,
+                already_stored: false,
+            },
+            PushOutcome::Refused {
+                reason: RefusalReason::StaleVersion,
+                detail: "version 3 is not newer than 4".into(),
+            },
+        ] {
+            round_trip(&PushAck {
+                format_version: JSON_FORMAT_VERSION,
+                building: b.clone(),
+                sensor_id: s.clone(),
+                gateway: "gw-hq".into(),
+                outcome,
+                at: t(),
+            });
+        }
+        round_trip(&GatewayStatus {
+            format_version: JSON_FORMAT_VERSION,
+            building: b.clone(),
+            gateway: "gw-hq".into(),
+            started_at: t(),
+            reported_at: t(),
+            malformed: 2,
+            dropped: 0,
+            pushes_accepted: 1,
+            pushes_refused: 1,
+            sensors: vec![SensorStatus {
+                sensor_id: s.clone(),
+                last_seen: Some(t()),
+                batches: 10,
+                samples: 1000,
+                gaps: 1,
+                missing_batches: 3,
+                duplicates: 0,
+                rejects: 1,
+                flagged_samples: 100,
+                calibration_version: Some(4),
+                mode: Mode::Dynamic,
+            }],
+        });
+        round_trip(&TiltSample {
+            format_version: JSON_FORMAT_VERSION,
+            sensor_id: s.clone(),
+            timestamp_ns: 5,
+            roll_deg: 0.5,
+            pitch_deg: -0.25,
+            roll_uncertainty_deg: 0.01,
+            pitch_uncertainty_deg: 0.01,
+            coverage_factor: 2.0,
+            calibration_version: 4,
+            flags: 0,
+        });
+        round_trip(&Alert {
+            format_version: JSON_FORMAT_VERSION,
+            building: b,
+            sensor_id: s,
+            kind: AlertKind::PeakAcceleration,
+            level: AlertLevel::Possible,
+            value: 0.9,
+            standard_uncertainty: 0.1,
+            coverage_factor: 2.0,
+            threshold: 1.0,
+            unit: "m/s^2".into(),
+            window_s: 10.0,
+            flagged_fraction: 0.0,
+            statement: "interval 0.7..1.1 straddles 1.0".into(),
+            at: t(),
+        });
+    }
+
+    #[test]
+    fn ack_json_shape_is_documented() {
+        let ack = PushAck {
+            format_version: 1,
+            building: BuildingId::new("hq").unwrap(),
+            sensor_id: SensorId::new("a").unwrap(),
+            gateway: "g".into(),
+            outcome: PushOutcome::Refused {
+                reason: RefusalReason::BadSignature,
+                detail: "x".into(),
+            },
+            at: t(),
+        };
+        let v: serde_json::Value = serde_json::from_slice(&to_json(&ack)).unwrap();
+        assert_eq!(v["outcome"]["status"], "refused");
+        assert_eq!(v["outcome"]["reason"], "bad_signature");
+        assert_eq!(v["at"], "2027-01-15T08:00:00Z");
+    }
+}
