@@ -1,1 +1,384 @@
-//! Under construction.
+//! The Triax building gateway: subscribes to every raw sensor stream of one building over Zenoh,
+//! corrects each sample with the sensor's calibration, tags it with its uncertainty, quality
+//! flags and the calibration version, and publishes it.
+//!
+//! The entry point is [`run`] (or [`Gateway::start`] then [`Gateway::run_until`]): it takes a
+//! validated [`Config`] and a shutdown future, so a test can start a gateway on a loopback port
+//! and stop it at will. The `triax-gateway` binary only parses arguments, installs logging and
+//! hands over.
+//!
+//! Data flow:
+//!
+//! ```text
+//! triax/<b>/raw/*  ─► Zenoh callback ─► Inbox (bounded, drop-oldest) ─► worker (per sensor
+//!   shard): sequence check, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
+//!                                                                  triax/<b>/tilt/<s>
+//! triax/<b>/status ◄─ queryable (GatewayStatus JSON)      http://<metrics>/metrics (Prometheus)
+//! ```
+//!
+//! - [`config`]: TOML file, flags, environment; refused with field and reason.
+//! - [`sensors`]: the in-memory table of sensors, with each one's corrector snapshot, swapped
+//!   atomically between batches ([`SensorTable::install`]).
+//! - [`kernel`]: the allocation-free sample path; the mode rules and the frequency detector.
+//! - [`tilt`], [`sequence`], [`filter`], [`inbox`]: its parts.
+//! - [`worker`], [`metrics`], [`net`], [`shutdown`]: the service around it.
+//! - [`demo`]: an embedded building with simulated sensor nodes.
+//!
+//! Architecture invariant: the sample path never touches the store. Calibrations are read from
+//! the store at start (and, later, on an accepted update) and live in [`SensorTable`]; the store
+//! is used from blocking tasks only.
+
+pub mod config;
+pub mod demo;
+pub mod filter;
+pub mod inbox;
+pub mod kernel;
+pub mod metrics;
+pub mod net;
+pub mod sensors;
+pub mod sequence;
+pub mod shutdown;
+pub mod tilt;
+pub mod worker;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::Arc;
+
+use time::OffsetDateTime;
+use tokio::task::JoinHandle;
+use triax_calibration::corrector::Corrector;
+use triax_calibration_store::{Store, StoreError};
+use triax_protocol::keys::{self, Stream};
+use triax_protocol::messages::GatewayStatus;
+use triax_protocol::{to_json, Key, JSON_FORMAT_VERSION};
+use zenoh::sample::Sample;
+
+pub use config::{Config, ConfigArgs, ConfigError, CorrectionMode, SensorSettings};
+pub use sensors::{GatewayCounters, SensorTable};
+
+use inbox::Inbox;
+use shutdown::ShutdownTrigger;
+
+/// Why the gateway could not start or stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    ZenohConfig(#[from] net::ZenohConfigError),
+    #[error("calibration store {path}: {source}")]
+    Store {
+        path: std::path::PathBuf,
+        #[source]
+        source: StoreError,
+    },
+    #[error("zenoh: {action}: {message}")]
+    Zenoh {
+        action: &'static str,
+        message: String,
+    },
+    #[error("metrics endpoint {addr}: {source}")]
+    Metrics {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("a gateway task failed: {0}")]
+    Task(String),
+}
+
+fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError {
+    move |e| GatewayError::Zenoh {
+        action,
+        message: e.to_string(),
+    }
+}
+
+/// A running gateway.
+pub struct Gateway {
+    config: Arc<Config>,
+    session: zenoh::Session,
+    store: Arc<Store>,
+    table: Arc<SensorTable>,
+    counters: Arc<GatewayCounters>,
+    trigger: ShutdownTrigger,
+    subscriber: Option<zenoh::pubsub::Subscriber<()>>,
+    tasks: Vec<JoinHandle<()>>,
+    metrics_addr: Option<SocketAddr>,
+    started_at: OffsetDateTime,
+}
+
+/// Runs a gateway until `shutdown` completes, then stops it cleanly.
+pub async fn run(config: Config, shutdown: impl Future) -> Result<(), GatewayError> {
+    Gateway::start(config).await?.run_until(shutdown).await
+}
+
+/// How long to wait for another holder of the store to let go.
+const STORE_LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Opens the store, waiting a little while it is locked: sled releases its directory lock from
+/// a background thread shortly after the last handle is dropped, so a restart in the same
+/// process (or right after the previous process exited) can find it still held.
+fn open_store(path: &std::path::Path) -> Result<Store, StoreError> {
+    let deadline = std::time::Instant::now() + STORE_LOCK_WAIT;
+    loop {
+        match Store::open(path) {
+            Err(StoreError::Locked { .. }) if std::time::Instant::now() < deadline => {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+            other => return other,
+        }
+    }
+}
+
+/// Loads every current record from the store into the table; returns how many loaded.
+async fn load_calibrations(store: &Arc<Store>, table: &SensorTable) -> Result<usize, StoreError> {
+    let s = store.clone();
+    let scan = tokio::task::spawn_blocking(move || s.current_records())
+        .await
+        .map_err(|e| StoreError::Io {
+            action: "load records",
+            source: std::io::Error::other(e.to_string()),
+        })??;
+    for skipped in &scan.skipped {
+        tracing::error!(entry = %skipped, "unreadable store entry: sensor stays uncalibrated");
+    }
+    let mut loaded = 0;
+    for record in &scan.value {
+        match Corrector::from_record(record) {
+            Ok(c) => {
+                table.install(c);
+                loaded += 1;
+            }
+            // The store validates on put; this is a record from an older, laxer build.
+            Err(e) => tracing::error!(sensor = %record.sensor_id, cause = %e,
+                "stored record does not load: sensor stays uncalibrated"),
+        }
+    }
+    Ok(loaded)
+}
+
+impl Gateway {
+    /// Opens the store, loads the calibrations, joins Zenoh, and starts serving.
+    pub async fn start(config: Config) -> Result<Gateway, GatewayError> {
+        let config = Arc::new(config);
+        let started_at = OffsetDateTime::now_utc();
+        let path = config.store_path.clone();
+        let store_err = |source| GatewayError::Store {
+            path: path.clone(),
+            source,
+        };
+        let open_path = path.clone();
+        let store = tokio::task::spawn_blocking(move || open_store(&open_path))
+            .await
+            .map_err(|e| GatewayError::Task(e.to_string()))?
+            .map_err(store_err)?;
+        let store = Arc::new(store);
+        let table = Arc::new(SensorTable::new(config.clone()));
+        let loaded = load_calibrations(&store, &table).await.map_err(store_err)?;
+        tracing::info!(building = %config.building, calibrations = loaded, store = %path.display(), "calibrations loaded");
+
+        let zconfig = net::zenoh_config(&config.zenoh)?;
+        let session = zenoh::open(zconfig)
+            .await
+            .map_err(zenoh_err("open session"))?;
+        let counters = Arc::new(GatewayCounters::default());
+        let (trigger, shutdown) = shutdown::channel();
+        let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
+            (0..config.workers)
+                .map(|_| {
+                    Arc::new(Inbox::new(
+                        config.queue_capacity_batches,
+                        counters.dropped.clone(),
+                    ))
+                })
+                .collect(),
+        );
+        let shared = Arc::new(worker::Shared {
+            building: config.building.clone(),
+            session: session.clone(),
+            table: table.clone(),
+            counters: counters.clone(),
+        });
+        let mut tasks = Vec::new();
+        for (i, inbox) in inboxes.iter().enumerate() {
+            tasks.push(tokio::spawn(worker::run(
+                i,
+                inbox.clone(),
+                shared.clone(),
+                shutdown.clone(),
+            )));
+        }
+
+        let route = inboxes.clone();
+        let subscriber = session
+            .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
+            .callback(move |sample: Sample| {
+                let key = sample.key_expr().as_str();
+                let sensor = key.rsplit_once('/').map_or(key, |(_, s)| s);
+                route[worker::shard(sensor, route.len())].push(sample);
+            })
+            .await
+            .map_err(zenoh_err("subscribe to raw streams"))?;
+
+        let status_ctx = StatusContext {
+            config: config.clone(),
+            table: table.clone(),
+            counters: counters.clone(),
+            started_at,
+        };
+        let queryable = session
+            .declare_queryable(Key::Status(config.building.clone()).to_string())
+            .await
+            .map_err(zenoh_err("declare the status queryable"))?;
+        let mut sd = shutdown.clone();
+        tasks.push(tokio::spawn(async move {
+            loop {
+                let query = tokio::select! {
+                    q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+                    _ = sd.recv() => break,
+                };
+                let body = to_json(&status_ctx.status());
+                let key = Key::Status(status_ctx.config.building.clone()).to_string();
+                if let Err(e) = query.reply(key, body).await {
+                    tracing::warn!(cause = %e, "status reply failed");
+                }
+            }
+        }));
+
+        let mut metrics_addr = None;
+        if let Some(addr) = config.metrics_listen {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(|source| GatewayError::Metrics { addr, source })?;
+            let bound = listener
+                .local_addr()
+                .map_err(|source| GatewayError::Metrics { addr, source })?;
+            metrics_addr = Some(bound);
+            let boxes = inboxes.clone();
+            let src = metrics::MetricsSource {
+                table: table.clone(),
+                counters: counters.clone(),
+                queued: Arc::new(move || boxes.iter().map(|b| b.len()).sum()),
+            };
+            tasks.push(tokio::spawn(metrics::serve(
+                listener,
+                src,
+                shutdown.clone(),
+            )));
+            tracing::info!(addr = %bound, "metrics at http://{bound}/metrics");
+        }
+        tracing::info!(
+            building = %config.building,
+            gateway = %config.gateway_name,
+            zid = %session.zid(),
+            workers = config.workers,
+            "gateway running"
+        );
+        Ok(Gateway {
+            config,
+            session,
+            store,
+            table,
+            counters,
+            trigger,
+            subscriber: Some(subscriber),
+            tasks,
+            metrics_addr,
+            started_at,
+        })
+    }
+
+    /// Address the metrics endpoint is bound to (useful with port 0).
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
+    }
+
+    /// The sensor table: corrector snapshots (hot swap), settings, counters.
+    pub fn sensors(&self) -> &Arc<SensorTable> {
+        &self.table
+    }
+
+    pub fn counters(&self) -> &Arc<GatewayCounters> {
+        &self.counters
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    pub fn started_at(&self) -> OffsetDateTime {
+        self.started_at
+    }
+
+    /// The Zenoh session, for components that share it.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    /// The calibration store, for components that update it (from blocking tasks).
+    pub fn store(&self) -> &Arc<Store> {
+        &self.store
+    }
+
+    /// Serves until `shutdown` completes, then stops: no new batches, workers finish the one
+    /// in hand, the session closes, the store is flushed and closed.
+    pub async fn run_until(mut self, shutdown: impl Future) -> Result<(), GatewayError> {
+        shutdown.await;
+        tracing::info!("shutting down");
+        // Stop intake first, so nothing lands in an inbox no worker drains.
+        drop(self.subscriber.take());
+        self.trigger.fire();
+        for t in self.tasks.drain(..) {
+            if let Err(e) = t.await {
+                tracing::error!(cause = %e, "gateway task ended abnormally");
+            }
+        }
+        if let Err(e) = self.session.close().await {
+            tracing::warn!(cause = %e, "zenoh session did not close cleanly");
+        }
+        let store = self.store.clone();
+        drop(self);
+        // Every put is flushed when it returns; the flush here makes that explicit before the
+        // last handle closes sled. Blocking I/O, so off the runtime threads.
+        let flushed = tokio::task::spawn_blocking(move || {
+            let flushed = store.flush();
+            drop(store);
+            flushed
+        })
+        .await
+        .map_err(|e| GatewayError::Task(e.to_string()))?;
+        if let Err(e) = flushed {
+            tracing::error!(cause = %e, "calibration store did not flush on shutdown");
+        }
+        tracing::info!("stopped");
+        Ok(())
+    }
+}
+
+struct StatusContext {
+    config: Arc<Config>,
+    table: Arc<SensorTable>,
+    counters: Arc<GatewayCounters>,
+    started_at: OffsetDateTime,
+}
+
+impl StatusContext {
+    fn status(&self) -> GatewayStatus {
+        let c = &self.counters;
+        GatewayStatus {
+            format_version: JSON_FORMAT_VERSION,
+            building: self.config.building.clone(),
+            gateway: self.config.gateway_name.clone(),
+            started_at: self.started_at,
+            reported_at: OffsetDateTime::now_utc(),
+            malformed: c.malformed.load(Relaxed),
+            dropped: c.dropped.load(Relaxed),
+            pushes_accepted: c.pushes_accepted.load(Relaxed),
+            pushes_refused: c.pushes_refused.load(Relaxed),
+            sensors: self.table.snapshot().iter().map(|e| e.status()).collect(),
+        }
+    }
+}

@@ -1,3 +1,116 @@
-fn main() {
-    eprintln!("the gateway demo is not built yet");
+//! `triax-gateway`: the building gateway service. Parses flags, installs logging, and hands
+//! over to the library ([`triax_gateway::run`], or the demo).
+//!
+//! ```text
+//! triax-gateway                          # serve with defaults (building `hq`)
+//! triax-gateway -c gateway.toml          # serve with a config file
+//! triax-gateway --demo                   # an embedded building with simulated sensors
+//! triax-gateway --demo --demo-duration-s 20
+//! triax-gateway store list               # inspect the calibration store (gateway stopped)
+//! ```
+
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use triax_calibration_store::cli::StoreCommand;
+use triax_calibration_store::Store;
+use triax_gateway::demo::{self, DemoOptions};
+use triax_gateway::ConfigArgs;
+
+/// Corrects the Zenoh sensor streams of one building in real time, with tagged uncertainty.
+#[derive(Debug, Parser)]
+#[command(name = "triax-gateway", version)]
+struct Cli {
+    #[command(flatten)]
+    config: ConfigArgs,
+    /// Run an embedded demo building: the gateway, simulated sensor nodes, a live summary.
+    #[arg(long)]
+    demo: bool,
+    /// Calibrated accelerometers in the demo (plus an inclinometer and an uncalibrated node).
+    #[arg(long, default_value_t = 4, requires = "demo")]
+    demo_sensors: usize,
+    /// Stop the demo after this many seconds (default: run until Ctrl-C).
+    #[arg(long, requires = "demo")]
+    demo_duration_s: Option<f64>,
+    /// Log filter (tracing env-filter syntax); default `info`, `warn` in the demo.
+    #[arg(long, env = "TRIAX_LOG")]
+    log: Option<String>,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum Command {
+    /// Inspect, back up and restore the calibration store (while the gateway is stopped).
+    Store {
+        #[command(subcommand)]
+        command: StoreCommand,
+    },
+}
+
+/// Completes on SIGINT or SIGTERM.
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(e) => {
+                tracing::warn!(cause = %e, "no SIGTERM handler; Ctrl-C only");
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let default_log = if cli.demo { "warn" } else { "info" };
+    let filter = tracing_subscriber::EnvFilter::try_new(cli.log.as_deref().unwrap_or(default_log))
+        .context("--log is not a valid filter")?;
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+
+    let config = cli.config.load().context("configuration refused")?;
+
+    if let Some(Command::Store { command }) = &cli.command {
+        let store = Store::open(&config.store_path)
+            .with_context(|| format!("opening {}", config.store_path.display()))?;
+        triax_calibration_store::cli::run(&store, command, &mut std::io::stdout().lock())?;
+        return Ok(());
+    }
+
+    // Zenoh needs the multi-thread runtime.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    runtime.block_on(async {
+        if cli.demo {
+            let opts = DemoOptions {
+                sensors: cli.demo_sensors,
+                duration: cli
+                    .demo_duration_s
+                    .filter(|s| s.is_finite() && *s > 0.0)
+                    .map(Duration::from_secs_f64),
+                ..DemoOptions::default()
+            };
+            demo::run(config, opts, shutdown_signal()).await?;
+        } else {
+            triax_gateway::run(config, shutdown_signal()).await?;
+        }
+        Ok(())
+    })
 }

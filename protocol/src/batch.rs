@@ -274,6 +274,7 @@ fn check_len(n_samples: usize, expected: usize, len: usize) -> Result<(), Decode
     Ok(())
 }
 
+#[inline(always)]
 fn f32_at(bytes: &[u8], offset: usize) -> f32 {
     f32::from_le_bytes([
         bytes[offset],
@@ -394,6 +395,7 @@ impl<'a> RawBatchView<'a> {
     }
 
     /// Sample `i` (`i < len()`).
+    #[inline]
     pub fn sample(&self, i: usize) -> [f32; 3] {
         let o = i * RAW_SAMPLE_BYTES;
         [
@@ -439,7 +441,8 @@ pub struct CorrectedBatch {
     pub samples: Vec<CorrectedSample>,
 }
 
-fn corrected_len(id_len: usize, n: usize) -> usize {
+/// Length of a corrected batch with an id of `id_len` bytes and `n` samples.
+pub fn corrected_len(id_len: usize, n: usize) -> usize {
     prefix_len(id_len) + 8 + 1 + 1 + 4 + n * CORRECTED_SAMPLE_BYTES
 }
 

@@ -20,6 +20,8 @@ pub trait JsonMessage: Serialize + DeserializeOwned {
     const WHAT: &'static str;
     /// Largest payload accepted for this message.
     const MAX_BYTES: usize = MAX_JSON_BYTES;
+    /// The message's `format_version` field.
+    fn format_version(&self) -> u32;
 }
 
 /// Why a JSON payload was refused.
@@ -65,7 +67,11 @@ pub fn to_json_pretty<T: JsonMessage>(message: &T) -> Vec<u8> {
     out
 }
 
-/// Decodes a message, checking size and format version first.
+/// Decodes a message, checking size and format version.
+///
+/// The common case parses once. Only when the full parse fails, or yields another format
+/// version, is the `format_version` field read on its own, so that a message from a newer format
+/// is reported as such rather than as a confusing field error.
 pub fn from_json<T: JsonMessage>(bytes: &[u8]) -> Result<T, JsonError> {
     if bytes.len() > T::MAX_BYTES {
         return Err(JsonError::TooLarge {
@@ -74,37 +80,40 @@ pub fn from_json<T: JsonMessage>(bytes: &[u8]) -> Result<T, JsonError> {
             max: T::MAX_BYTES,
         });
     }
+    match serde_json::from_slice::<T>(bytes) {
+        Ok(m) if m.format_version() == JSON_FORMAT_VERSION => Ok(m),
+        Ok(m) => Err(JsonError::UnsupportedVersion {
+            what: T::WHAT,
+            found: u64::from(m.format_version()),
+        }),
+        Err(e) => Err(version_error::<T>(bytes).unwrap_or_else(|| malformed(T::WHAT, e))),
+    }
+}
+
+/// The error to report instead of a parse error, when the `format_version` field explains it.
+fn version_error<T: JsonMessage>(bytes: &[u8]) -> Option<JsonError> {
     #[derive(Deserialize)]
     struct Probe {
         format_version: Option<serde_json::Value>,
     }
-    let probe: Probe = serde_json::from_slice(bytes).map_err(|e| malformed(T::WHAT, e))?;
-    match probe.format_version {
-        None => {
-            return Err(JsonError::Malformed {
-                what: T::WHAT,
-                line: 1,
-                column: 1,
-                message: "missing field `format_version`".into(),
-            })
-        }
+    let probe: Probe = serde_json::from_slice(bytes).ok()?;
+    let message = match probe.format_version {
+        None => "missing field `format_version`".to_owned(),
         Some(v) => match v.as_u64() {
-            Some(found) if found == u64::from(JSON_FORMAT_VERSION) => {}
+            Some(found) if found == u64::from(JSON_FORMAT_VERSION) => return None,
             Some(found) => {
-                return Err(JsonError::UnsupportedVersion {
+                return Some(JsonError::UnsupportedVersion {
                     what: T::WHAT,
                     found,
                 })
             }
-            None => {
-                return Err(JsonError::Malformed {
-                    what: T::WHAT,
-                    line: 1,
-                    column: 1,
-                    message: format!("format_version {v} is not a non-negative integer"),
-                })
-            }
+            None => format!("format_version {v} is not a non-negative integer"),
         },
-    }
-    serde_json::from_slice(bytes).map_err(|e| malformed(T::WHAT, e))
+    };
+    Some(JsonError::Malformed {
+        what: T::WHAT,
+        line: 1,
+        column: 1,
+        message,
+    })
 }

@@ -18,6 +18,7 @@ pub mod json;
 pub mod keys;
 pub mod messages;
 pub mod record;
+pub mod signing;
 
 pub use batch::{
     flags, BatchHeader, CorrectedBatch, CorrectedBatchWriter, CorrectedSample, CorrectionInfo,

@@ -37,6 +37,9 @@ pub struct SignedRecord {
 
 impl JsonMessage for SignedRecord {
     const WHAT: &'static str = "signed calibration record";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 impl SignedRecord {
@@ -69,6 +72,9 @@ pub struct PushAck {
 
 impl JsonMessage for PushAck {
     const WHAT: &'static str = "push acknowledgement";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 /// Accepted (the version is durable and in force) or refused with a reason.
@@ -155,6 +161,9 @@ impl JsonMessage for GatewayStatus {
     const WHAT: &'static str = "gateway status";
     // About 400 bytes a sensor: room for 10 000 sensors.
     const MAX_BYTES: usize = 8 << 20;
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 /// Inclination from the low band of a sensor's static-corrected output.
@@ -180,6 +189,9 @@ pub struct TiltSample {
 
 impl JsonMessage for TiltSample {
     const WHAT: &'static str = "tilt sample";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 /// What an alert is about.
@@ -231,6 +243,9 @@ pub struct Alert {
 
 impl JsonMessage for Alert {
     const WHAT: &'static str = "alert";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 #[cfg(test)]

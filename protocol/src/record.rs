@@ -52,6 +52,9 @@ pub struct CalibrationRecord {
 
 impl JsonMessage for CalibrationRecord {
     const WHAT: &'static str = "calibration record";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 /// The issuing laboratory.

@@ -1,0 +1,777 @@
+//! The alerting logic, per sensor: sliding windows, tilt baselines, decisions, rate limiting and
+//! staleness. Pure and synchronous: decoded messages and the current time go in, alerts come
+//! out, so every rule can be tested with a scripted stream and no network.
+//!
+//! Times: windows follow the samples' own timestamps (the sensor's clock), so a late batch is
+//! judged on what it measured; staleness and rate limiting follow the wall-clock `now` the
+//! caller passes in, since they are about when data *arrives*.
+//!
+//! Quality flags: a sample is *clean* when it has no flag, *usable* when its value and
+//! uncertainty are finite and it is calibrated (an uncalibrated value is a raw output, not m/s²,
+//! and is never judged at all). Each statistic is decided twice: on the clean samples, and on
+//! every usable sample. The second decision is capped at `possible`, so flagged samples never
+//! raise `exceeded` on their own; the alert's statement says which samples it rests on.
+//!
+//! Batches flagged `duplicate` repeat or precede data already seen and are left out of the
+//! window entirely; `sequence_gap` marks every sample of its batch, and a window that is not
+//! all clean has its dominant frequency judged only as flagged (a hole breaks the spectrum).
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+
+use time::OffsetDateTime;
+use triax_protocol::messages::{Alert, AlertKind, AlertLevel, TiltSample};
+use triax_protocol::{flags, BuildingId, CorrectedBatch, CorrectedSample, SensorId};
+
+use crate::config::{Config, Limits, Settings};
+use crate::decision::{decide, rule_text, severity, Direction, Estimate, Limit};
+use crate::stats::{window_stats, Propagation, WindowStats, AXIS_NAMES};
+
+/// Most samples one sensor's window holds; a longer window is shortened to its newest samples.
+/// About 7 MB a sensor, four minutes at 1 kHz.
+pub const MAX_WINDOW_SAMPLES: usize = 1 << 18;
+
+/// Unit strings of alerts.
+pub const UNIT_MPS2: &str = "m/s^2";
+pub const UNIT_HZ: &str = "Hz";
+pub const UNIT_DEG: &str = "deg";
+pub const UNIT_S: &str = "s";
+
+type SensorKey = (BuildingId, SensorId);
+
+/// Which samples a decision rests on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Basis {
+    Clean,
+    /// Includes flagged samples; capped at `possible`.
+    Flagged,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Judgement {
+    level: AlertLevel,
+    estimate: Estimate,
+    basis: Basis,
+    limit: Limit,
+}
+
+/// The last alert sent for one kind, for rate limiting.
+#[derive(Debug, Clone, Copy)]
+struct Sent {
+    level: AlertLevel,
+    at: OffsetDateTime,
+    suppressed: u32,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct TimedSample {
+    t_ns: i64,
+    sample: CorrectedSample,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct TiltBaseline {
+    roll_deg: Estimate,
+    pitch_deg: Estimate,
+}
+
+#[derive(Debug, Default)]
+struct TiltState {
+    calibration_version: Option<u64>,
+    baseline: Option<TiltBaseline>,
+    collecting: Vec<TiltSample>,
+    window: VecDeque<TiltSample>,
+}
+
+#[derive(Debug)]
+struct SensorState {
+    limits: Limits,
+    window: VecDeque<TimedSample>,
+    sample_rate_hz: f64,
+    /// Wall-clock arrival of the last message; None before the first.
+    last_data: Option<OffsetDateTime>,
+    /// When watching began: the reference for a sensor that never sent anything.
+    watched_since: OffsetDateTime,
+    tilt: TiltState,
+    sent: HashMap<AlertKind, Sent>,
+    span: tracing::Span,
+}
+
+impl SensorState {
+    fn new(key: &SensorKey, limits: Limits, now: OffsetDateTime) -> Self {
+        SensorState {
+            limits,
+            window: VecDeque::new(),
+            sample_rate_hz: 0.0,
+            last_data: None,
+            watched_since: now,
+            tilt: TiltState::default(),
+            sent: HashMap::new(),
+            span: tracing::info_span!("sensor", building = %key.0, sensor = %key.1),
+        }
+    }
+
+    fn data_arrived(&mut self, now: OffsetDateTime) {
+        if self.sent.remove(&AlertKind::Stale).is_some() {
+            tracing::info!(parent: &self.span, "data again after a stale alert");
+        }
+        self.last_data = Some(now);
+    }
+}
+
+/// Every watched sensor's state.
+#[derive(Debug)]
+pub struct Monitor {
+    config: Config,
+    sensors: BTreeMap<SensorKey, SensorState>,
+}
+
+fn usable(s: &CorrectedSample) -> bool {
+    s.flags & (flags::UNCALIBRATED | flags::NON_FINITE_INPUT) == 0
+        && s.accel_mps2.iter().all(|a| a.is_finite())
+        && s.uncertainty_mps2
+            .iter()
+            .all(|u| u.is_finite() && *u >= 0.0)
+}
+
+fn tilt_usable(t: &TiltSample) -> bool {
+    t.flags & (flags::UNCALIBRATED | flags::NON_FINITE_INPUT) == 0
+        && [
+            t.roll_deg,
+            t.pitch_deg,
+            t.roll_uncertainty_deg,
+            t.pitch_uncertainty_deg,
+        ]
+        .iter()
+        .all(|v| v.is_finite())
+}
+
+/// The more severe of two judgements; the clean one on a tie.
+fn worse(a: Option<Judgement>, b: Option<Judgement>) -> Option<Judgement> {
+    match (a, b) {
+        (Some(a), Some(b)) if severity(b.level) > severity(a.level) => Some(b),
+        (Some(a), _) => Some(a),
+        (None, b) => b,
+    }
+}
+
+/// Decides on clean samples, and on all usable samples capped at `possible`.
+fn judge(
+    k: f64,
+    limit: Limit,
+    clean: Option<Estimate>,
+    flagged: Option<Estimate>,
+) -> Option<Judgement> {
+    let on = |e: Option<Estimate>, basis| {
+        e.and_then(|estimate| {
+            decide(estimate, k, limit).map(|level| Judgement {
+                level: if basis == Basis::Flagged {
+                    AlertLevel::Possible
+                } else {
+                    level
+                },
+                estimate,
+                basis,
+                limit,
+            })
+        })
+    };
+    worse(on(clean, Basis::Clean), on(flagged, Basis::Flagged))
+}
+
+/// What a window's alerts have in common.
+struct Context<'a> {
+    key: &'a SensorKey,
+    k: f64,
+    window_s: f64,
+    flagged_fraction: f64,
+    flag_bits: u16,
+    now: OffsetDateTime,
+}
+
+fn fmt_num(v: f64) -> String {
+    format!("{v:.4}")
+}
+
+fn statement(
+    ctx: &Context<'_>,
+    kind: AlertKind,
+    j: &Judgement,
+    unit: &str,
+    detail: &str,
+) -> String {
+    let Estimate {
+        value,
+        standard_uncertainty: u,
+    } = j.estimate;
+    let k = ctx.k;
+    let (lo, hi) = (value - k * u, value + k * u);
+    let t = j.limit.threshold;
+    let side = match j.limit.direction {
+        Direction::Above => "above",
+        Direction::Below => "below",
+    };
+    let what = match kind {
+        AlertKind::PeakAcceleration => "peak acceleration (demeaned)",
+        AlertKind::RmsAcceleration => "RMS acceleration (demeaned)",
+        AlertKind::DominantFrequency => "dominant frequency",
+        AlertKind::TiltChange => "tilt change from baseline",
+        AlertKind::Stale => "silence",
+    };
+    let level = match j.level {
+        AlertLevel::Exceeded => "exceeded",
+        AlertLevel::Possible => "possible",
+        AlertLevel::Stale => "stale",
+    };
+    let mut s = format!(
+        "{level}: {what} {} ± {} {unit} (k = {k}: [{}, {}] {unit}) against the limit {} {unit} \
+         (alarm {side}); {detail}. {}",
+        fmt_num(value),
+        fmt_num(k * u),
+        fmt_num(lo),
+        fmt_num(hi),
+        fmt_num(t),
+        rule_text(j.limit.direction),
+    );
+    let names = flags::names(ctx.flag_bits).join(", ");
+    match j.basis {
+        Basis::Flagged => s.push_str(&format!(
+            " Decided on samples that include flagged ones ({names}; {:.1} % of the window): \
+             flagged samples never raise `exceeded` on their own, so this alert is at most \
+             `possible`.",
+            100.0 * ctx.flagged_fraction
+        )),
+        Basis::Clean if ctx.flagged_fraction > 0.0 => s.push_str(&format!(
+            " Decided on unflagged samples only; {:.1} % of the window was flagged ({names}) and \
+             left out.",
+            100.0 * ctx.flagged_fraction
+        )),
+        Basis::Clean => {}
+    }
+    s
+}
+
+fn make_alert(
+    ctx: &Context<'_>,
+    kind: AlertKind,
+    j: &Judgement,
+    unit: &str,
+    detail: &str,
+) -> Alert {
+    Alert {
+        format_version: triax_protocol::JSON_FORMAT_VERSION,
+        building: ctx.key.0.clone(),
+        sensor_id: ctx.key.1.clone(),
+        kind,
+        level: j.level,
+        value: j.estimate.value,
+        standard_uncertainty: j.estimate.standard_uncertainty,
+        coverage_factor: ctx.k,
+        threshold: j.limit.threshold,
+        unit: unit.into(),
+        window_s: ctx.window_s,
+        flagged_fraction: ctx.flagged_fraction,
+        statement: statement(ctx, kind, j, unit, detail),
+        at: ctx.now,
+    }
+}
+
+/// Passes an alert unless the same kind was sent at the same or a higher level within the
+/// repeat interval. An escalation (`possible` → `exceeded`) always passes.
+fn rate_limit(
+    sent: &mut HashMap<AlertKind, Sent>,
+    mut alert: Alert,
+    repeat_interval_s: f64,
+    span: &tracing::Span,
+) -> Option<Alert> {
+    let now = alert.at;
+    if let Some(prev) = sent.get_mut(&alert.kind) {
+        let since_s = (now - prev.at).as_seconds_f64();
+        if severity(alert.level) <= severity(prev.level) && since_s < repeat_interval_s {
+            prev.suppressed += 1;
+            tracing::debug!(parent: span, kind = ?alert.kind, level = ?alert.level,
+                suppressed = prev.suppressed, "alert rate-limited");
+            return None;
+        }
+        if prev.suppressed > 0 {
+            alert.statement.push_str(&format!(
+                " {} similar alert(s) were suppressed since the previous one at {}.",
+                prev.suppressed,
+                prev.at
+                    .format(&time::format_description::well_known::Rfc3339)
+                    .unwrap_or_default()
+            ));
+        }
+    }
+    sent.insert(
+        alert.kind,
+        Sent {
+            level: alert.level,
+            at: now,
+            suppressed: 0,
+        },
+    );
+    Some(alert)
+}
+
+impl Monitor {
+    /// Starts watching; sensors listed in the configuration are expected from `now` on.
+    pub fn new(config: Config, now: OffsetDateTime) -> Monitor {
+        let mut sensors = BTreeMap::new();
+        for (b, s) in config.expected_sensors() {
+            let key = (b.clone(), s.clone());
+            if let Some(limits) = config.limits(b, s) {
+                sensors.insert(key.clone(), SensorState::new(&key, limits, now));
+            }
+        }
+        Monitor { config, sensors }
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    fn settings(&self) -> Settings {
+        self.config.settings
+    }
+
+    /// The state of a watched sensor, created on first contact; None for unwatched buildings.
+    fn state(
+        &mut self,
+        building: &BuildingId,
+        sensor: &SensorId,
+        now: OffsetDateTime,
+    ) -> Option<&mut SensorState> {
+        let key = (building.clone(), sensor.clone());
+        if !self.sensors.contains_key(&key) {
+            let limits = self.config.limits(building, sensor)?;
+            self.sensors
+                .insert(key.clone(), SensorState::new(&key, limits, now));
+        }
+        self.sensors.get_mut(&key)
+    }
+
+    /// A corrected batch from `building` arrived at `now`.
+    pub fn on_corrected(
+        &mut self,
+        building: &BuildingId,
+        batch: &CorrectedBatch,
+        now: OffsetDateTime,
+    ) -> Vec<Alert> {
+        let settings = self.settings();
+        let sensor = batch.header.sensor_id.clone();
+        let Some(state) = self.state(building, &sensor, now) else {
+            return Vec::new();
+        };
+        let _span = state.span.clone().entered();
+        state.data_arrived(now);
+        if batch.batch_flags & flags::DUPLICATE != 0 {
+            tracing::debug!(
+                sequence = batch.header.sequence,
+                "duplicate batch left out of the window"
+            );
+            return Vec::new();
+        }
+        let h = &batch.header;
+        let period_ns = 1e9 / h.sample_rate_hz;
+        let newest_ns = state.window.back().map(|s| s.t_ns);
+        let rate_changed = (state.sample_rate_hz - h.sample_rate_hz).abs()
+            > 1e-9 * h.sample_rate_hz.max(state.sample_rate_hz);
+        if rate_changed || newest_ns.is_some_and(|t| h.timestamp_ns <= t) {
+            if !state.window.is_empty() {
+                tracing::info!(
+                    sample_rate_hz = h.sample_rate_hz,
+                    timestamp_ns = h.timestamp_ns,
+                    "sample rate changed or time went back: window restarted"
+                );
+            }
+            state.window.clear();
+            state.sample_rate_hz = h.sample_rate_hz;
+        }
+        let batch_level = batch.batch_flags & flags::SEQUENCE_GAP;
+        for (i, s) in batch.samples.iter().enumerate() {
+            let mut sample = *s;
+            sample.flags |= batch_level;
+            state.window.push_back(TimedSample {
+                t_ns: h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64),
+                sample,
+            });
+        }
+        let window_ns = (settings.window_s * 1e9) as i64;
+        if let Some(newest) = state.window.back().map(|s| s.t_ns) {
+            let horizon = newest.saturating_sub(window_ns);
+            while state.window.front().is_some_and(|s| s.t_ns <= horizon) {
+                state.window.pop_front();
+            }
+        }
+        while state.window.len() > MAX_WINDOW_SAMPLES {
+            state.window.pop_front();
+        }
+
+        let key = (building.clone(), sensor);
+        let alerts = evaluate_window(&key, state, &settings, now);
+        let span = state.span.clone();
+        alerts
+            .into_iter()
+            .filter_map(|a| rate_limit(&mut state.sent, a, settings.repeat_interval_s, &span))
+            .collect()
+    }
+
+    /// A tilt sample from `building`, for the sensor in the key, arrived at `now`.
+    pub fn on_tilt(
+        &mut self,
+        building: &BuildingId,
+        tilt: &TiltSample,
+        now: OffsetDateTime,
+    ) -> Vec<Alert> {
+        let settings = self.settings();
+        let sensor = tilt.sensor_id.clone();
+        let Some(state) = self.state(building, &sensor, now) else {
+            return Vec::new();
+        };
+        let _span = state.span.clone().entered();
+        state.data_arrived(now);
+        let ts = &mut state.tilt;
+        if ts.calibration_version != Some(tilt.calibration_version) {
+            // A new calibration moves the offsets, and with them the apparent tilt: a change of
+            // record is not a change of the structure, so the baseline starts over.
+            if ts.calibration_version.is_some() {
+                tracing::info!(
+                    calibration_version = tilt.calibration_version,
+                    "calibration changed: tilt baseline restarted"
+                );
+            }
+            *ts = TiltState {
+                calibration_version: Some(tilt.calibration_version),
+                ..TiltState::default()
+            };
+        }
+        let Some(baseline) = ts.baseline else {
+            if tilt.flags == 0 && tilt_usable(tilt) {
+                ts.collecting.push(tilt.clone());
+                if ts.collecting.len() >= settings.tilt_baseline_samples {
+                    let (roll_deg, pitch_deg) = tilt_means(&ts.collecting);
+                    ts.baseline = Some(TiltBaseline {
+                        roll_deg,
+                        pitch_deg,
+                    });
+                    ts.collecting = Vec::new();
+                    tracing::info!(
+                        roll_deg = roll_deg.value,
+                        pitch_deg = pitch_deg.value,
+                        "tilt baseline set"
+                    );
+                }
+            }
+            return Vec::new();
+        };
+        if ts
+            .window
+            .back()
+            .is_some_and(|t| tilt.timestamp_ns <= t.timestamp_ns)
+        {
+            ts.window.clear();
+        }
+        ts.window.push_back(tilt.clone());
+        let horizon = tilt
+            .timestamp_ns
+            .saturating_sub((settings.window_s * 1e9) as i64);
+        while ts.window.front().is_some_and(|t| t.timestamp_ns <= horizon) {
+            ts.window.pop_front();
+        }
+        let Some(limit) = state.limits.tilt_change() else {
+            return Vec::new();
+        };
+        let n = ts.window.len();
+        let clean: Vec<TiltSample> = ts
+            .window
+            .iter()
+            .filter(|t| t.flags == 0 && tilt_usable(t))
+            .cloned()
+            .collect();
+        let all: Vec<TiltSample> = ts
+            .window
+            .iter()
+            .filter(|t| tilt_usable(t))
+            .cloned()
+            .collect();
+        let flag_bits = ts.window.iter().fold(0, |acc, t| acc | t.flags);
+        let change = |set: &[TiltSample]| -> Option<(Estimate, &'static str)> {
+            if set.is_empty() {
+                return None;
+            }
+            let (roll, pitch) = tilt_means(set);
+            let diff = |now: Estimate, base: Estimate| Estimate {
+                value: (now.value - base.value).abs(),
+                // Baseline and window share the sensor and its calibration, so their errors are
+                // positively correlated; adding the variances as if independent overstates u.
+                standard_uncertainty: now.standard_uncertainty.hypot(base.standard_uncertainty),
+            };
+            let (dr, dp) = (
+                diff(roll, baseline.roll_deg),
+                diff(pitch, baseline.pitch_deg),
+            );
+            Some(if dr.value >= dp.value {
+                (dr, "roll")
+            } else {
+                (dp, "pitch")
+            })
+        };
+        let clean_change = change(&clean);
+        let flagged_change = (all.len() > clean.len()).then(|| change(&all)).flatten();
+        let j = judge(
+            settings.coverage_factor,
+            limit,
+            clean_change.map(|c| c.0),
+            flagged_change.map(|c| c.0),
+        );
+        let Some(j) = j else {
+            return Vec::new();
+        };
+        let axis = match j.basis {
+            Basis::Clean => clean_change.map(|c| c.1),
+            Basis::Flagged => flagged_change.map(|c| c.1),
+        }
+        .unwrap_or("roll");
+        let key = (building.clone(), sensor);
+        let ctx = Context {
+            key: &key,
+            k: settings.coverage_factor,
+            window_s: window_span_s(ts.window.front(), ts.window.back()),
+            flagged_fraction: (n - clean.len()) as f64 / n as f64,
+            flag_bits,
+            now,
+        };
+        let detail = format!(
+            "largest change on {axis}, mean of {} tilt sample(s) against a baseline of {} \
+             clean samples at calibration version {}; u combines window and baseline as \
+             independent (conservative)",
+            match j.basis {
+                Basis::Clean => clean.len(),
+                Basis::Flagged => all.len(),
+            },
+            settings.tilt_baseline_samples,
+            tilt.calibration_version
+        );
+        let alert = make_alert(&ctx, AlertKind::TiltChange, &j, UNIT_DEG, &detail);
+        let span = state.span.clone();
+        rate_limit(&mut state.sent, alert, settings.repeat_interval_s, &span)
+            .into_iter()
+            .collect()
+    }
+
+    /// Stale alerts for sensors silent for longer than `stale_after_s` at `now`.
+    pub fn check_stale(&mut self, now: OffsetDateTime) -> Vec<Alert> {
+        let settings = self.settings();
+        let mut out = Vec::new();
+        for (key, state) in &mut self.sensors {
+            let since = state.last_data.unwrap_or(state.watched_since);
+            let silent_s = (now - since).as_seconds_f64();
+            if silent_s <= settings.stale_after_s {
+                continue;
+            }
+            let statement = match state.last_data {
+                Some(_) => format!(
+                    "stale: no corrected or tilt data from this sensor for {silent_s:.1} s, \
+                     longer than the allowed {} s. Nothing can be decided about it until data \
+                     arrives again.",
+                    settings.stale_after_s
+                ),
+                None => format!(
+                    "stale: this expected sensor has sent no corrected or tilt data in the \
+                     {silent_s:.1} s since watching began, longer than the allowed {} s.",
+                    settings.stale_after_s
+                ),
+            };
+            let alert = Alert {
+                format_version: triax_protocol::JSON_FORMAT_VERSION,
+                building: key.0.clone(),
+                sensor_id: key.1.clone(),
+                kind: AlertKind::Stale,
+                level: AlertLevel::Stale,
+                value: silent_s,
+                standard_uncertainty: 0.0,
+                coverage_factor: settings.coverage_factor,
+                threshold: settings.stale_after_s,
+                unit: UNIT_S.into(),
+                window_s: settings.window_s,
+                flagged_fraction: 0.0,
+                statement,
+                at: now,
+            };
+            let span = state.span.clone();
+            out.extend(rate_limit(
+                &mut state.sent,
+                alert,
+                settings.repeat_interval_s,
+                &span,
+            ));
+        }
+        out
+    }
+}
+
+fn window_span_s(first: Option<&TiltSample>, last: Option<&TiltSample>) -> f64 {
+    match (first, last) {
+        (Some(a), Some(b)) => (b.timestamp_ns - a.timestamp_ns) as f64 / 1e9,
+        _ => 0.0,
+    }
+}
+
+/// Mean roll and pitch with the mean of their uncertainties: the samples share one calibration,
+/// so their errors are taken as fully correlated and do not average down.
+fn tilt_means(set: &[TiltSample]) -> (Estimate, Estimate) {
+    let n = set.len() as f64;
+    let mean = |f: fn(&TiltSample) -> f64| set.iter().map(f).sum::<f64>() / n;
+    (
+        Estimate {
+            value: mean(|t| t.roll_deg),
+            standard_uncertainty: mean(|t| t.roll_uncertainty_deg),
+        },
+        Estimate {
+            value: mean(|t| t.pitch_deg),
+            standard_uncertainty: mean(|t| t.pitch_uncertainty_deg),
+        },
+    )
+}
+
+/// Peak, RMS and dominant-frequency alerts of a sensor's current window, before rate limiting.
+fn evaluate_window(
+    key: &SensorKey,
+    state: &SensorState,
+    settings: &Settings,
+    now: OffsetDateTime,
+) -> Vec<Alert> {
+    let n = state.window.len();
+    if n == 0 {
+        return Vec::new();
+    }
+    let all: Vec<CorrectedSample> = state
+        .window
+        .iter()
+        .map(|t| t.sample)
+        .filter(usable)
+        .collect();
+    let clean: Vec<CorrectedSample> = all.iter().copied().filter(|s| s.flags == 0).collect();
+    let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.sample.flags);
+    let propagation = Propagation {
+        noise_share: settings.noise_share,
+    };
+    let rate = state.sample_rate_hz;
+    let clean_stats = window_stats(&clean, rate, propagation);
+    // Only worth a second look when flagged samples add something to the clean ones.
+    let flagged_stats = if all.len() > clean.len() {
+        window_stats(&all, rate, propagation)
+    } else {
+        None
+    };
+    let ctx = Context {
+        key,
+        k: settings.coverage_factor,
+        window_s: n as f64 / rate,
+        flagged_fraction: (n - clean.len()) as f64 / n as f64,
+        flag_bits,
+        now,
+    };
+    let k = settings.coverage_factor;
+    let basis_stats = |j: &Judgement| -> Option<&WindowStats> {
+        match j.basis {
+            Basis::Clean => clean_stats.as_ref(),
+            Basis::Flagged => flagged_stats.as_ref(),
+        }
+    };
+    let mut alerts = Vec::new();
+
+    if let Some(limit) = state.limits.pga() {
+        let pick = |w: &WindowStats| w.peak.estimate;
+        if let Some(j) = judge(
+            k,
+            limit,
+            clean_stats.as_ref().map(pick),
+            flagged_stats.as_ref().map(pick),
+        ) {
+            let w = basis_stats(&j);
+            let detail = format!(
+                "peak |a − mean| on axis {} over {} sample(s); u is that sample's own standard \
+                 uncertainty",
+                w.map_or("?", |w| AXIS_NAMES[w.peak.axis]),
+                w.map_or(0, |w| w.n_samples),
+            );
+            alerts.push(make_alert(
+                &ctx,
+                AlertKind::PeakAcceleration,
+                &j,
+                UNIT_MPS2,
+                &detail,
+            ));
+        }
+    }
+
+    if let Some(limit) = state.limits.rms() {
+        let pick = |w: &WindowStats| w.rms.estimate;
+        if let Some(j) = judge(
+            k,
+            limit,
+            clean_stats.as_ref().map(pick),
+            flagged_stats.as_ref().map(pick),
+        ) {
+            let w = basis_stats(&j);
+            let detail = format!(
+                "RMS of a − mean on axis {} over {} sample(s); u by linear propagation with \
+                 {:.0} % of each sample's variance taken as independent noise and the rest as \
+                 calibration error fully correlated over the window",
+                w.map_or("?", |w| AXIS_NAMES[w.rms.axis]),
+                w.map_or(0, |w| w.n_samples),
+                100.0 * settings.noise_share,
+            );
+            alerts.push(make_alert(
+                &ctx,
+                AlertKind::RmsAcceleration,
+                &j,
+                UNIT_MPS2,
+                &detail,
+            ));
+        }
+    }
+
+    // A quiet window's spectrum peak is noise; judging it would alarm on nothing.
+    let frequency_of = |w: &WindowStats| {
+        (w.rms.estimate.value >= settings.frequency_min_rms_mps2)
+            .then_some(w.dominant_frequency)
+            .flatten()
+    };
+    // A flagged sample left out of the clean set leaves a hole that distorts the spectrum.
+    let clean_frequency = clean_stats
+        .as_ref()
+        .filter(|_| clean.len() == n)
+        .and_then(frequency_of);
+    let flagged_frequency = if clean.len() == n {
+        None
+    } else {
+        flagged_stats.as_ref().and_then(frequency_of)
+    };
+    let mut frequency_judgement = None;
+    for limit in state.limits.frequency() {
+        frequency_judgement = worse(
+            frequency_judgement,
+            judge(k, limit, clean_frequency, flagged_frequency),
+        );
+    }
+    if let Some(j) = frequency_judgement {
+        let detail = format!(
+            "highest peak of the summed spectra of the three axes over {:.2} s; u = 1/(T·√12) \
+             from the window length T (the line lies anywhere within one resolution bin)",
+            ctx.window_s
+        );
+        alerts.push(make_alert(
+            &ctx,
+            AlertKind::DominantFrequency,
+            &j,
+            UNIT_HZ,
+            &detail,
+        ));
+    }
+    alerts
+}
+
+#[cfg(test)]
+mod tests;

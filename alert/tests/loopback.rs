@@ -1,0 +1,177 @@
+//! The alerting service through real Zenoh sessions on loopback: corrected batches in, alerts out
+//! on the alert keys, in JSON, as a consumer sees them.
+
+use std::time::Duration;
+
+use triax_alert::config::{Config, ZenohMode, ZenohSettings};
+use triax_alert::service::zenoh_config;
+use triax_protocol::keys::{all_buildings, Stream};
+use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
+use triax_protocol::{
+    from_json, BatchHeader, BuildingId, CorrectedBatch, CorrectedSample, CorrectionInfo, Key, Mode,
+    SensorId,
+};
+
+const RATE_HZ: f64 = 100.0;
+const BATCH: usize = 10;
+
+/// A loopback port that was free a moment ago. Zenoh 1.10 reports the port it bound for
+/// `tcp/127.0.0.1:0` only through an unstable API, so the site peer listens on a port reserved
+/// this way and the service under test listens on `tcp/127.0.0.1:0` and connects to it.
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap().port()
+}
+
+fn settings(listen: &str, connect: Vec<String>) -> ZenohSettings {
+    ZenohSettings {
+        config_file: None,
+        mode: Some(ZenohMode::Peer),
+        listen: vec![listen.into()],
+        connect,
+        multicast_scouting: Some(false),
+    }
+}
+
+fn batch(sequence: u64, amplitude_mps2: f64) -> CorrectedBatch {
+    let start = sequence as usize * BATCH;
+    CorrectedBatch {
+        header: BatchHeader {
+            sensor_id: SensorId::new("acc-01").unwrap(),
+            sequence,
+            timestamp_ns: 1_800_000_000_000_000_000 + (start as f64 * 1e9 / RATE_HZ) as i64,
+            sample_rate_hz: RATE_HZ,
+        },
+        batch_flags: 0,
+        info: CorrectionInfo {
+            calibration_version: 3,
+            mode: Mode::Dynamic,
+            coverage_factor: 2.0,
+        },
+        samples: (0..BATCH)
+            .map(|i| {
+                let t = (start + i) as f64 / RATE_HZ;
+                let x = amplitude_mps2 * (2.0 * std::f64::consts::PI * 2.0 * t).sin();
+                CorrectedSample {
+                    accel_mps2: [x as f32, 0.0, 9.81],
+                    uncertainty_mps2: [0.02; 3],
+                    flags: 0,
+                }
+            })
+            .collect(),
+    }
+}
+
+/// Publishes a regime until an alert of `kind` arrives; returns it.
+async fn publish_until(
+    site: &zenoh::Session,
+    alerts: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    sequence: &mut u64,
+    amplitude_mps2: f64,
+    kind: AlertKind,
+) -> Alert {
+    let key = Key::Corrected(
+        BuildingId::new("hq").unwrap(),
+        SensorId::new("acc-01").unwrap(),
+    )
+    .to_string();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no {kind:?} alert within 20 s at amplitude {amplitude_mps2}"
+        );
+        *sequence += 1;
+        site.put(&key, batch(*sequence, amplitude_mps2).encode())
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        while let Ok(Some(sample)) = alerts.try_recv() {
+            let alert: Alert = from_json(&sample.payload().to_bytes()).unwrap();
+            assert_eq!(
+                sample.key_expr().as_str(),
+                Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string()
+            );
+            if alert.kind == kind {
+                return alert;
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
+    let port = free_port();
+    let site =
+        zenoh::open(zenoh_config(&settings(&format!("tcp/127.0.0.1:{port}"), vec![])).unwrap())
+            .await
+            .unwrap();
+    let alerts = site
+        .declare_subscriber(all_buildings(Stream::Alert))
+        .await
+        .unwrap();
+
+    let mut config = Config::from_toml(
+        "window_s = 1.0\nstale_after_s = 1.0\nrepeat_interval_s = 30.0\n\
+         [buildings.hq.sensors.acc-01]\npga_mps2 = 0.5\n\
+         [buildings.hq.sensors.acc-02]\n",
+    )
+    .unwrap();
+    config.zenoh = settings("tcp/127.0.0.1:0", vec![format!("tcp/127.0.0.1:{port}")]);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let service = tokio::spawn(triax_alert::run(config, async {
+        let _ = stopped.await;
+    }));
+
+    let mut sequence = 0;
+    // [0.45, 0.53] m/s² straddles 0.5.
+    let possible = publish_until(
+        &site,
+        &alerts,
+        &mut sequence,
+        0.49,
+        AlertKind::PeakAcceleration,
+    )
+    .await;
+    assert_eq!(possible.level, AlertLevel::Possible, "{possible:?}");
+    assert_eq!(possible.building.as_str(), "hq");
+    assert_eq!(possible.coverage_factor, 2.0);
+    // [0.76, 0.84] m/s² is above it.
+    let exceeded = publish_until(
+        &site,
+        &alerts,
+        &mut sequence,
+        0.8,
+        AlertKind::PeakAcceleration,
+    )
+    .await;
+    assert_eq!(exceeded.level, AlertLevel::Exceeded, "{exceeded:?}");
+    assert!(exceeded.value - 2.0 * exceeded.standard_uncertainty > exceeded.threshold);
+    assert!(exceeded.statement.contains("value − k·u > threshold"));
+
+    // Silence: both the sensor that spoke and the expected one that never did go stale.
+    let mut stale = std::collections::BTreeSet::new();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while stale.len() < 2 {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        let sample = tokio::time::timeout(left, alerts.recv_async())
+            .await
+            .expect("stale alerts within 10 s")
+            .unwrap();
+        let alert: Alert = from_json(&sample.payload().to_bytes()).unwrap();
+        if alert.kind == AlertKind::Stale {
+            assert_eq!(alert.level, AlertLevel::Stale);
+            assert!(alert.value > 1.0 && alert.threshold == 1.0, "{alert:?}");
+            stale.insert(alert.sensor_id.to_string());
+        }
+    }
+    assert_eq!(stale.into_iter().collect::<Vec<_>>(), ["acc-01", "acc-02"]);
+
+    stop.send(()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), service)
+        .await
+        .expect("service stops on shutdown")
+        .unwrap()
+        .unwrap();
+    site.close().await.unwrap();
+}

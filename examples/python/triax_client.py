@@ -1,0 +1,348 @@
+#!/usr/bin/env python3
+"""A Triax client in Python, written from PROTOCOL.md alone.
+
+Two commands:
+
+  subscribe  decode a building's corrected batches (PROTOCOL.md §2.2) and print every sample
+             with its expanded uncertainty (k·u) and quality flags (§2.3);
+  simulate   publish raw batches (§2.1) for one sensor, as a sensor node would: a sine on x and
+             gravity on z, turned into outputs through a diagonal gain and offset.
+
+Requires only `eclipse-zenoh` (see requirements.txt) and the standard library.
+
+  python3 triax_client.py subscribe --building hq
+  python3 triax_client.py simulate --building hq --sensor py-01 --count 100
+  python3 triax_client.py subscribe --building hq --connect tcp/127.0.0.1:7447 --no-multicast
+
+With --json, each batch is one JSON object on a line (non-finite numbers as null), for other
+programs to read.
+"""
+
+import argparse
+import json
+import math
+import re
+import struct
+import sys
+import time
+
+import zenoh
+
+# --- Keys (PROTOCOL.md §1) ------------------------------------------------------------------
+
+ROOT = "triax"
+ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def check_id(kind, value):
+    # Ids can never add a chunk or a wildcard to a key: refuse anything else before using it.
+    if not ID_RE.match(value):
+        raise ValueError(f"{kind} id {value!r}: 1 to 64 characters from A-Z a-z 0-9 _ -")
+    return value
+
+
+def raw_key(building, sensor):
+    return f"{ROOT}/{check_id('building', building)}/raw/{check_id('sensor', sensor)}"
+
+
+def corrected_key(building, sensor=None):
+    # No sensor: every sensor of the building, the `*` wildcard of one chunk.
+    s = "*" if sensor is None else check_id("sensor", sensor)
+    return f"{ROOT}/{check_id('building', building)}/corrected/{s}"
+
+
+# --- Binary batches (PROTOCOL.md §2) --------------------------------------------------------
+
+MAGIC = b"TX"
+KIND_RAW = 1
+KIND_CORRECTED = 2
+FORMAT_VERSION = 1
+MAX_SAMPLES = 16384
+RAW_HAS_TEMPERATURE = 0x0001
+FLAGS_ALL = 0x00FF
+FLAG_NAMES = [
+    "uncalibrated",
+    "calibration_expired",
+    "outside_amplitude",
+    "outside_frequency",
+    "sequence_gap",
+    "non_finite_input",
+    "clipped",
+    "duplicate",
+]
+MODES = {0: "none", 1: "static", 2: "dynamic", 3: "split"}
+CORRECTED_SAMPLE = struct.Struct("<6fH")  # ax ay az ux uy uz flags: 26 bytes
+
+
+class DecodeError(ValueError):
+    pass
+
+
+def flag_names(bits):
+    return [name for i, name in enumerate(FLAG_NAMES) if bits & (1 << i)]
+
+
+def prefix_len(id_len):
+    return 35 + id_len
+
+
+def encode_prefix(kind, flags, sensor, sequence, timestamp_ns, sample_rate_hz, n):
+    sid = check_id("sensor", sensor).encode("ascii")
+    return (
+        MAGIC
+        + struct.pack("<BBHB", kind, FORMAT_VERSION, flags, len(sid))
+        + sid
+        + struct.pack("<QqdI", sequence, timestamp_ns, sample_rate_hz, n)
+    )
+
+
+def decode_prefix(payload, expected_kind):
+    """Returns (header dict, flags, n, offset after the prefix); refuses what §2 refuses."""
+    if len(payload) < 7:
+        raise DecodeError(f"payload is {len(payload)} bytes: too short for a header")
+    if payload[0:2] != MAGIC:
+        raise DecodeError(f"bad magic {payload[0:2].hex()}")
+    kind, version, flags, id_len = struct.unpack_from("<BBHB", payload, 2)
+    if kind != expected_kind:
+        raise DecodeError(f"message kind {kind} where {expected_kind} was expected")
+    if version != FORMAT_VERSION:
+        raise DecodeError(f"format version {version} is not supported")
+    if not 1 <= id_len <= 64:
+        raise DecodeError(f"sensor id length {id_len} is outside 1..=64")
+    if len(payload) < prefix_len(id_len):
+        raise DecodeError(f"payload is {len(payload)} bytes: too short for a header")
+    try:
+        sensor = check_id("sensor", payload[7 : 7 + id_len].decode("ascii"))
+    except (UnicodeDecodeError, ValueError) as e:
+        raise DecodeError(f"bad sensor id: {e}") from None
+    sequence, timestamp_ns, sample_rate_hz, n = struct.unpack_from("<QqdI", payload, 7 + id_len)
+    if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
+        raise DecodeError(f"sample rate {sample_rate_hz} is not finite and positive")
+    if not 1 <= n <= MAX_SAMPLES:
+        raise DecodeError(f"sample count {n} is outside 1..={MAX_SAMPLES}")
+    header = {
+        "sensor_id": sensor,
+        "sequence": sequence,
+        "timestamp_ns": timestamp_ns,
+        "sample_rate_hz": sample_rate_hz,
+    }
+    return header, flags, n, prefix_len(id_len)
+
+
+def encode_raw(sensor, sequence, timestamp_ns, sample_rate_hz, samples, temperature_c=None):
+    """A raw batch (§2.1); `samples` are (vx, vy, vz) outputs in the sensor's output unit."""
+    n = len(samples)
+    if not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"a raw batch holds 1..={MAX_SAMPLES} samples, not {n}")
+    flags = RAW_HAS_TEMPERATURE if temperature_c is not None else 0
+    out = bytearray(encode_prefix(KIND_RAW, flags, sensor, sequence, timestamp_ns, sample_rate_hz, n))
+    if temperature_c is not None:
+        out += struct.pack("<f", temperature_c)
+    for v in samples:
+        out += struct.pack("<3f", *v)
+    return bytes(out)
+
+
+def decode_corrected(payload):
+    """A corrected batch (§2.2) as a dict; raises DecodeError for anything §2 refuses."""
+    payload = bytes(payload)
+    header, batch_flags, n, off = decode_prefix(payload, KIND_CORRECTED)
+    if batch_flags & ~FLAGS_ALL:
+        raise DecodeError(f"reserved flag bits set in {batch_flags:#06x}")
+    expected = off + 14 + CORRECTED_SAMPLE.size * n
+    if len(payload) != expected:
+        raise DecodeError(f"{n} samples need {expected} bytes, the payload has {len(payload)}")
+    calibration_version, mode, _reserved, k = struct.unpack_from("<QBBf", payload, off)
+    if mode not in MODES:
+        raise DecodeError(f"unknown correction mode {mode}")
+    if not (math.isfinite(k) and k > 0):
+        raise DecodeError(f"coverage factor {k} is not finite and positive")
+    samples = []
+    for i in range(n):
+        ax, ay, az, ux, uy, uz, flags = CORRECTED_SAMPLE.unpack_from(payload, off + 14 + 26 * i)
+        if flags & ~FLAGS_ALL:
+            raise DecodeError(f"reserved flag bits set in sample {i}: {flags:#06x}")
+        samples.append({"accel_mps2": [ax, ay, az], "uncertainty_mps2": [ux, uy, uz], "flags": flags})
+    return {
+        **header,
+        "batch_flags": batch_flags,
+        "calibration_version": calibration_version,
+        "mode": MODES[mode],
+        "coverage_factor": k,
+        "samples": samples,
+    }
+
+
+# --- Zenoh -------------------------------------------------------------------------------------
+
+
+def open_session(args):
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(args.mode))
+    if args.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(args.connect))
+    if args.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(args.listen))
+    if args.no_multicast:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def finite_or_none(x):
+    # JSON has no NaN: an uncalibrated sample's uncertainty travels as null.
+    return x if math.isfinite(x) else None
+
+
+def batch_json(key, batch):
+    out = dict(batch, key=key)
+    out["samples"] = [
+        {
+            "accel_mps2": [finite_or_none(a) for a in s["accel_mps2"]],
+            "uncertainty_mps2": [finite_or_none(u) for u in s["uncertainty_mps2"]],
+            "flags": s["flags"],
+        }
+        for s in batch["samples"]
+    ]
+    return json.dumps(out)
+
+
+def print_batch(key, b):
+    names = ",".join(flag_names(b["batch_flags"])) or "none"
+    print(
+        f"{key} seq={b['sequence']} n={len(b['samples'])} rate={b['sample_rate_hz']} Hz "
+        f"calibration v{b['calibration_version']} ({b['mode']}) k={b['coverage_factor']} "
+        f"flags={names}"
+    )
+    k = b["coverage_factor"]
+    dt_ns = 1e9 / b["sample_rate_hz"]
+    for i, s in enumerate(b["samples"]):
+        t_ns = b["timestamp_ns"] + round(i * dt_ns)
+        if s["flags"] & 0x0001:
+            # Uncalibrated: raw outputs passed through, not m/s², and no uncertainty.
+            axes = "  ".join(f"{a:.4f}" for a in s["accel_mps2"]) + " (raw output, not m/s^2)"
+        else:
+            axes = "  ".join(
+                f"{a:+.4f} ± {k * u:.4f}" for a, u in zip(s["accel_mps2"], s["uncertainty_mps2"])
+            ) + " m/s^2 (± k·u)"
+        extra = ",".join(flag_names(s["flags"]))
+        print(f"  {t_ns}  {axes}" + (f"  [{extra}]" if extra else ""))
+    sys.stdout.flush()
+
+
+def cmd_subscribe(args):
+    session = open_session(args)
+    key_expr = corrected_key(args.building, args.sensor)
+    sub = session.declare_subscriber(key_expr)
+    if args.json:
+        print(json.dumps({"event": "ready", "key_expr": key_expr}), flush=True)
+    else:
+        print(f"listening on {key_expr}", file=sys.stderr, flush=True)
+    received = 0
+    deadline = time.monotonic() + args.timeout_s if args.timeout_s else None
+    try:
+        while args.count == 0 or received < args.count:
+            sample = sub.try_recv()
+            if sample is None:
+                if deadline is not None and time.monotonic() > deadline:
+                    print(f"timeout after {received} batch(es)", file=sys.stderr)
+                    return 1
+                time.sleep(0.005)
+                continue
+            key = str(sample.key_expr)
+            try:
+                batch = decode_corrected(sample.payload.to_bytes())
+            except DecodeError as e:
+                print(f"{key}: refused: {e}", file=sys.stderr)
+                continue
+            received += 1
+            if args.json:
+                print(batch_json(key, batch), flush=True)
+            else:
+                print_batch(key, batch)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sub.undeclare()
+        session.close()
+    return 0
+
+
+def cmd_simulate(args):
+    session = open_session(args)
+    key = raw_key(args.building, args.sensor)
+    # Let the session connect and learn its peers' subscriptions before the first put.
+    time.sleep(args.warmup_s)
+    rate = args.rate_hz
+    n = args.batch_samples
+    t0_ns = time.time_ns() if args.start_ns is None else args.start_ns
+    sent = 0
+    try:
+        while args.count == 0 or sent < args.count:
+            seq = args.start_sequence + sent
+            first = sent * n
+            samples = []
+            for i in range(n):
+                t = (first + i) / rate
+                a = (args.amplitude_mps2 * math.sin(2 * math.pi * args.frequency_hz * t), 0.0, 9.81)
+                # The node sees outputs, not accelerations: V = gain·(a − offset), per axis.
+                samples.append(tuple(args.gain * (ai - args.offset_mps2) for ai in a))
+            ts = t0_ns + round(first * 1e9 / rate)
+            payload = encode_raw(args.sensor, seq, ts, rate, samples, args.temperature_c)
+            session.put(key, payload)
+            if args.json:
+                # The values as they travel: rounded to f32 exactly as the payload holds them.
+                as_sent = [list(struct.unpack("<3f", struct.pack("<3f", *v))) for v in samples]
+                print(
+                    json.dumps(
+                        {"key": key, "sequence": seq, "timestamp_ns": ts, "sample_rate_hz": rate,
+                         "samples": as_sent}
+                    ),
+                    flush=True,
+                )
+            sent += 1
+            time.sleep(args.interval_s if args.interval_s is not None else n / rate)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        # Give the last put time to leave before the session goes.
+        time.sleep(0.2)
+        session.close()
+    return 0
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--building", default="hq")
+    common.add_argument("--mode", choices=["peer", "client"], default="peer")
+    common.add_argument("--connect", action="append", default=[], help="endpoint, repeatable")
+    common.add_argument("--listen", action="append", default=[], help="endpoint, repeatable")
+    common.add_argument("--no-multicast", action="store_true", help="turn off multicast scouting")
+    common.add_argument("--count", type=int, default=0, help="stop after this many batches (0: never)")
+    common.add_argument("--json", action="store_true", help="one JSON object per batch")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("subscribe", parents=[common], help="decode and print corrected batches")
+    s.add_argument("--sensor", help="one sensor (default: every sensor of the building)")
+    s.add_argument("--timeout-s", type=float, default=0, help="give up after this long (0: never)")
+
+    m = sub.add_parser("simulate", parents=[common], help="publish raw batches as a sensor node")
+    m.add_argument("--sensor", default="py-01")
+    m.add_argument("--rate-hz", type=float, default=100.0)
+    m.add_argument("--batch-samples", type=int, default=50)
+    m.add_argument("--amplitude-mps2", type=float, default=0.2)
+    m.add_argument("--frequency-hz", type=float, default=2.0)
+    m.add_argument("--gain", type=float, default=0.1, help="output unit per m/s^2")
+    m.add_argument("--offset-mps2", type=float, default=0.0)
+    m.add_argument("--temperature-c", type=float)
+    m.add_argument("--start-sequence", type=int, default=0)
+    m.add_argument("--start-ns", type=int, help="timestamp of the first sample (default: now)")
+    m.add_argument("--interval-s", type=float, help="pause between batches (default: real time)")
+    m.add_argument("--warmup-s", type=float, default=1.0)
+
+    args = p.parse_args(argv)
+    return cmd_subscribe(args) if args.command == "subscribe" else cmd_simulate(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

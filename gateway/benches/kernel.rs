@@ -1,0 +1,121 @@
+//! The correction kernel alone, on one core: samples per second with full covariance
+//! propagation.
+//!
+//! - `set_correct`: `SetCorrector::correct` over 100 samples (S⁻¹·V + q and the per-axis
+//!   uncertainty from the full 12×12 parameter covariance, noise and stated parts).
+//! - `batch/<mode>`: the gateway's whole per-batch path for a 100-sample batch: read from the
+//!   payload, correct, flag (clipping, amplitude, expiry, frequency detector), write the corrected
+//!   batch into a reused buffer.
+//!
+//! Run: `cargo bench -p triax-gateway --bench kernel`.
+
+use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use triax_calibration::corrector::Corrector;
+use triax_gateway::kernel::{Scratch, SensorKernel};
+use triax_gateway::{CorrectionMode, SensorSettings};
+use triax_protocol::batch::{BatchHeader, RawBatch};
+use triax_protocol::record::{sample, CalibrationRecord, SetKind};
+use triax_protocol::{RawBatchView, SensorId};
+
+const N: usize = 100;
+
+/// A record whose sets carry a dense, positive-definite parameter covariance.
+fn record() -> CalibrationRecord {
+    let mut r = sample::record("bench", 1);
+    let mut cov = [[0.0; 12]; 12];
+    for (i, row) in cov.iter_mut().enumerate() {
+        for (j, c) in row.iter_mut().enumerate() {
+            // exp(-|i-j|) correlations, scaled: positive definite (a Kac–Murdock–Szegő matrix).
+            *c = 1e-8 * 0.5f64.powi((i as i32 - j as i32).abs());
+        }
+    }
+    r.static_set.covariance = Some(Box::new(cov));
+    r.dynamic.covariance = Some(Box::new(cov));
+    r
+}
+
+fn outputs() -> Vec<[f32; 3]> {
+    (0..N)
+        .map(|i| {
+            let t = i as f32 / 100.0;
+            [
+                0.03 * (12.0 * t).sin(),
+                0.02 * (20.0 * t).cos(),
+                0.98 + 0.005 * (7.0 * t).sin(),
+            ]
+        })
+        .collect()
+}
+
+fn bench(c: &mut Criterion) {
+    let r = record();
+    // A sample record with a positive-definite covariance: it loads.
+    let corrector = Corrector::from_record(&r).expect("bench record loads");
+    let v: Vec<[f64; 3]> = outputs().iter().map(|s| s.map(f64::from)).collect();
+
+    let mut scratch = Scratch::default();
+    let mut g = c.benchmark_group("kernel");
+    g.throughput(Throughput::Elements(N as u64));
+    let set = corrector.set(SetKind::Dynamic);
+    g.bench_function("set_correct", |b| {
+        b.iter(|| {
+            let mut acc = 0.0;
+            for x in &v {
+                let out = set.correct(black_box(*x));
+                acc += out.accel_mps2[0] + out.uncertainty_mps2[2];
+            }
+            black_box(acc)
+        })
+    });
+
+    let payload = RawBatch {
+        header: BatchHeader {
+            // A literal of valid characters.
+            sensor_id: SensorId::new("bench").expect("literal id"),
+            sequence: 1,
+            timestamp_ns: 1_800_000_000_000_000_000,
+            sample_rate_hz: 100.0,
+        },
+        temperature_c: None,
+        samples: outputs(),
+    }
+    .encode();
+    for mode in [
+        CorrectionMode::Static,
+        CorrectionMode::Dynamic,
+        CorrectionMode::Split,
+    ] {
+        let mut kernel = SensorKernel::new(SensorSettings {
+            mode,
+            tilt: mode == CorrectionMode::Split,
+            ..SensorSettings::default()
+        });
+        let mut out = Vec::with_capacity(4096);
+        g.bench_function(format!("batch/{mode:?}").to_lowercase(), |b| {
+            b.iter(|| {
+                out.clear();
+                // Encoded just above by the protocol's own encoder.
+                let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
+                black_box(kernel.correct_batch(&view, Some(&corrector), 0, &mut scratch, &mut out));
+            })
+        });
+    }
+    // The same without the frequency detector: a band reaching Nyquist leaves nothing to detect.
+    let mut wide = r.clone();
+    wide.dynamic.domain.frequency_max_hz = 50.0;
+    let wide = Corrector::from_record(&wide).expect("bench record loads");
+    let mut kernel = SensorKernel::new(SensorSettings::default());
+    let mut out = Vec::with_capacity(4096);
+    g.bench_function("batch/dynamic_no_detector", |b| {
+        b.iter(|| {
+            out.clear();
+            // Encoded just above by the protocol's own encoder.
+            let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
+            black_box(kernel.correct_batch(&view, Some(&wide), 0, &mut scratch, &mut out));
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,539 @@
+//! `triax-gateway-bench`: end-to-end throughput, latency and memory of the gateway on loopback.
+//!
+//! In one process, three Zenoh sessions on 127.0.0.1 TCP: a publisher playing `--sensors`
+//! sensor nodes with 100-sample batches, the system under test, and a subscriber. The system
+//! under test is, in turn:
+//!
+//! - `relay`: a plain relay, the baseline: subscribes to the raw streams and re-publishes the
+//!   same bytes on the corrected keys from the Zenoh callback, no decoding, no correction;
+//! - `gateway`: the Triax gateway from the library, with a calibration (full covariance) for
+//!   every sensor in a temporary store.
+//!
+//! For each: a throughput phase publishes as fast as Zenoh accepts for `--seconds` and counts
+//! the samples the subscriber receives per second; a latency phase publishes at a fixed rate
+//! (`--latency-batches-per-s`) and records, per batch, the time from just before the raw
+//! publish (stamped in the batch header) to its arrival at the subscriber: p50 and p99.
+//!
+//! Then the memory check: a child process runs the gateway alone with `--rss-sensors`
+//! calibrations, the publisher sends one batch per sensor, and the child's resident set
+//! (`VmRSS`, and the peak `VmHWM`) is read from /proc.
+//!
+//! Run in release: `cargo run --release -p triax-gateway --bin triax-gateway-bench`.
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use triax_calibration_store::Store;
+use triax_gateway::worker::now_ns;
+use triax_gateway::{Config, Gateway};
+use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
+use triax_protocol::keys::{self, Stream};
+use triax_protocol::record::{sample, CalibrationRecord};
+use triax_protocol::{BuildingId, Key, RawBatchView, SensorId};
+use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+#[derive(Debug, Clone, Parser)]
+#[command(name = "triax-gateway-bench")]
+struct Args {
+    /// Length of each throughput and latency phase.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Simulated sensor nodes in the throughput and latency phases.
+    #[arg(long, default_value_t = 10)]
+    sensors: usize,
+    /// Batch rate of the latency phase (all sensors together).
+    #[arg(long, default_value_t = 1000.0)]
+    latency_batches_per_s: f64,
+    /// Also offer this load (samples/s) paced, and report what arrives (default: the relay's
+    /// measured capacity, for the gateway).
+    #[arg(long)]
+    paced_samples_per_s: Option<f64>,
+    /// Sensors in the memory check (0: skip it).
+    #[arg(long, default_value_t = 10_000)]
+    rss_sensors: usize,
+    /// Internal: run as the memory check's gateway process.
+    #[arg(long, hide = true)]
+    rss_child: Option<String>,
+    #[arg(long, hide = true)]
+    port: Option<u16>,
+}
+
+const SAMPLES_PER_BATCH: usize = 100;
+const BUILDING: &str = "bench";
+
+fn building() -> BuildingId {
+    // A literal of valid characters.
+    BuildingId::new(BUILDING).expect("literal id is valid")
+}
+
+fn sensor_id(i: usize) -> SensorId {
+    // `s` and five digits: always a valid id.
+    SensorId::new(format!("s{i:05}")).expect("generated ids are valid")
+}
+
+fn free_port() -> Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+fn record(i: usize) -> CalibrationRecord {
+    let mut r = sample::record(sensor_id(i).as_str(), 1);
+    let mut cov = [[0.0; 12]; 12];
+    for (a, row) in cov.iter_mut().enumerate() {
+        for (b, c) in row.iter_mut().enumerate() {
+            *c = 1e-8 * 0.5f64.powi((a as i32 - b as i32).abs());
+        }
+    }
+    r.static_set.covariance = Some(Box::new(cov));
+    r.dynamic.covariance = Some(Box::new(cov));
+    r
+}
+
+fn seed_store(path: &std::path::Path, n: usize) -> Result<()> {
+    let store = Store::open(path)?;
+    let records: Vec<_> = (0..n).map(record).collect();
+    for outcome in store.put_all(&records)? {
+        if let Err(e) = outcome {
+            bail!("bench record refused: {e}");
+        }
+    }
+    Ok(())
+}
+
+async fn session(listen: Option<&str>, connect: Option<&str>) -> Result<zenoh::Session> {
+    let mut c = zenoh::Config::default();
+    let list = |e: Option<&str>| e.map_or("[]".to_owned(), |e| format!("[\"{e}\"]"));
+    for (k, v) in [
+        ("mode", "\"peer\"".to_owned()),
+        ("listen/endpoints", list(listen)),
+        ("connect/endpoints", list(connect)),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        c.insert_json5(k, &v).map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    zenoh::open(c).await.map_err(|e| anyhow::anyhow!("{e}"))
+}
+
+fn raw_batch(sensor: &SensorId, sequence: u64, samples: &[[f32; 3]]) -> Vec<u8> {
+    RawBatch {
+        header: BatchHeader {
+            sensor_id: sensor.clone(),
+            sequence,
+            timestamp_ns: now_ns(),
+            sample_rate_hz: 100.0,
+        },
+        temperature_c: None,
+        samples: samples.to_vec(),
+    }
+    .encode()
+}
+
+fn outputs() -> Vec<[f32; 3]> {
+    (0..SAMPLES_PER_BATCH)
+        .map(|i| {
+            let t = i as f32 / 100.0;
+            [0.03 * (12.0 * t).sin(), 0.02 * (20.0 * t).cos(), 0.98]
+        })
+        .collect()
+}
+
+/// What the subscriber saw.
+#[derive(Default)]
+struct Received {
+    samples: AtomicU64,
+    latencies_ns: Mutex<Vec<i64>>,
+    record_latency: std::sync::atomic::AtomicBool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum System {
+    Relay,
+    Gateway,
+}
+
+struct PhaseResult {
+    samples_per_s: f64,
+    /// Delivered at the paced offered load, if one was set.
+    paced_samples_per_s: Option<f64>,
+    sent_samples_per_s: f64,
+    p50_us: f64,
+    p99_us: f64,
+    n_latency: usize,
+}
+
+fn percentile(sorted: &[i64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[i] as f64 / 1e3
+}
+
+/// One throughput phase. Unpaced: as fast as Zenoh takes it. Paced: `rate` samples/s, sent in
+/// 1 ms slices. Returns (received, offered) samples per second.
+async fn throughput(
+    received: &Received,
+    publishers: &[zenoh::pubsub::Publisher<'_>],
+    ids: &[SensorId],
+    samples: &[[f32; 3]],
+    seq: &mut [u64],
+    phase: Duration,
+    rate: Option<f64>,
+) -> Result<(f64, f64)> {
+    let start_count = received.samples.load(Relaxed);
+    let t0 = Instant::now();
+    let mut sent = 0u64;
+    let mut k = 0usize;
+    while t0.elapsed() < phase {
+        if let Some(rate) = rate {
+            let due = (t0.elapsed().as_secs_f64() * rate) as u64;
+            if sent >= due {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+                continue;
+            }
+        }
+        let i = k % publishers.len();
+        publishers[i]
+            .put(raw_batch(&ids[i], seq[i], samples))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        seq[i] += 1;
+        k += 1;
+        sent += SAMPLES_PER_BATCH as u64;
+    }
+    let elapsed = t0.elapsed().as_secs_f64();
+    // Count only arrivals inside the window.
+    let got = received.samples.load(Relaxed) - start_count;
+    // Let queues drain before the next phase: until arrivals stop for 300 ms.
+    let mut last = received.samples.load(Relaxed);
+    loop {
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let now = received.samples.load(Relaxed);
+        if now == last {
+            break;
+        }
+        last = now;
+    }
+    Ok((got as f64 / elapsed, sent as f64 / elapsed))
+}
+
+async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
+    let port = free_port()?;
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let dir = tempfile::tempdir()?;
+    let store_path = dir.path().join("store");
+
+    // The system under test.
+    let mut relay_session = None;
+    let mut gateway = None;
+    let mut _relay_sub = None;
+    match system {
+        System::Relay => {
+            let s = session(Some(&endpoint), None).await?;
+            let out = s.clone();
+            let prefix_len = format!("{}/{}/raw/", keys::ROOT, BUILDING).len();
+            let corrected_prefix = format!("{}/{}/corrected/", keys::ROOT, BUILDING);
+            let sub = s
+                .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
+                .callback(move |sample| {
+                    let key = sample.key_expr().as_str();
+                    let target = format!("{corrected_prefix}{}", &key[prefix_len..]);
+                    let _ = out
+                        .put(target, sample.payload().clone())
+                        .congestion_control(CongestionControl::Block)
+                        .wait();
+                })
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            _relay_sub = Some(sub);
+            relay_session = Some(s);
+        }
+        System::Gateway => {
+            let n = args.sensors;
+            let sp = store_path.clone();
+            tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
+            let config = Config::for_tests(BUILDING, &store_path, vec![endpoint.clone()]);
+            gateway = Some(Gateway::start(config).await?);
+        }
+    }
+
+    let received = Arc::new(Received::default());
+    let sub_session = session(None, Some(&endpoint)).await?;
+    let r = received.clone();
+    let _sub = sub_session
+        .declare_subscriber(keys::all_sensors(&building(), Stream::Corrected))
+        .callback(move |sample| {
+            let bytes = sample.payload().to_bytes();
+            let now = now_ns();
+            let header = match system {
+                System::Relay => RawBatchView::parse(&bytes).ok().map(|v| {
+                    let n = v.len();
+                    (v.header, n)
+                }),
+                System::Gateway => CorrectedBatch::decode(&bytes)
+                    .ok()
+                    .map(|b| (b.header, b.samples.len())),
+            };
+            if let Some((h, n)) = header {
+                r.samples.fetch_add(n as u64, Relaxed);
+                if r.record_latency.load(Relaxed) {
+                    let mut l = r.latencies_ns.lock().unwrap_or_else(|p| p.into_inner());
+                    l.push(now - h.timestamp_ns);
+                }
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+
+    let pub_session = session(None, Some(&endpoint)).await?;
+    let mut publishers = Vec::new();
+    for i in 0..args.sensors {
+        let p = pub_session
+            .declare_publisher(Key::Raw(building(), sensor_id(i)).to_string())
+            .congestion_control(CongestionControl::Block)
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        publishers.push(p);
+    }
+    // Wait until the raw and corrected paths are both matched.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let samples = outputs();
+    let mut seq = vec![0u64; args.sensors];
+    while received.samples.load(Relaxed) == 0 {
+        if Instant::now() > deadline {
+            bail!("{system:?}: nothing came through in 10 s");
+        }
+        for (i, p) in publishers.iter().enumerate() {
+            p.put(raw_batch(&sensor_id(i), seq[i], &samples))
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            seq[i] += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    let ids: Vec<SensorId> = (0..args.sensors).map(sensor_id).collect();
+    let phase = Duration::from_secs_f64(args.seconds);
+    let (samples_per_s, sent_samples_per_s) = throughput(
+        &received,
+        &publishers,
+        &ids,
+        &samples,
+        &mut seq,
+        phase,
+        None,
+    )
+    .await?;
+    let paced_samples_per_s = match args.paced_samples_per_s {
+        Some(rate) => Some(
+            throughput(
+                &received,
+                &publishers,
+                &ids,
+                &samples,
+                &mut seq,
+                phase,
+                Some(rate),
+            )
+            .await?
+            .0,
+        ),
+        None => None,
+    };
+
+    // Latency at a fixed rate.
+    received.record_latency.store(true, Relaxed);
+    let period = Duration::from_secs_f64(1.0 / args.latency_batches_per_s);
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let t0 = Instant::now();
+    let mut k = 0usize;
+    while t0.elapsed() < phase {
+        tick.tick().await;
+        let i = k % args.sensors;
+        publishers[i]
+            .put(raw_batch(&ids[i], seq[i], &samples))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        seq[i] += 1;
+        k += 1;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    received.record_latency.store(false, Relaxed);
+    let mut lat = std::mem::take(
+        &mut *received
+            .latencies_ns
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()),
+    );
+    lat.sort_unstable();
+
+    drop(publishers);
+    let _ = pub_session.close().await;
+    let _ = sub_session.close().await;
+    if let Some(g) = gateway {
+        if let Some(c) = Some(g.counters().dropped.load(Relaxed)).filter(|d| *d > 0) {
+            eprintln!("gateway dropped {c} batches (drop-oldest) during the run");
+        }
+        g.run_until(async {}).await?;
+    }
+    if let Some(s) = relay_session {
+        let _ = s.close().await;
+    }
+    Ok(PhaseResult {
+        samples_per_s,
+        paced_samples_per_s,
+        sent_samples_per_s,
+        p50_us: percentile(&lat, 0.5),
+        p99_us: percentile(&lat, 0.99),
+        n_latency: lat.len(),
+    })
+}
+
+fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    text.lines()
+        .find(|l| l.starts_with(field))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
+/// The memory check's child: a gateway alone, until killed.
+async fn rss_child(store: &str, port: u16) -> Result<()> {
+    let config = Config::for_tests(
+        BUILDING,
+        std::path::Path::new(store),
+        vec![format!("tcp/127.0.0.1:{port}")],
+    );
+    let me = std::process::id();
+    let kib = |what: &str| {
+        eprintln!(
+            "  rss after {what}: {:.1} MiB",
+            proc_status_kib(me, "VmRSS:").unwrap_or(0) as f64 / 1024.0
+        )
+    };
+    kib("runtime start");
+    let gateway = Gateway::start(config).await?;
+    kib("gateway start");
+    println!("ready {}", gateway.sensors().len());
+    gateway.run_until(std::future::pending::<()>()).await?;
+    Ok(())
+}
+
+async fn rss_check(n: usize) -> Result<()> {
+    use std::io::BufRead;
+    let dir = tempfile::tempdir()?;
+    let store_path = dir.path().join("store");
+    let sp = store_path.clone();
+    tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
+    let port = free_port()?;
+    let mut child = std::process::Command::new(std::env::current_exe()?)
+        .arg("--rss-child")
+        .arg(&store_path)
+        .arg("--port")
+        .arg(port.to_string())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .context("starting the gateway child")?;
+    let pid = child.id();
+    let mut line = String::new();
+    let stdout = child.stdout.take().context("child stdout")?;
+    let mut reader = std::io::BufReader::new(stdout);
+    reader.read_line(&mut line)?;
+    let loaded_rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
+
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let pub_session = session(None, Some(&endpoint)).await?;
+    let samples = outputs();
+    let mut publishers = Vec::with_capacity(n);
+    for i in 0..n {
+        publishers.push(
+            pub_session
+                .declare_publisher(Key::Raw(building(), sensor_id(i)).to_string())
+                .congestion_control(CongestionControl::Block)
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        );
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    for round in 0..3u64 {
+        for (i, p) in publishers.iter().enumerate() {
+            p.put(raw_batch(&sensor_id(i), round, &samples))
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
+    let hwm = proc_status_kib(pid, "VmHWM:").unwrap_or(0);
+    let _ = child.kill();
+    let _ = child.wait();
+    let _ = pub_session.close().await;
+    println!("\n## Memory: {n} sensors, each with a calibration and 3 batches of {SAMPLES_PER_BATCH} samples");
+    println!("| state | VmRSS (MiB) |\n|---|---|");
+    println!(
+        "| gateway started, {n} calibrations loaded | {:.1} |",
+        loaded_rss as f64 / 1024.0
+    );
+    println!(
+        "| after every sensor published (current) | {:.1} |",
+        rss as f64 / 1024.0
+    );
+    println!("| peak (VmHWM) | {:.1} |", hwm as f64 / 1024.0);
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        if let Some(store) = &args.rss_child {
+            return rss_child(store, args.port.context("--port")?).await;
+        }
+        println!(
+            "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, one process",
+            args.sensors, args.seconds
+        );
+        let relay = run_system(System::Relay, &args).await?;
+        let paced = Args {
+            paced_samples_per_s: Some(args.paced_samples_per_s.unwrap_or(relay.samples_per_s)),
+            rss_child: None,
+            ..args.clone()
+        };
+        let gw = run_system(System::Gateway, &paced).await?;
+        println!("| system | received samples/s, unpaced | offered | latency p50 (µs) | p99 (µs) | batches timed |");
+        println!("|---|---|---|---|---|---|");
+        for (name, r) in [("relay (baseline)", &relay), ("gateway", &gw)] {
+            println!(
+                "| {name} | {:.0} | {:.0} | {:.0} | {:.0} | {} |",
+                r.samples_per_s, r.sent_samples_per_s, r.p50_us, r.p99_us, r.n_latency
+            );
+        }
+        let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
+        println!(
+            "\ngateway/relay throughput, unpaced: {:.2}; gateway delivered {:.0} of {:.0} samples/s offered at the relay's capacity ({:.2}); added latency: p50 {:+.0} µs, p99 {:+.0} µs (at {} batches/s)",
+            gw.samples_per_s / relay.samples_per_s,
+            gw.paced_samples_per_s.unwrap_or(f64::NAN),
+            paced_rate,
+            gw.paced_samples_per_s.unwrap_or(f64::NAN) / paced_rate,
+            gw.p50_us - relay.p50_us,
+            gw.p99_us - relay.p99_us,
+            args.latency_batches_per_s
+        );
+        if args.rss_sensors > 0 {
+            rss_check(args.rss_sensors).await?;
+        }
+        Ok(())
+    })
+}

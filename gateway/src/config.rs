@@ -1,0 +1,550 @@
+//! Gateway configuration: a TOML file, command-line flags and environment variables, merged and
+//! checked once at start into a [`Config`].
+//!
+//! Precedence, highest first: flags, environment variables (`TRIAX_*`), the TOML file, built-in
+//! defaults. Every default works on one machine with no file at all: building `hq`, an
+//! embedded Zenoh peer with multicast scouting, a store in `./triax-store`, metrics on
+//! `127.0.0.1:9750`. A bad value is refused with its field and the reason
+//! ([`ConfigError::Invalid`]); an unknown field in the file is refused too, so a typo never
+//! silently falls back to a default.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use triax_protocol::{BuildingId, Mode, SensorId};
+
+/// Default metrics endpoint.
+pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9750";
+
+/// How a sensor's stream is corrected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum CorrectionMode {
+    /// The static set: quasi-static use (inclination, slow drift).
+    Static,
+    /// The dynamic set: vibration.
+    Dynamic,
+    /// Static set below the crossover, dynamic set above it.
+    Split,
+}
+
+impl CorrectionMode {
+    /// The mode byte of corrected batches.
+    pub fn wire(self) -> Mode {
+        match self {
+            CorrectionMode::Static => Mode::Static,
+            CorrectionMode::Dynamic => Mode::Dynamic,
+            CorrectionMode::Split => Mode::Split,
+        }
+    }
+}
+
+/// Per-sensor processing settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorSettings {
+    pub mode: CorrectionMode,
+    /// Crossover of split mode.
+    pub crossover_hz: f64,
+    /// Publish a tilt stream (the sensor serves as an inclinometer).
+    pub tilt: bool,
+    /// Corner of the tilt low pass.
+    pub tilt_cutoff_hz: f64,
+    /// Time between tilt samples, by the sensor's clock.
+    pub tilt_interval_s: f64,
+    /// Smallest out-of-band RMS that raises `outside_frequency`.
+    pub frequency_floor_mps2: f64,
+}
+
+impl Default for SensorSettings {
+    fn default() -> Self {
+        SensorSettings {
+            mode: CorrectionMode::Dynamic,
+            crossover_hz: 0.5,
+            tilt: false,
+            tilt_cutoff_hz: 0.1,
+            tilt_interval_s: 1.0,
+            frequency_floor_mps2: 0.01,
+        }
+    }
+}
+
+/// How the gateway joins Zenoh.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ZenohMode {
+    /// An embedded peer: one building needs no router.
+    Peer,
+    /// A client of a site router (`connect` names it).
+    Client,
+}
+
+/// Zenoh settings; the JSON5 file, when given, is the base that the other fields override.
+/// A field left unset keeps the file's value, or Zenoh's default without a file (for the mode,
+/// `peer`; for multicast scouting, on).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ZenohSettings {
+    pub config_file: Option<PathBuf>,
+    pub mode: Option<ZenohMode>,
+    pub listen: Vec<String>,
+    pub connect: Vec<String>,
+    pub multicast_scouting: Option<bool>,
+}
+
+/// A validated configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Config {
+    pub building: BuildingId,
+    /// Name reported in status and acknowledgements.
+    pub gateway_name: String,
+    pub store_path: PathBuf,
+    /// Correction workers; sensors are spread over them by id.
+    pub workers: usize,
+    /// Raw batches waiting per worker before the oldest is dropped.
+    pub queue_capacity_batches: usize,
+    pub zenoh: ZenohSettings,
+    /// None: no metrics endpoint.
+    pub metrics_listen: Option<SocketAddr>,
+    /// Settings of sensors not listed in `sensors`.
+    pub defaults: SensorSettings,
+    pub sensors: BTreeMap<SensorId, SensorSettings>,
+}
+
+impl Config {
+    /// Settings in force for a sensor.
+    pub fn sensor(&self, id: &str) -> &SensorSettings {
+        // Looked up once per sensor, when it first appears; a linear scan of the (short) list of
+        // overrides would do as well, but ids are validated so the map lookup is exact.
+        SensorId::new(id)
+            .ok()
+            .and_then(|s| self.sensors.get(&s))
+            .unwrap_or(&self.defaults)
+    }
+
+    /// A configuration for tests and embedding: defaults, the given building and store, an
+    /// embedded peer with no scouting that listens on `listen`, and no metrics endpoint.
+    ///
+    /// # Panics
+    /// If `building` is not a valid building id: callers pass literals.
+    pub fn for_tests(building: &str, store_path: &Path, listen: Vec<String>) -> Config {
+        // The empty file is the built-in defaults, which the unit tests check are valid.
+        let mut c = FileConfig::default()
+            .into_config()
+            .expect("built-in defaults are valid");
+        // Documented panic: the caller's literal is a bug if invalid.
+        c.building = BuildingId::new(building).expect("test building ids are valid");
+        c.gateway_name = format!("triax-gateway-{building}");
+        c.store_path = store_path.to_owned();
+        c.zenoh.listen = listen;
+        c.zenoh.multicast_scouting = Some(false);
+        c.metrics_listen = None;
+        c
+    }
+}
+
+/// Why a configuration was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("config file {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("config field `{field}`: {reason}")]
+    Invalid { field: String, reason: String },
+}
+
+fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        field: field.into(),
+        reason: reason.into(),
+    }
+}
+
+/// The TOML file, every field optional.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileConfig {
+    pub building: Option<String>,
+    pub gateway_name: Option<String>,
+    pub store_path: Option<PathBuf>,
+    pub workers: Option<usize>,
+    pub queue_capacity_batches: Option<usize>,
+    #[serde(default)]
+    pub zenoh: FileZenoh,
+    #[serde(default)]
+    pub metrics: FileMetrics,
+    #[serde(default)]
+    pub defaults: FileSensor,
+    #[serde(default)]
+    pub sensors: BTreeMap<String, FileSensor>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileZenoh {
+    pub config_file: Option<PathBuf>,
+    pub mode: Option<ZenohMode>,
+    pub listen: Option<Vec<String>>,
+    pub connect: Option<Vec<String>>,
+    pub multicast_scouting: Option<bool>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileMetrics {
+    pub enabled: Option<bool>,
+    pub listen: Option<String>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileSensor {
+    pub mode: Option<CorrectionMode>,
+    pub crossover_hz: Option<f64>,
+    pub tilt: Option<bool>,
+    pub tilt_cutoff_hz: Option<f64>,
+    pub tilt_interval_s: Option<f64>,
+    pub frequency_floor_mps2: Option<f64>,
+}
+
+impl FileConfig {
+    pub fn read(path: &Path) -> Result<FileConfig, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    pub fn parse(text: &str, path: &Path) -> Result<FileConfig, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_owned(),
+            message: e.to_string().trim_end().to_owned(),
+        })
+    }
+
+    /// Checks every field and fills in defaults.
+    pub fn into_config(self) -> Result<Config, ConfigError> {
+        let building = self.building.unwrap_or_else(|| "hq".into());
+        let building = BuildingId::new(building).map_err(|e| invalid("building", e.to_string()))?;
+        let gateway_name = self
+            .gateway_name
+            .unwrap_or_else(|| format!("triax-gateway-{building}"));
+        if gateway_name.trim().is_empty() {
+            return Err(invalid("gateway_name", "must not be empty"));
+        }
+        let workers = match self.workers {
+            None | Some(0) => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            Some(n) if n > 256 => return Err(invalid("workers", format!("{n} is above 256"))),
+            Some(n) => n,
+        };
+        let queue_capacity_batches = self.queue_capacity_batches.unwrap_or(1024);
+        if !(1..=1_000_000).contains(&queue_capacity_batches) {
+            return Err(invalid(
+                "queue_capacity_batches",
+                format!("{queue_capacity_batches} is outside 1..=1000000"),
+            ));
+        }
+        let z = self.zenoh;
+        let endpoints = |field: &str, list: Vec<String>| -> Result<Vec<String>, ConfigError> {
+            for (i, e) in list.iter().enumerate() {
+                // A Zenoh endpoint is `<protocol>/<address>`; the rest is Zenoh's to check.
+                let ok = e
+                    .split_once('/')
+                    .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty());
+                if !ok {
+                    return Err(invalid(
+                        format!("zenoh.{field}[{i}]"),
+                        format!("{e:?} is not a Zenoh endpoint like \"tcp/0.0.0.0:7447\""),
+                    ));
+                }
+            }
+            Ok(list)
+        };
+        let mode = z.mode;
+        let connect = endpoints("connect", z.connect.unwrap_or_default())?;
+        if mode == Some(ZenohMode::Client) && connect.is_empty() && z.config_file.is_none() {
+            return Err(invalid(
+                "zenoh.connect",
+                "client mode needs at least one router endpoint to connect to",
+            ));
+        }
+        if let Some(p) = &z.config_file {
+            if !p.is_file() {
+                return Err(invalid(
+                    "zenoh.config_file",
+                    format!("{} is not a readable file", p.display()),
+                ));
+            }
+        }
+        let zenoh = ZenohSettings {
+            config_file: z.config_file,
+            mode,
+            listen: endpoints("listen", z.listen.unwrap_or_default())?,
+            connect,
+            multicast_scouting: z.multicast_scouting,
+        };
+        let metrics_listen = if self.metrics.enabled.unwrap_or(true) {
+            let text = self
+                .metrics
+                .listen
+                .unwrap_or_else(|| DEFAULT_METRICS_LISTEN.into());
+            Some(text.parse::<SocketAddr>().map_err(|e| {
+                invalid(
+                    "metrics.listen",
+                    format!("{text:?} is not an address like \"127.0.0.1:9750\": {e}"),
+                )
+            })?)
+        } else {
+            None
+        };
+        let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
+        let mut sensors = BTreeMap::new();
+        for (id, s) in self.sensors {
+            let sensor_id = SensorId::new(id.as_str())
+                .map_err(|e| invalid(format!("sensors.{id}"), e.to_string()))?;
+            let settings = sensor_settings(&format!("sensors.{id}"), s, &defaults)?;
+            sensors.insert(sensor_id, settings);
+        }
+        Ok(Config {
+            building,
+            gateway_name,
+            store_path: self
+                .store_path
+                .unwrap_or_else(|| PathBuf::from("triax-store")),
+            workers,
+            queue_capacity_batches,
+            zenoh,
+            metrics_listen,
+            defaults,
+            sensors,
+        })
+    }
+}
+
+fn sensor_settings(
+    at: &str,
+    s: FileSensor,
+    base: &SensorSettings,
+) -> Result<SensorSettings, ConfigError> {
+    let positive = |name: &str, v: Option<f64>, default: f64| -> Result<f64, ConfigError> {
+        let v = v.unwrap_or(default);
+        if v.is_finite() && v > 0.0 {
+            Ok(v)
+        } else {
+            Err(invalid(
+                format!("{at}.{name}"),
+                format!("{v} is not a positive finite number"),
+            ))
+        }
+    };
+    let out = SensorSettings {
+        mode: s.mode.unwrap_or(base.mode),
+        crossover_hz: positive("crossover_hz", s.crossover_hz, base.crossover_hz)?,
+        tilt: s.tilt.unwrap_or(base.tilt),
+        tilt_cutoff_hz: positive("tilt_cutoff_hz", s.tilt_cutoff_hz, base.tilt_cutoff_hz)?,
+        tilt_interval_s: positive("tilt_interval_s", s.tilt_interval_s, base.tilt_interval_s)?,
+        frequency_floor_mps2: positive(
+            "frequency_floor_mps2",
+            s.frequency_floor_mps2,
+            base.frequency_floor_mps2,
+        )?,
+    };
+    if out.tilt_interval_s < 0.01 {
+        return Err(invalid(
+            format!("{at}.tilt_interval_s"),
+            format!(
+                "{} s is below 0.01 s: tilt is a slow stream",
+                out.tilt_interval_s
+            ),
+        ));
+    }
+    Ok(out)
+}
+
+/// Command-line flags and their environment variables, shared by the binary and tests.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ConfigArgs {
+    /// TOML configuration file.
+    #[arg(long, short = 'c', env = "TRIAX_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Building id: the gateway serves `triax/<building>/…`.
+    #[arg(long, env = "TRIAX_BUILDING")]
+    pub building: Option<String>,
+    /// Directory of the calibration store.
+    #[arg(long, env = "TRIAX_STORE")]
+    pub store: Option<PathBuf>,
+    /// Zenoh JSON5 configuration file (the base the other Zenoh flags override).
+    #[arg(long, env = "TRIAX_ZENOH_CONFIG")]
+    pub zenoh_config: Option<PathBuf>,
+    /// Zenoh mode.
+    #[arg(long, value_enum, env = "TRIAX_ZENOH_MODE")]
+    pub zenoh_mode: Option<ZenohMode>,
+    /// Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeat or comma-separate).
+    #[arg(long, env = "TRIAX_LISTEN", value_delimiter = ',')]
+    pub listen: Vec<String>,
+    /// Zenoh endpoint to connect to, e.g. tcp/router:7447 (repeat or comma-separate).
+    #[arg(long, env = "TRIAX_CONNECT", value_delimiter = ',')]
+    pub connect: Vec<String>,
+    /// Turn off Zenoh multicast scouting.
+    #[arg(long, env = "TRIAX_NO_MULTICAST_SCOUTING")]
+    pub no_multicast_scouting: bool,
+    /// Metrics endpoint address, e.g. 0.0.0.0:9750.
+    #[arg(long, env = "TRIAX_METRICS_LISTEN")]
+    pub metrics_listen: Option<String>,
+    /// Serve no metrics endpoint.
+    #[arg(long, env = "TRIAX_NO_METRICS")]
+    pub no_metrics: bool,
+    /// Correction workers (0: one per core).
+    #[arg(long, env = "TRIAX_WORKERS")]
+    pub workers: Option<usize>,
+    /// Default correction mode of sensors not listed in the file.
+    #[arg(long, value_enum, env = "TRIAX_MODE")]
+    pub mode: Option<CorrectionMode>,
+}
+
+impl ConfigArgs {
+    /// Reads the file (if any), applies flags and environment on top, and validates.
+    pub fn load(&self) -> Result<Config, ConfigError> {
+        let mut file = match &self.config {
+            Some(p) => FileConfig::read(p)?,
+            None => FileConfig::default(),
+        };
+        self.apply(&mut file);
+        file.into_config()
+    }
+
+    fn apply(&self, f: &mut FileConfig) {
+        if let Some(b) = &self.building {
+            f.building = Some(b.clone());
+        }
+        if let Some(s) = &self.store {
+            f.store_path = Some(s.clone());
+        }
+        if let Some(z) = &self.zenoh_config {
+            f.zenoh.config_file = Some(z.clone());
+        }
+        if let Some(m) = &self.zenoh_mode {
+            f.zenoh.mode = Some(m.clone());
+        }
+        if !self.listen.is_empty() {
+            f.zenoh.listen = Some(self.listen.clone());
+        }
+        if !self.connect.is_empty() {
+            f.zenoh.connect = Some(self.connect.clone());
+        }
+        if self.no_multicast_scouting {
+            f.zenoh.multicast_scouting = Some(false);
+        }
+        if let Some(m) = &self.metrics_listen {
+            f.metrics.listen = Some(m.clone());
+        }
+        if self.no_metrics {
+            f.metrics.enabled = Some(false);
+        }
+        if let Some(w) = self.workers {
+            f.workers = Some(w);
+        }
+        if let Some(m) = self.mode {
+            f.defaults.mode = Some(m);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<Config, ConfigError> {
+        FileConfig::parse(text, Path::new("t.toml"))?.into_config()
+    }
+
+    #[test]
+    fn defaults_work() {
+        let c = parse("").unwrap();
+        assert_eq!(c.building.as_str(), "hq");
+        assert_eq!(c.zenoh.mode, None);
+        assert_eq!(c.metrics_listen, Some("127.0.0.1:9750".parse().unwrap()));
+        assert_eq!(c.sensor("anything").mode, CorrectionMode::Dynamic);
+    }
+
+    #[test]
+    fn per_sensor_settings_inherit_defaults() {
+        let c = parse(
+            r#"
+            building = "b2"
+            [defaults]
+            mode = "static"
+            crossover_hz = 0.3
+            [sensors.roof-1]
+            mode = "split"
+            tilt = true
+            "#,
+        )
+        .unwrap();
+        let s = c.sensor("roof-1");
+        assert_eq!(s.mode, CorrectionMode::Split);
+        assert!(s.tilt);
+        assert_eq!(s.crossover_hz, 0.3);
+        assert_eq!(c.sensor("other").mode, CorrectionMode::Static);
+    }
+
+    #[test]
+    fn bad_values_name_the_field() {
+        let e = parse("[sensors.a]\ncrossover_hz = -1.0").unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("`sensors.a.crossover_hz`: -1 is not a positive finite number"),
+            "{e}"
+        );
+        let e = parse("building = \"a b\"").unwrap_err();
+        assert!(e.to_string().contains("`building`"), "{e}");
+        let e = parse("[metrics]\nlisten = \"nowhere\"").unwrap_err();
+        assert!(e.to_string().contains("`metrics.listen`"), "{e}");
+        let e = parse("[zenoh]\nmode = \"client\"").unwrap_err();
+        assert!(e.to_string().contains("`zenoh.connect`"), "{e}");
+        let e = parse("[zenoh]\nlisten = [\"7447\"]").unwrap_err();
+        assert!(e.to_string().contains("`zenoh.listen[0]`"), "{e}");
+        let e = parse("[defaults]\nmode = \"fast\"").unwrap_err();
+        assert!(e.to_string().contains("unknown variant `fast`"), "{e}");
+        let e = parse("bulding = \"x\"").unwrap_err();
+        assert!(e.to_string().contains("unknown field `bulding`"), "{e}");
+    }
+
+    #[test]
+    fn the_example_file_is_valid() {
+        let c = parse(include_str!("../gateway.example.toml")).unwrap();
+        assert_eq!(c.sensor("roof-incl-1").mode, CorrectionMode::Split);
+        assert!(c.sensor("roof-incl-1").tilt);
+        assert_eq!(c.zenoh.listen, ["tcp/0.0.0.0:7447"]);
+        assert_eq!(c.defaults, SensorSettings::default());
+    }
+
+    #[test]
+    fn flags_override_the_file() {
+        let dir = std::env::temp_dir().join(format!("triax-cfg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("g.toml");
+        std::fs::write(
+            &path,
+            "building = \"file\"\n[zenoh]\nlisten = [\"tcp/0.0.0.0:1\"]\n",
+        )
+        .unwrap();
+        let args = ConfigArgs {
+            config: Some(path),
+            building: Some("flag".into()),
+            no_metrics: true,
+            ..ConfigArgs::default()
+        };
+        let c = args.load().unwrap();
+        assert_eq!(c.building.as_str(), "flag");
+        assert_eq!(c.zenoh.listen, ["tcp/0.0.0.0:1"]);
+        assert_eq!(c.metrics_listen, None);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}

@@ -1,0 +1,207 @@
+//! Second-order IIR sections (biquads) over three axes, for the crossover, the tilt low pass and
+//! the frequency-domain detector.
+//!
+//! Designs are Butterworth by the bilinear transform with pre-warping, in transposed direct
+//! form II, which keeps two state values per axis and is well behaved in f64 at the low corner
+//! frequencies used here (0.1 Hz at 100 Hz sampling).
+//!
+//! A filter starts in the steady state of its first input ([`Biquad3::prime`]) rather than at
+//! zero, so a sensor that joins with 9.81 m/s² on one axis does not ring for seconds.
+
+use std::f64::consts::{FRAC_1_SQRT_2, PI};
+
+/// Q of the two sections of a fourth-order Butterworth filter.
+const BUTTERWORTH4_Q: [f64; 2] = [0.541_196_100_146_197, 1.306_562_964_876_376_4];
+
+/// Coefficients of one section, normalised so that `a0 = 1`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Coefficients {
+    b: [f64; 3],
+    a: [f64; 2],
+    /// Gain at DC by design (1 for a low pass, 0 for a high pass); computing it from the
+    /// coefficients loses digits at low corners.
+    dc: f64,
+}
+
+impl Coefficients {
+    fn design(cutoff_hz: f64, sample_rate_hz: f64, q: f64, high_pass: bool) -> Coefficients {
+        let k = (PI * cutoff_hz / sample_rate_hz).tan();
+        let norm = 1.0 / (1.0 + k / q + k * k);
+        let a = [2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm];
+        let b0 = if high_pass { norm } else { k * k * norm };
+        let b1 = if high_pass { -2.0 * b0 } else { 2.0 * b0 };
+        Coefficients {
+            b: [b0, b1, b0],
+            a,
+            dc: if high_pass { 0.0 } else { 1.0 },
+        }
+    }
+
+    /// Second-order Butterworth low pass.
+    pub fn low_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Coefficients {
+        Self::design(cutoff_hz, sample_rate_hz, FRAC_1_SQRT_2, false)
+    }
+}
+
+/// Whether a corner frequency can be realised at a sample rate: strictly inside (0, 0.45·fs),
+/// away from the Nyquist frequency where the bilinear warp makes the design meaningless.
+pub fn realisable(cutoff_hz: f64, sample_rate_hz: f64) -> bool {
+    cutoff_hz.is_finite() && cutoff_hz > 0.0 && cutoff_hz < 0.45 * sample_rate_hz
+}
+
+/// One biquad section applied to three axes with shared coefficients.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Biquad3 {
+    c: Coefficients,
+    s1: [f64; 3],
+    s2: [f64; 3],
+    primed: bool,
+}
+
+impl Biquad3 {
+    pub fn new(c: Coefficients) -> Biquad3 {
+        Biquad3 {
+            c,
+            s1: [0.0; 3],
+            s2: [0.0; 3],
+            primed: false,
+        }
+    }
+
+    /// Sets the state to the steady state for a constant input `x`.
+    pub fn prime(&mut self, x: [f64; 3]) {
+        let g = self.c.dc;
+        for (k, &xk) in x.iter().enumerate() {
+            let y = g * xk;
+            self.s2[k] = self.c.b[2] * xk - self.c.a[1] * y;
+            self.s1[k] = y - self.c.b[0] * xk;
+        }
+        self.primed = true;
+    }
+
+    pub fn is_primed(&self) -> bool {
+        self.primed
+    }
+
+    /// Forgets the past: the next sample primes the filter again.
+    pub fn reset(&mut self) {
+        self.primed = false;
+    }
+
+    /// Filters one finite sample. Callers never pass NaN or infinity: one would poison the state
+    /// for good.
+    #[inline(always)]
+    pub fn step(&mut self, x: [f64; 3]) -> [f64; 3] {
+        if !self.primed {
+            self.prime(x);
+        }
+        let Coefficients { b, a, .. } = self.c;
+        let mut y = [0.0; 3];
+        for k in 0..3 {
+            y[k] = b[0] * x[k] + self.s1[k];
+            self.s1[k] = b[1] * x[k] - a[0] * y[k] + self.s2[k];
+            self.s2[k] = b[2] * x[k] - a[1] * y[k];
+        }
+        y
+    }
+}
+
+/// A fourth-order Butterworth high pass (two cascaded sections).
+#[derive(Debug, Clone, PartialEq)]
+pub struct HighPass4 {
+    sections: [Biquad3; 2],
+}
+
+impl HighPass4 {
+    pub fn new(cutoff_hz: f64, sample_rate_hz: f64) -> HighPass4 {
+        HighPass4 {
+            sections: BUTTERWORTH4_Q
+                .map(|q| Biquad3::new(Coefficients::design(cutoff_hz, sample_rate_hz, q, true))),
+        }
+    }
+
+    #[inline(always)]
+    pub fn step(&mut self, x: [f64; 3]) -> [f64; 3] {
+        let y = self.sections[0].step(x);
+        self.sections[1].step(y)
+    }
+
+    pub fn reset(&mut self) {
+        self.sections.iter_mut().for_each(Biquad3::reset);
+    }
+}
+
+/// A fourth-order Butterworth low pass (two cascaded sections).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LowPass4 {
+    sections: [Biquad3; 2],
+}
+
+impl LowPass4 {
+    pub fn new(cutoff_hz: f64, sample_rate_hz: f64) -> LowPass4 {
+        LowPass4 {
+            sections: BUTTERWORTH4_Q
+                .map(|q| Biquad3::new(Coefficients::design(cutoff_hz, sample_rate_hz, q, false))),
+        }
+    }
+
+    #[inline(always)]
+    pub fn step(&mut self, x: [f64; 3]) -> [f64; 3] {
+        let y = self.sections[0].step(x);
+        self.sections[1].step(y)
+    }
+
+    pub fn reset(&mut self) {
+        self.sections.iter_mut().for_each(Biquad3::reset);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Steady-state amplitude of the filter's response to a unit sine.
+    fn gain(mut f: impl FnMut([f64; 3]) -> [f64; 3], freq_hz: f64, fs: f64) -> f64 {
+        let n = (fs * 40.0) as usize;
+        let mut peak: f64 = 0.0;
+        for i in 0..n {
+            let x = (2.0 * PI * freq_hz * i as f64 / fs).sin();
+            let y = f([x, 0.0, 0.0]);
+            if i > n / 2 {
+                peak = peak.max(y[0].abs());
+            }
+        }
+        peak
+    }
+
+    #[test]
+    fn butterworth_responses() {
+        let fs = 100.0;
+        let mut lp = Biquad3::new(Coefficients::low_pass(1.0, fs));
+        assert!((gain(|x| lp.step(x), 0.1, fs) - 1.0).abs() < 0.01);
+        let mut lp = Biquad3::new(Coefficients::low_pass(1.0, fs));
+        assert!((gain(|x| lp.step(x), 1.0, fs) - FRAC_1_SQRT_2).abs() < 0.01);
+        let mut lp = Biquad3::new(Coefficients::low_pass(1.0, fs));
+        assert!(gain(|x| lp.step(x), 10.0, fs) < 0.011);
+
+        let mut hp = HighPass4::new(12.5, fs);
+        assert!(
+            gain(|x| hp.step(x), 5.0, fs) < 0.03,
+            "in-band sway is rejected"
+        );
+        let mut hp = HighPass4::new(12.5, fs);
+        assert!(gain(|x| hp.step(x), 30.0, fs) > 0.95);
+        let mut lp4 = LowPass4::new(0.4, fs);
+        assert!(gain(|x| lp4.step(x), 2.0, fs) < 0.002);
+    }
+
+    #[test]
+    fn priming_removes_the_start_transient() {
+        let mut lp = Biquad3::new(Coefficients::low_pass(0.1, 100.0));
+        let y = lp.step([0.0, 0.0, 9.81]);
+        assert!((y[2] - 9.81).abs() < 1e-12);
+        let mut hp = HighPass4::new(12.5, 100.0);
+        let y = hp.step([0.0, 0.0, 9.81]);
+        assert!(y[2].abs() < 1e-12);
+    }
+}

@@ -1,0 +1,804 @@
+//! The sample path: one raw batch in, one corrected batch out, for one sensor.
+//!
+//! [`SensorKernel::correct_batch`] reads samples straight from the payload
+//! ([`RawBatchView`]), corrects them with the sensor's [`Corrector`] snapshot and appends them
+//! to a caller-owned buffer through [`CorrectedBatchWriter`]. It allocates nothing per sample, takes
+//! no lock and does no I/O; its only state is the per-sensor filter memory kept in
+//! [`SensorKernel`], which survives a calibration swap.
+//!
+//! # Modes
+//!
+//! - `static`: `a = S_s⁻¹·V + q_s`, uncertainty from the static set.
+//! - `dynamic`: `a = S_d⁻¹·V + q_d`, uncertainty from the dynamic set.
+//! - `split`: a complementary crossover at `crossover_hz`. `V_low` is `V` through a
+//!   second-order Butterworth low pass and `V_high = V − V_low`, so the two bands sum to `V`
+//!   exactly. Then `a = (S_s⁻¹·V_low + q_s) + S_d⁻¹·V_high`: the static set (and its offset,
+//!   which is a DC quantity) carries the low band, only the dynamic set's `S⁻¹` the rest. The
+//!   variance per axis is `u_s²(V_low) + u_d,S²(V_high) + max(c_s, c_d)`: the static set's full
+//!   parameter variance at `V_low`, the dynamic set's sensitivity-only parameter variance at
+//!   `V_high` ([`SetCorrector::scale_param_variance`]), the two sets taken as independent (they
+//!   come from different benches), and the constant part (output noise and stated uncertainty,
+//!   [`SetCorrector::constant_variance`]) counted once, from whichever set states more, because
+//!   the noise is one physical noise and the stated parts are alternatives, not additions.
+//!
+//! # Quality flags
+//!
+//! Per sample: `non_finite_input` (the corrected value and its uncertainty are NaN), `clipped`
+//! (an output at the sensor's full scale), `outside_amplitude` (|a| on an axis above the
+//! domain's `amplitude_max_mps2`; in split mode each band against its own set).
+//! On every sample of a batch: `uncalibrated`, `calibration_expired` (the batch's timestamp is
+//! outside `valid_from..valid_until`), `outside_frequency` (see below).
+//! On the batch only: `sequence_gap` and `duplicate`, decided by the caller.
+//!
+//! # Frequency detector
+//!
+//! Each batch, the outputs go through a fourth-order Butterworth high pass at 1.25 × the
+//! domain's `frequency_max_hz` (its state carried across batches) and, when the domain's
+//! `frequency_min_hz` is above zero, a fourth-order low pass at `frequency_min_hz / 1.25`. The
+//! filtered outputs are mapped to m/s² through `S⁻¹` and their RMS over the batch is compared,
+//! per axis, with `max(k·u_c, frequency_floor_mps2)`, where `u_c` is the set's constant standard
+//! uncertainty (noise and stated part) and `k` its coverage factor. Above it on any axis, every
+//! sample of the batch is flagged `outside_frequency`.
+//!
+//! Why this rule: correcting out-of-band content with in-band parameters errs by at most that
+//! content's amplitude (even a sensitivity off by 100 %), so content below the expanded
+//! uncertainty cannot hurt, and white output noise alone (whose RMS is below `u_c`) never trips
+//! the flag. The 1.25 margin and the fourth order keep in-band sway near the band edge from
+//! leaking (a 5 Hz sway through the 12.5 Hz high pass is attenuated 40-fold). The detector costs
+//! about 40 multiply-adds per sample and is skipped when the corner cannot be realised (above
+//! 0.45 × the sample rate: the band reaches Nyquist, nothing can be outside it).
+//! In split mode the band checked is the static set's minimum to the dynamic set's maximum.
+//! After a sequence gap or a node restart the detector starts afresh (the jump across the
+//! missing stretch is not signal), and duplicate batches bypass it.
+
+use triax_calibration::corrector::{Corrector, SetCorrector, Validity};
+use triax_protocol::batch::{flags, CorrectedBatchWriter, CorrectedSample, CorrectionInfo, Mode};
+use triax_protocol::record::SetKind;
+use triax_protocol::RawBatchView;
+
+use crate::config::{CorrectionMode, SensorSettings};
+use crate::filter::{realisable, Biquad3, Coefficients, HighPass4, LowPass4};
+
+/// Margin between the record's band edge and the detector's corner.
+pub const FREQUENCY_MARGIN: f64 = 1.25;
+
+/// Coverage factor stamped on uncalibrated batches, whose uncertainties are NaN anyway; the wire
+/// format wants a positive number.
+const UNCALIBRATED_COVERAGE: f32 = 2.0;
+
+/// What a batch came to, for counters and the tilt stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BatchOutcome {
+    pub batch_flags: u16,
+    pub mode: Mode,
+    pub calibration_version: u64,
+    /// Samples whose flags, with the batch's, are not zero.
+    pub n_flagged: u32,
+}
+
+/// Filters designed for one sample rate and one calibration version.
+#[derive(Debug, Clone)]
+struct Design {
+    sample_rate_hz: f64,
+    version: u64,
+    crossover: Option<Biquad3>,
+    detector: Option<Detector>,
+    tilt: Option<Biquad3>,
+}
+
+#[derive(Debug, Clone)]
+struct Detector {
+    high: Option<HighPass4>,
+    low: Option<LowPass4>,
+    /// S⁻¹ of the set the band maps through.
+    s_inv_high: [[f64; 3]; 3],
+    s_inv_low: [[f64; 3]; 3],
+    threshold_mps2: [f64; 3],
+}
+
+/// Low-passed outputs and flags since the last tilt estimate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TiltState {
+    /// Low-passed raw outputs at the end of the last batch.
+    pub output_lp: [f64; 3],
+    pub flags: u16,
+    pub timestamp_ns: i64,
+    pub ready: bool,
+}
+
+/// Per-sensor memory of the sample path.
+#[derive(Debug, Clone)]
+pub struct SensorKernel {
+    settings: SensorSettings,
+    design: Option<Design>,
+    tilt: TiltState,
+}
+
+fn s_inv(set: &SetCorrector) -> [[f64; 3]; 3] {
+    let cols = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]].map(|e| set.scale(e));
+    let mut m = [[0.0; 3]; 3];
+    for (j, col) in cols.iter().enumerate() {
+        for (i, row) in m.iter_mut().enumerate() {
+            row[j] = col[i];
+        }
+    }
+    m
+}
+
+#[inline(always)]
+fn to_f64(v: [f32; 3]) -> [f64; 3] {
+    [f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]
+}
+
+#[inline(always)]
+fn to_f32(v: [f64; 3]) -> [f32; 3] {
+    [v[0] as f32, v[1] as f32, v[2] as f32]
+}
+
+#[inline(always)]
+fn finite(v: [f64; 3]) -> bool {
+    v[0].is_finite() && v[1].is_finite() && v[2].is_finite()
+}
+
+const NAN3: [f32; 3] = [f32::NAN; 3];
+
+impl SensorKernel {
+    pub fn new(settings: SensorSettings) -> SensorKernel {
+        SensorKernel {
+            settings,
+            design: None,
+            tilt: TiltState {
+                output_lp: [0.0; 3],
+                flags: 0,
+                timestamp_ns: 0,
+                ready: false,
+            },
+        }
+    }
+
+    pub fn settings(&self) -> &SensorSettings {
+        &self.settings
+    }
+
+    /// Wire mode this sensor's batches carry when calibrated.
+    pub fn mode(&self) -> Mode {
+        self.settings.mode.wire()
+    }
+
+    /// State for the tilt stream; `ready` once a calibrated batch went through the low pass.
+    pub fn tilt_state(&self) -> &TiltState {
+        &self.tilt
+    }
+
+    /// Tells the kernel that samples were lost or the node restarted: the frequency detector
+    /// starts afresh, so the jump between the old and the new signal is not taken for
+    /// out-of-band content. (The low passes keep their state: a jump fades from them smoothly.)
+    pub fn discontinuity(&mut self) {
+        if let Some(d) = self.design.as_mut().and_then(|d| d.detector.as_mut()) {
+            if let Some(h) = d.high.as_mut() {
+                h.reset();
+            }
+            if let Some(l) = d.low.as_mut() {
+                l.reset();
+            }
+        }
+    }
+
+    /// Clears the flags gathered for the next tilt estimate.
+    pub fn tilt_published(&mut self) {
+        self.tilt.flags = 0;
+    }
+
+    fn design_for<'d>(
+        slot: &'d mut Option<Design>,
+        s: &SensorSettings,
+        sample_rate_hz: f64,
+        corrector: &Corrector,
+    ) -> &'d mut Design {
+        let version = corrector.version();
+        let fresh = match slot {
+            Some(d) => d.sample_rate_hz != sample_rate_hz || d.version != version,
+            None => true,
+        };
+        if fresh {
+            // Keep filter memory when only the version changed at the same rate: a hot swap
+            // must not restart the crossover or the tilt low pass.
+            let keep = slot.take().filter(|d| d.sample_rate_hz == sample_rate_hz);
+            let crossover = match s.mode {
+                CorrectionMode::Split => {
+                    keep.as_ref().and_then(|d| d.crossover.clone()).or_else(|| {
+                        realisable(s.crossover_hz, sample_rate_hz).then(|| {
+                            Biquad3::new(Coefficients::low_pass(s.crossover_hz, sample_rate_hz))
+                        })
+                    })
+                }
+                _ => None,
+            };
+            let tilt = if s.tilt {
+                keep.as_ref().and_then(|d| d.tilt.clone()).or_else(|| {
+                    realisable(s.tilt_cutoff_hz, sample_rate_hz).then(|| {
+                        Biquad3::new(Coefficients::low_pass(s.tilt_cutoff_hz, sample_rate_hz))
+                    })
+                })
+            } else {
+                None
+            };
+            let detector = detector(s, corrector, sample_rate_hz);
+            *slot = Some(Design {
+                sample_rate_hz,
+                version,
+                crossover,
+                detector,
+                tilt,
+            });
+        }
+        // Set just above when absent.
+        slot.as_mut().expect("design was just made")
+    }
+
+    /// Corrects one batch into `out` (appended; `out` is not cleared).
+    ///
+    /// `corrector` is the snapshot in force for the whole batch (none: uncalibrated);
+    /// `stream_flags` are the batch-level conditions found by the caller (gap, duplicate);
+    /// `scratch` is the caller's reusable working memory.
+    pub fn correct_batch(
+        &mut self,
+        raw: &RawBatchView<'_>,
+        corrector: Option<&Corrector>,
+        stream_flags: u16,
+        scratch: &mut Scratch,
+        out: &mut Vec<u8>,
+    ) -> BatchOutcome {
+        match corrector {
+            None => uncalibrated(raw, stream_flags, out),
+            Some(c) => self.calibrated(raw, c, stream_flags, scratch, out),
+        }
+    }
+
+    fn calibrated(
+        &mut self,
+        raw: &RawBatchView<'_>,
+        c: &Corrector,
+        stream_flags: u16,
+        scratch: &mut Scratch,
+        out: &mut Vec<u8>,
+    ) -> BatchOutcome {
+        let n = raw.len();
+        let mode = self.settings.mode;
+        let design = Self::design_for(
+            &mut self.design,
+            &self.settings,
+            raw.header.sample_rate_hz,
+            c,
+        );
+        // Separate passes over a decoded copy: each loop stays small enough for the compiler
+        // to inline the correction and for the CPU to overlap consecutive samples.
+        scratch.load(raw);
+
+        // Start the low passes from the first batch's mean rather than its first sample, which
+        // carries that instant's sway and would take several time constants to fade.
+        let unprimed = design.tilt.as_ref().is_some_and(|f| !f.is_primed())
+            || design.crossover.as_ref().is_some_and(|f| !f.is_primed());
+        if unprimed {
+            if let Some(mean) = mean_of_finite(&scratch.v) {
+                for f in [design.tilt.as_mut(), design.crossover.as_mut()]
+                    .into_iter()
+                    .flatten()
+                {
+                    if !f.is_primed() {
+                        f.prime(mean);
+                    }
+                }
+            }
+        }
+
+        let mut common = 0u16;
+        if c.validity_at(raw.header.timestamp_ns) != Validity::Valid {
+            common |= flags::CALIBRATION_EXPIRED;
+        }
+        // A duplicate is an old stretch of signal: it would corrupt the detector's memory.
+        let in_sequence = stream_flags & flags::DUPLICATE == 0;
+        if let Some(d) = design.detector.as_mut().filter(|_| in_sequence) {
+            if d.out_of_band(&scratch.v) {
+                common |= flags::OUTSIDE_FREQUENCY;
+            }
+        }
+        if let Some(t) = design.tilt.as_mut() {
+            let mut any = false;
+            for v in scratch.v.iter().filter(|v| finite(**v)) {
+                self.tilt.output_lp = t.step(*v);
+                any = true;
+            }
+            self.tilt.ready |= any;
+        }
+
+        let static_set = c.set(SetKind::Static);
+        let dynamic_set = c.set(SetKind::Dynamic);
+        let (coverage, amplitude_max) = match mode {
+            CorrectionMode::Static => (
+                static_set.coverage_factor(),
+                static_set.domain().amplitude_max_mps2,
+            ),
+            CorrectionMode::Dynamic => (
+                dynamic_set.coverage_factor(),
+                dynamic_set.domain().amplitude_max_mps2,
+            ),
+            CorrectionMode::Split => (
+                static_set
+                    .coverage_factor()
+                    .max(dynamic_set.coverage_factor()),
+                0.0,
+            ),
+        };
+
+        // Corrected values and per-sample flags into the scratch arrays.
+        match mode {
+            CorrectionMode::Static | CorrectionMode::Dynamic => {
+                let set = if mode == CorrectionMode::Static {
+                    static_set
+                } else {
+                    dynamic_set
+                };
+                correct_all(set, &scratch.v, &mut scratch.a, &mut scratch.u);
+                for i in 0..n {
+                    let mut f = 0;
+                    if c.is_clipped(scratch.v[i]) {
+                        f |= flags::CLIPPED;
+                    }
+                    if scratch.a[i].iter().any(|a| a.abs() > amplitude_max) {
+                        f |= flags::OUTSIDE_AMPLITUDE;
+                    }
+                    scratch.f[i] = f;
+                }
+            }
+            CorrectionMode::Split => {
+                // Without a realisable crossover everything is low band.
+                for i in 0..n {
+                    let v = scratch.v[i];
+                    scratch.low[i] = match design.crossover.as_mut() {
+                        Some(x) if finite(v) => x.step(v),
+                        _ => v,
+                    };
+                }
+                split_all(static_set, dynamic_set, scratch);
+                for i in 0..n {
+                    if c.is_clipped(scratch.v[i]) {
+                        scratch.f[i] |= flags::CLIPPED;
+                    }
+                }
+            }
+        }
+
+        let info = CorrectionInfo {
+            calibration_version: c.version(),
+            mode: mode.wire(),
+            coverage_factor: coverage as f32,
+        };
+        let mut w = CorrectedBatchWriter::begin(out, &raw.header, info, n);
+        let mut union = common;
+        let mut n_flagged = 0u32;
+        for i in 0..n {
+            let mut f = common | scratch.f[i];
+            let sample = if finite(scratch.v[i]) {
+                CorrectedSample {
+                    accel_mps2: to_f32(scratch.a[i]),
+                    uncertainty_mps2: to_f32(scratch.u[i]),
+                    flags: f,
+                }
+            } else {
+                f = common | flags::NON_FINITE_INPUT;
+                CorrectedSample {
+                    accel_mps2: NAN3,
+                    uncertainty_mps2: NAN3,
+                    flags: f,
+                }
+            };
+            union |= f;
+            n_flagged += u32::from((f | stream_flags) != 0);
+            w.push(&sample);
+        }
+        let batch_flags = union | stream_flags;
+        w.finish(batch_flags);
+
+        if self.settings.tilt {
+            self.tilt.flags |= batch_flags;
+            self.tilt.timestamp_ns = batch_end_ns(raw);
+        }
+        BatchOutcome {
+            batch_flags,
+            mode: mode.wire(),
+            calibration_version: c.version(),
+            n_flagged,
+        }
+    }
+}
+
+/// Decoded samples and per-sample results of the batch in hand, reused from batch to batch so
+/// the sample path allocates nothing once the largest batch has been seen. One per worker, not
+/// per sensor: it holds nothing between batches.
+#[derive(Debug, Clone, Default)]
+pub struct Scratch {
+    v: Vec<[f64; 3]>,
+    low: Vec<[f64; 3]>,
+    a: Vec<[f64; 3]>,
+    u: Vec<[f64; 3]>,
+    f: Vec<u16>,
+}
+
+impl Scratch {
+    fn load(&mut self, raw: &RawBatchView<'_>) {
+        let n = raw.len();
+        self.v.clear();
+        self.v.extend(raw.samples().map(to_f64));
+        for buf in [&mut self.low, &mut self.a, &mut self.u] {
+            buf.resize(n, [0.0; 3]);
+        }
+        self.f.clear();
+        self.f.resize(n, 0);
+    }
+}
+
+/// The correction proper, over a whole batch. Kept apart so that the compiler inlines
+/// `SetCorrector::correct` into a tight loop. Non-finite inputs give non-finite results, which
+/// the caller replaces.
+#[inline(never)]
+fn correct_all(set: &SetCorrector, v: &[[f64; 3]], a: &mut [[f64; 3]], u: &mut [[f64; 3]]) {
+    for ((v, a), u) in v.iter().zip(a.iter_mut()).zip(u.iter_mut()) {
+        let r = set.correct(*v);
+        *a = r.accel_mps2;
+        *u = r.uncertainty_mps2;
+    }
+}
+
+/// Split mode over a whole batch, from `scratch.v` and its low band `scratch.low`.
+#[inline(never)]
+fn split_all(static_set: &SetCorrector, dynamic_set: &SetCorrector, s: &mut Scratch) {
+    let amp_s = static_set.domain().amplitude_max_mps2;
+    let amp_d = dynamic_set.domain().amplitude_max_mps2;
+    let const_s = static_set.constant_variance();
+    let const_d = dynamic_set.constant_variance();
+    // Constant part counted once: the larger of the two sets' statements.
+    let extra = [0, 1, 2].map(|k| (const_d[k] - const_s[k]).max(0.0));
+    for i in 0..s.v.len() {
+        let (v, low) = (s.v[i], s.low[i]);
+        let high = [v[0] - low[0], v[1] - low[1], v[2] - low[2]];
+        let rl = static_set.correct(low);
+        let ah = dynamic_set.scale(high);
+        let vh = dynamic_set.scale_param_variance(high);
+        let mut f = 0;
+        for k in 0..3 {
+            s.a[i][k] = rl.accel_mps2[k] + ah[k];
+            s.u[i][k] = (rl.uncertainty_mps2[k] * rl.uncertainty_mps2[k] + vh[k] + extra[k]).sqrt();
+            if rl.accel_mps2[k].abs() > amp_s || ah[k].abs() > amp_d {
+                f |= flags::OUTSIDE_AMPLITUDE;
+            }
+        }
+        s.f[i] = f;
+    }
+}
+
+/// Mean of the finite samples.
+fn mean_of_finite(v: &[[f64; 3]]) -> Option<[f64; 3]> {
+    let mut sum = [0.0; 3];
+    let mut n = 0usize;
+    for v in v.iter().filter(|v| finite(**v)) {
+        for k in 0..3 {
+            sum[k] += v[k];
+        }
+        n += 1;
+    }
+    (n > 0).then(|| sum.map(|s| s / n as f64))
+}
+
+/// Time just after the batch's last sample, ns since the Unix epoch.
+pub fn batch_end_ns(raw: &RawBatchView<'_>) -> i64 {
+    let duration_ns = raw.len() as f64 / raw.header.sample_rate_hz * 1e9;
+    raw.header.timestamp_ns.saturating_add(duration_ns as i64)
+}
+
+fn uncalibrated(raw: &RawBatchView<'_>, stream_flags: u16, out: &mut Vec<u8>) -> BatchOutcome {
+    let n = raw.len();
+    let info = CorrectionInfo {
+        calibration_version: 0,
+        mode: Mode::None,
+        coverage_factor: UNCALIBRATED_COVERAGE,
+    };
+    let mut w = CorrectedBatchWriter::begin(out, &raw.header, info, n);
+    let mut union = flags::UNCALIBRATED;
+    for i in 0..n {
+        let v = raw.sample(i);
+        let mut f = flags::UNCALIBRATED;
+        let accel_mps2 = if v.iter().all(|x| x.is_finite()) {
+            v
+        } else {
+            f |= flags::NON_FINITE_INPUT;
+            NAN3
+        };
+        union |= f;
+        w.push(&CorrectedSample {
+            accel_mps2,
+            uncertainty_mps2: NAN3,
+            flags: f,
+        });
+    }
+    let batch_flags = union | stream_flags;
+    w.finish(batch_flags);
+    BatchOutcome {
+        batch_flags,
+        mode: Mode::None,
+        calibration_version: 0,
+        n_flagged: n as u32,
+    }
+}
+
+fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<Detector> {
+    let (low_set, high_set) = match s.mode {
+        CorrectionMode::Static => (c.set(SetKind::Static), c.set(SetKind::Static)),
+        CorrectionMode::Dynamic => (c.set(SetKind::Dynamic), c.set(SetKind::Dynamic)),
+        CorrectionMode::Split => (c.set(SetKind::Static), c.set(SetKind::Dynamic)),
+    };
+    let high_hz = high_set.domain().frequency_max_hz * FREQUENCY_MARGIN;
+    let low_hz = low_set.domain().frequency_min_hz / FREQUENCY_MARGIN;
+    let high = realisable(high_hz, sample_rate_hz).then(|| HighPass4::new(high_hz, sample_rate_hz));
+    let low = (low_set.domain().frequency_min_hz > 0.0 && realisable(low_hz, sample_rate_hz))
+        .then(|| LowPass4::new(low_hz, sample_rate_hz));
+    if high.is_none() && low.is_none() {
+        return None;
+    }
+    let threshold_mps2 = [0, 1, 2].map(|k| {
+        let set_u = |set: &SetCorrector| set.coverage_factor() * set.constant_variance()[k].sqrt();
+        set_u(low_set)
+            .max(set_u(high_set))
+            .max(s.frequency_floor_mps2)
+    });
+    Some(Detector {
+        high,
+        low,
+        s_inv_high: s_inv(high_set),
+        s_inv_low: s_inv(low_set),
+        threshold_mps2,
+    })
+}
+
+/// Second moments of filtered outputs, upper triangle: xx, yy, zz, xy, xz, yz.
+#[derive(Default)]
+struct Moments([f64; 6]);
+
+impl Moments {
+    #[inline(always)]
+    fn add(&mut self, y: [f64; 3]) {
+        let m = &mut self.0;
+        m[0] += y[0] * y[0];
+        m[1] += y[1] * y[1];
+        m[2] += y[2] * y[2];
+        m[3] += y[0] * y[1];
+        m[4] += y[0] * y[2];
+        m[5] += y[1] * y[2];
+    }
+
+    /// Whether the mean square of `S⁻¹·y` exceeds `threshold²` on any axis.
+    fn exceeds(&self, n: usize, s_inv: &[[f64; 3]; 3], threshold: &[f64; 3]) -> bool {
+        if n == 0 {
+            return false;
+        }
+        let m = &self.0;
+        let full = [[m[0], m[3], m[4]], [m[3], m[1], m[5]], [m[4], m[5], m[2]]];
+        (0..3).any(|k| {
+            let mut ms = 0.0;
+            for i in 0..3 {
+                for j in 0..3 {
+                    ms += s_inv[k][i] * s_inv[k][j] * full[i][j];
+                }
+            }
+            ms / n as f64 > threshold[k] * threshold[k]
+        })
+    }
+}
+
+impl Detector {
+    fn out_of_band(&mut self, samples: &[[f64; 3]]) -> bool {
+        let mut high = Moments::default();
+        let mut low = Moments::default();
+        let mut n = 0usize;
+        for &v in samples {
+            if !finite(v) {
+                continue;
+            }
+            n += 1;
+            if let Some(h) = self.high.as_mut() {
+                high.add(h.step(v));
+            }
+            if let Some(l) = self.low.as_mut() {
+                low.add(l.step(v));
+            }
+        }
+        (self.high.is_some() && high.exceeds(n, &self.s_inv_high, &self.threshold_mps2))
+            || (self.low.is_some() && low.exceeds(n, &self.s_inv_low, &self.threshold_mps2))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::PI;
+    use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
+    use triax_protocol::record::sample;
+    use triax_protocol::SensorId;
+
+    fn settings(mode: CorrectionMode) -> SensorSettings {
+        SensorSettings {
+            mode,
+            ..SensorSettings::default()
+        }
+    }
+
+    fn batch(seq: u64, samples: Vec<[f32; 3]>) -> Vec<u8> {
+        RawBatch {
+            header: BatchHeader {
+                sensor_id: SensorId::new("k").unwrap(),
+                sequence: seq,
+                timestamp_ns: 1_800_000_000_000_000_000 + seq as i64 * 500_000_000,
+                sample_rate_hz: 100.0,
+            },
+            temperature_c: None,
+            samples,
+        }
+        .encode()
+    }
+
+    /// Outputs a sensor with the record's own static S and q gives for acceleration `a`.
+    fn outputs_for(record: &triax_protocol::CalibrationRecord, a: [f64; 3]) -> [f32; 3] {
+        let s = record.static_set.sensitivity;
+        let q = record.static_set.offset;
+        let d = [a[0] - q[0], a[1] - q[1], a[2] - q[2]];
+        [0, 1, 2].map(|i| (s[i][0] * d[0] + s[i][1] * d[1] + s[i][2] * d[2]) as f32)
+    }
+
+    fn run(k: &mut SensorKernel, c: Option<&Corrector>, bytes: &[u8]) -> CorrectedBatch {
+        let view = RawBatchView::parse(bytes).unwrap();
+        let mut out = Vec::new();
+        k.correct_batch(&view, c, 0, &mut Scratch::default(), &mut out);
+        CorrectedBatch::decode(&out).unwrap()
+    }
+
+    #[test]
+    fn static_mode_recovers_the_acceleration() {
+        let r = sample::record("k", 3);
+        let c = Corrector::from_record(&r).unwrap();
+        let mut k = SensorKernel::new(settings(CorrectionMode::Static));
+        let v = outputs_for(&r, [0.3, -0.2, 9.81]);
+        let out = run(&mut k, Some(&c), &batch(0, vec![v; 50]));
+        assert_eq!(out.info.mode, Mode::Static);
+        assert_eq!(out.info.calibration_version, 3);
+        assert_eq!(out.batch_flags, 0);
+        let s = out.samples[10];
+        for (a, t) in s.accel_mps2.iter().zip([0.3, -0.2, 9.81]) {
+            assert!((f64::from(*a) - t).abs() < 1e-4, "{s:?}");
+        }
+        assert!(s.uncertainty_mps2.iter().all(|u| *u > 0.0 && *u < 0.1));
+    }
+
+    #[test]
+    fn uncalibrated_and_non_finite_are_flagged() {
+        let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+        let out = run(
+            &mut k,
+            None,
+            &batch(0, vec![[1.0, 2.0, 3.0], [f32::NAN, 0.0, 0.0]]),
+        );
+        assert_eq!(out.info.mode, Mode::None);
+        assert_eq!(out.info.calibration_version, 0);
+        assert_eq!(out.samples[0].accel_mps2, [1.0, 2.0, 3.0]);
+        assert!(out.samples[0].uncertainty_mps2[0].is_nan());
+        assert_eq!(
+            out.batch_flags,
+            flags::UNCALIBRATED | flags::NON_FINITE_INPUT
+        );
+
+        let r = sample::record("k", 1);
+        let c = Corrector::from_record(&r).unwrap();
+        let out = run(
+            &mut k,
+            Some(&c),
+            &batch(1, vec![[1.0, 0.0, 0.0], [f32::INFINITY, 0.0, 0.0]]),
+        );
+        assert_eq!(out.samples[0].flags, 0);
+        assert_eq!(out.samples[1].flags, flags::NON_FINITE_INPUT);
+        assert!(out.samples[1].accel_mps2[0].is_nan());
+    }
+
+    #[test]
+    fn split_reconstructs_when_sets_agree_and_uncertainty_combines() {
+        let mut r = sample::record("k", 1);
+        r.dynamic = r.static_set.clone();
+        let c = Corrector::from_record(&r).unwrap();
+        let mut k = SensorKernel::new(SensorSettings {
+            crossover_hz: 0.5,
+            ..settings(CorrectionMode::Split)
+        });
+        let mut s = Vec::new();
+        for i in 0..500 {
+            let t = i as f64 / 100.0;
+            s.push(outputs_for(
+                &r,
+                [0.5 * (2.0 * PI * 2.0 * t).sin(), 0.1, 9.81],
+            ));
+        }
+        let out = run(&mut k, Some(&c), &batch(0, s));
+        for (i, x) in out.samples.iter().enumerate() {
+            let t = i as f64 / 100.0;
+            let truth = 0.5 * (2.0 * PI * 2.0 * t).sin();
+            assert!((f64::from(x.accel_mps2[0]) - truth).abs() < 1e-4, "{i}");
+            // With equal sets the combined uncertainty is at least the constant part and close
+            // to the single-set figure.
+            let single = c
+                .set(SetKind::Static)
+                .correct(to_f64(outputs_for(&r, [truth, 0.1, 9.81])));
+            let u = f64::from(x.uncertainty_mps2[0]);
+            assert!(
+                u >= single.uncertainty_mps2[0] * 0.999 && u < single.uncertainty_mps2[0] * 1.5
+            );
+        }
+    }
+
+    #[test]
+    fn frequency_detector_flags_out_of_band_and_ignores_sway_and_noise() {
+        let r = sample::record("k", 1); // band 0..10 Hz
+        let c = Corrector::from_record(&r).unwrap();
+        let make = |seq: u64, f_hz: f64, amp: f64| -> Vec<[f32; 3]> {
+            (0..50)
+                .map(|i| {
+                    let t = (seq as f64 * 50.0 + i as f64) / 100.0;
+                    outputs_for(&r, [amp * (2.0 * PI * f_hz * t).sin(), 0.0, 9.81])
+                })
+                .collect()
+        };
+        let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+        // Warm up the detector state over several batches, as in a stream.
+        let mut last = 0;
+        for seq in 0..6 {
+            last = run(&mut k, Some(&c), &batch(seq, make(seq, 3.0, 1.0))).batch_flags;
+        }
+        assert_eq!(last & flags::OUTSIDE_FREQUENCY, 0, "3 Hz sway is in band");
+        let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+        for seq in 0..6 {
+            last = run(&mut k, Some(&c), &batch(seq, make(seq, 30.0, 0.5))).batch_flags;
+        }
+        assert_ne!(
+            last & flags::OUTSIDE_FREQUENCY,
+            0,
+            "30 Hz vibration is out of band"
+        );
+
+        // Batches 4 to 6 lost: the jump across them is not out-of-band content.
+        for reset in [false, true] {
+            let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+            for seq in 0..4 {
+                run(&mut k, Some(&c), &batch(seq, make(seq, 3.0, 1.0)));
+            }
+            if reset {
+                k.discontinuity();
+            }
+            let f = run(&mut k, Some(&c), &batch(7, make(7, 3.3, 1.0))).batch_flags;
+            assert_eq!(
+                f & flags::OUTSIDE_FREQUENCY != 0,
+                !reset,
+                "reset {reset}: {:?}",
+                flags::names(f)
+            );
+        }
+    }
+
+    #[test]
+    fn expiry_clipping_and_amplitude() {
+        let mut r = sample::record("k", 1);
+        r.valid_until = Some(r.valid_from + time::Duration::days(1));
+        r.sensor.output_full_scale = Some(2.0);
+        let c = Corrector::from_record(&r).unwrap();
+        let mut k = SensorKernel::new(settings(CorrectionMode::Static));
+        let out = run(&mut k, Some(&c), &batch(0, vec![[2.5, 0.0, 0.98]]));
+        assert_ne!(out.samples[0].flags & flags::CALIBRATION_EXPIRED, 0);
+        assert_ne!(out.samples[0].flags & flags::CLIPPED, 0);
+        assert_ne!(out.samples[0].flags & flags::OUTSIDE_AMPLITUDE, 0);
+    }
+}

@@ -1,0 +1,299 @@
+//! Correction workers: each owns a share of the sensors (by a hash of the id), pops their raw
+//! batches from its [`Inbox`], corrects them with [`SensorKernel`] and publishes the corrected
+//! batch and, for inclinometers, the tilt stream.
+//!
+//! A sensor always lands on the same worker, so its batches are corrected in order and its
+//! state (sequence tracker, filter memory, publishers) needs no lock. One tracing span per
+//! sensor, entered per batch, never one per sample.
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::Arc;
+
+use tracing::Instrument;
+use triax_protocol::batch::corrected_len;
+use triax_protocol::messages::TiltSample;
+use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
+use zenoh::pubsub::Publisher;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::Sample;
+
+use crate::inbox::Inbox;
+use crate::kernel::{Scratch, SensorKernel};
+use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
+use crate::sequence::{SequenceTracker, Verdict};
+use crate::shutdown::Shutdown;
+use crate::tilt::tilt;
+use triax_protocol::record::SetKind;
+use triax_protocol::BuildingId;
+
+/// What every worker shares.
+pub struct Shared {
+    pub building: BuildingId,
+    pub session: zenoh::Session,
+    pub table: Arc<SensorTable>,
+    pub counters: Arc<GatewayCounters>,
+}
+
+/// Which worker serves a sensor: FNV-1a of its id, so the choice is stable and cheap.
+pub fn shard(sensor: &str, n_workers: usize) -> usize {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in sensor.bytes() {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    (h % n_workers.max(1) as u64) as usize
+}
+
+struct SensorState {
+    entry: Arc<SensorEntry>,
+    publisher: Publisher<'static>,
+    tilt_publisher: Option<Publisher<'static>>,
+    sequence: SequenceTracker,
+    kernel: SensorKernel,
+    next_tilt_ns: i64,
+    /// Version of the last batch, to log changes once.
+    last_version: Option<u64>,
+    span: tracing::Span,
+}
+
+/// Runs one worker until shutdown.
+pub async fn run(
+    index: usize,
+    inbox: Arc<Inbox<Sample>>,
+    shared: Arc<Shared>,
+    mut shutdown: Shutdown,
+) {
+    let mut sensors: HashMap<Box<str>, SensorState> = HashMap::new();
+    let mut scratch = Scratch::default();
+    tracing::debug!(worker = index, "worker started");
+    loop {
+        let sample = tokio::select! {
+            biased;
+            _ = shutdown.recv() => break,
+            s = inbox.pop() => s,
+        };
+        handle(&mut sensors, &mut scratch, &shared, sample).await;
+    }
+    tracing::debug!(worker = index, sensors = sensors.len(), "worker stopped");
+}
+
+fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
+    shared.counters.malformed.fetch_add(1, Relaxed);
+    match SensorId::new(sensor) {
+        Ok(id) => {
+            let entry = shared.table.entry(&id);
+            let n = entry.counters.rejects.fetch_add(1, Relaxed) + 1;
+            // First and then every thousandth: a broken node must not flood the log.
+            if n == 1 || n % 1000 == 0 {
+                tracing::warn!(sensor = %id, rejects = n, cause = %cause, "malformed raw batch skipped");
+            }
+        }
+        Err(_) => {
+            tracing::warn!(key_sensor = sensor, cause = %cause, "payload on a bad key skipped")
+        }
+    }
+}
+
+async fn handle(
+    sensors: &mut HashMap<Box<str>, SensorState>,
+    scratch: &mut Scratch,
+    shared: &Shared,
+    sample: Sample,
+) {
+    let key = sample.key_expr().as_str();
+    // The subscription is `triax/<building>/raw/*`: the last chunk is the sensor.
+    let sensor = key.rsplit_once('/').map_or(key, |(_, s)| s);
+    let payload = sample.payload().to_bytes();
+    let view = match RawBatchView::parse(&payload) {
+        Ok(v) => v,
+        Err(e) => return reject(shared, sensor, &e),
+    };
+    if view.header.sensor_id.as_str() != sensor {
+        let cause = format!("payload names sensor {}", view.header.sensor_id);
+        return reject(shared, sensor, &cause);
+    }
+    if !sensors.contains_key(sensor) {
+        match SensorState::new(shared, &view.header.sensor_id).await {
+            Ok(s) => {
+                sensors.insert(sensor.into(), s);
+            }
+            Err(e) => {
+                shared.counters.publish_errors.fetch_add(1, Relaxed);
+                tracing::error!(sensor, cause = %e, "cannot declare the sensor's publishers");
+                return;
+            }
+        }
+    }
+    // Inserted just above when missing.
+    let state = sensors.get_mut(sensor).expect("sensor state exists");
+    let span = state.span.clone();
+    let (corrected, tilt_json) = span.in_scope(|| state.correct(&view, scratch));
+    async {
+        if let Err(e) = state.publisher.put(corrected).await {
+            shared.counters.publish_errors.fetch_add(1, Relaxed);
+            tracing::warn!(cause = %e, "corrected batch not published");
+        } else {
+            shared.counters.published_batches.fetch_add(1, Relaxed);
+        }
+        if let (Some(json), Some(p)) = (tilt_json, &state.tilt_publisher) {
+            match p.put(json).await {
+                Ok(()) => {
+                    shared.counters.tilt_samples.fetch_add(1, Relaxed);
+                }
+                Err(e) => tracing::warn!(cause = %e, "tilt sample not published"),
+            }
+        }
+    }
+    .instrument(span)
+    .await;
+}
+
+impl SensorState {
+    async fn new(shared: &Shared, id: &SensorId) -> zenoh::Result<SensorState> {
+        let entry = shared.table.entry(id);
+        let b = shared.building.clone();
+        // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its
+        // inbox fills, and the inbox drops the oldest batch and counts it.
+        let publisher = shared
+            .session
+            .declare_publisher(Key::Corrected(b.clone(), id.clone()).to_string())
+            .congestion_control(CongestionControl::Block)
+            .await?;
+        let tilt_publisher = if entry.settings.tilt {
+            Some(
+                shared
+                    .session
+                    .declare_publisher(Key::Tilt(b, id.clone()).to_string())
+                    .await?,
+            )
+        } else {
+            None
+        };
+        let span = tracing::info_span!("sensor", sensor = %id);
+        span.in_scope(|| {
+            tracing::info!(
+                mode = ?entry.settings.mode,
+                tilt = entry.settings.tilt,
+                calibration_version = ?entry.calibration_version(),
+                "sensor online"
+            )
+        });
+        Ok(SensorState {
+            kernel: SensorKernel::new(entry.settings.clone()),
+            entry,
+            publisher,
+            tilt_publisher,
+            sequence: SequenceTracker::default(),
+            next_tilt_ns: i64::MIN,
+            last_version: None,
+            span,
+        })
+    }
+
+    /// The synchronous part: sequence, correction, counters, tilt. Returns the corrected payload
+    /// and the tilt sample due, if any.
+    fn correct(
+        &mut self,
+        view: &RawBatchView<'_>,
+        scratch: &mut Scratch,
+    ) -> (Vec<u8>, Option<Vec<u8>>) {
+        let c = &self.entry.counters;
+        let verdict = self.sequence.observe(view.header.sequence);
+        match verdict {
+            Verdict::Gap { missing } => {
+                self.kernel.discontinuity();
+                c.gaps.fetch_add(1, Relaxed);
+                c.missing_batches.fetch_add(missing, Relaxed);
+                tracing::debug!(sequence = view.header.sequence, missing, "sequence gap");
+            }
+            Verdict::Duplicate => {
+                c.duplicates.fetch_add(1, Relaxed);
+                tracing::debug!(sequence = view.header.sequence, "duplicate batch");
+            }
+            Verdict::Restart => {
+                self.kernel.discontinuity();
+                c.restarts.fetch_add(1, Relaxed);
+                tracing::info!(sequence = view.header.sequence, "sensor node restarted");
+            }
+            Verdict::InOrder | Verdict::First => {}
+        }
+        let corrector = self.entry.corrector();
+        let version = corrector.as_ref().map(|c| c.version());
+        if version != self.last_version {
+            match version {
+                Some(v) => tracing::info!(calibration_version = v, "calibration in force"),
+                None => tracing::warn!("no calibration: publishing flagged uncalibrated"),
+            }
+            self.last_version = version;
+        }
+        let n = view.len();
+        let mut out = Vec::with_capacity(corrected_len(view.header.sensor_id.as_str().len(), n));
+        let outcome = self.kernel.correct_batch(
+            view,
+            corrector.as_deref(),
+            verdict.flags(),
+            scratch,
+            &mut out,
+        );
+        c.batches.fetch_add(1, Relaxed);
+        c.samples.fetch_add(n as u64, Relaxed);
+        c.flagged_samples
+            .fetch_add(u64::from(outcome.n_flagged), Relaxed);
+        if outcome.mode == Mode::None {
+            c.uncalibrated_samples.fetch_add(n as u64, Relaxed);
+        }
+        c.last_seen_ns.store(now_ns(), Relaxed);
+
+        let mut tilt_json = None;
+        if let (Some(corrector), true) = (&corrector, self.tilt_publisher.is_some()) {
+            let t = *self.kernel.tilt_state();
+            if t.ready && t.timestamp_ns >= self.next_tilt_ns {
+                let est = tilt(corrector.set(SetKind::Static), t.output_lp);
+                let sample = TiltSample {
+                    format_version: JSON_FORMAT_VERSION,
+                    sensor_id: self.entry.id.clone(),
+                    timestamp_ns: t.timestamp_ns,
+                    roll_deg: est.roll_deg,
+                    pitch_deg: est.pitch_deg,
+                    roll_uncertainty_deg: est.roll_uncertainty_deg,
+                    pitch_uncertainty_deg: est.pitch_uncertainty_deg,
+                    coverage_factor: corrector.set(SetKind::Static).coverage_factor(),
+                    calibration_version: corrector.version(),
+                    flags: t.flags,
+                };
+                tilt_json = Some(to_json(&sample));
+                self.kernel.tilt_published();
+                let interval_ns = (self.entry.settings.tilt_interval_s * 1e9) as i64;
+                self.next_tilt_ns = t.timestamp_ns.saturating_add(interval_ns);
+            }
+        }
+        (out, tilt_json)
+    }
+}
+
+/// Now, ns since the Unix epoch.
+pub fn now_ns() -> i64 {
+    let d = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
+    i64::try_from(d.as_nanos()).unwrap_or(i64::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_are_stable_and_spread() {
+        let n = 4;
+        let mut counts = [0; 4];
+        for i in 0..1000 {
+            let s = format!("acc-{i}");
+            let w = shard(&s, n);
+            assert_eq!(w, shard(&s, n));
+            counts[w] += 1;
+        }
+        assert!(counts.iter().all(|&c| c > 150), "{counts:?}");
+    }
+}

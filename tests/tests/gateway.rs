@@ -1,0 +1,452 @@
+//! Gateway tests with real Zenoh sessions on loopback: a gateway started from the library with
+//! a real sled store in a temporary directory, simulated sensor nodes publishing raw batches,
+//! and subscribers reading the corrected and tilt streams, the status queryable and the
+//! metrics endpoint.
+//!
+//! - `corrected_values_match_the_truth_within_their_uncertainty`: a node whose true S and q
+//!   differ from the record by errors drawn from the record's covariance, with output noise;
+//!   the corrected values fall within the tagged k = 2 interval at the expected rate.
+//! - `uncalibrated_sensor_is_published_flagged_and_counted`: no record: raw values pass through
+//!   flagged `uncalibrated`, mode none, NaN uncertainty; counted in status and metrics.
+//! - `malformed_payloads_are_counted_and_the_stream_goes_on`
+//! - `gaps_and_duplicates_are_flagged_and_counted`
+//! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
+//! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
+//!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
+
+mod util;
+
+use std::f64::consts::PI;
+use std::time::Duration;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::StandardNormal;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use triax_gateway::{CorrectionMode, SensorSettings};
+use triax_protocol::batch::{flags, Mode};
+use triax_protocol::messages::{GatewayStatus, TiltSample};
+use triax_protocol::record::{sample, CalibrationRecord};
+use triax_protocol::{from_json, BuildingId, Key, SensorId};
+use util::*;
+
+fn key_raw(b: &str, s: &str) -> String {
+    Key::Raw(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
+}
+
+fn key_corrected(b: &str, s: &str) -> String {
+    Key::Corrected(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
+}
+
+async fn status(session: &zenoh::Session, b: &str) -> GatewayStatus {
+    let replies = session
+        .get(Key::Status(BuildingId::new(b).unwrap()).to_string())
+        .timeout(TIMEOUT)
+        .await
+        .expect("status query sent");
+    let reply = tokio::time::timeout(TIMEOUT, replies.recv_async())
+        .await
+        .expect("status answered in time")
+        .expect("a reply");
+    let sample = reply.result().expect("status reply is not an error");
+    from_json(&sample.payload().to_bytes()).expect("status decodes")
+}
+
+async fn metrics(addr: std::net::SocketAddr) -> String {
+    let mut s = tokio::net::TcpStream::connect(addr)
+        .await
+        .expect("metrics connect");
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+        .await
+        .unwrap();
+    let mut body = String::new();
+    s.read_to_string(&mut body).await.unwrap();
+    assert!(body.starts_with("HTTP/1.1 200 OK"), "{body}");
+    body
+}
+
+/// A record with a stated diagonal covariance and output noise.
+fn record_with_covariance(id: &str, version: u64, sd_s: f64, sd_q: f64) -> CalibrationRecord {
+    let mut r = sample::record(id, version);
+    r.sensor.output_noise = Some([0.001; 3]);
+    for set in [&mut r.static_set, &mut r.dynamic] {
+        let mut cov = [[0.0; 12]; 12];
+        for (i, row) in cov.iter_mut().enumerate() {
+            row[i] = if i < 9 { sd_s * sd_s } else { sd_q * sd_q };
+        }
+        set.covariance = Some(Box::new(cov));
+    }
+    r
+}
+
+fn motion(t: f64) -> [f64; 3] {
+    [
+        0.3 * (2.0 * PI * 2.0 * t).sin(),
+        0.2 * (2.0 * PI * 3.3 * t + 1.0).sin(),
+        9.81 + 0.05 * (2.0 * PI * 1.1 * t).sin(),
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn corrected_values_match_the_truth_within_their_uncertainty() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let (sd_s, sd_q) = (1e-4, 0.004);
+    let record = record_with_covariance("acc-1", 3, sd_s, sd_q);
+    seed_store(&store, std::slice::from_ref(&record));
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut normal = move || rng.sample::<f64, _>(StandardNormal);
+    // The truth is the record's dynamic set off by errors drawn from its stated covariance.
+    let s_true = record
+        .dynamic
+        .sensitivity
+        .map(|r| r.map(|x| x + sd_s * normal()));
+    let q_true = record.dynamic.offset.map(|x| x + sd_q * normal());
+
+    let gw = start(config("b1", &store)).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(key_corrected("b1", "acc-1"))
+        .await
+        .unwrap();
+    let publisher = session
+        .declare_publisher(key_raw("b1", "acc-1"))
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+
+    let n_batches = 20;
+    for seq in 0..n_batches {
+        let samples = (0..50)
+            .map(|i| {
+                let t = (seq * 50 + i) as f64 / 100.0;
+                outputs(&s_true, &q_true, motion(t)).map(|v| (v + 0.001 * normal()) as f32)
+            })
+            .collect();
+        publisher.put(raw("acc-1", seq, samples)).await.unwrap();
+    }
+    let batches = collect(&sub, n_batches as usize).await;
+    let (mut n, mut within, mut worst) = (0, 0, 0f64);
+    for (seq, b) in batches.iter().enumerate() {
+        assert_eq!(b.header.sequence, seq as u64);
+        assert_eq!(b.info.calibration_version, 3);
+        assert_eq!(b.info.mode, Mode::Dynamic);
+        assert_eq!(b.batch_flags, 0, "{:?}", flags::names(b.batch_flags));
+        for (i, s) in b.samples.iter().enumerate() {
+            let truth = motion((seq * 50 + i) as f64 / 100.0);
+            for (k, truth_k) in truth.iter().enumerate() {
+                let u = f64::from(s.uncertainty_mps2[k]);
+                assert!(u > 0.0 && u < 0.05, "u = {u}");
+                let z = (f64::from(s.accel_mps2[k]) - truth_k).abs() / u;
+                n += 1;
+                within += usize::from(z <= 2.0);
+                worst = worst.max(z);
+            }
+        }
+    }
+    let share = within as f64 / n as f64;
+    assert!(share > 0.9, "{:.1} % within k = 2", 100.0 * share);
+    assert!(worst < 5.0, "an error of {worst:.1} u");
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uncalibrated_sensor_is_published_flagged_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config("b2", &dir.path().join("store"));
+    cfg.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    let gw = start(cfg).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(key_corrected("b2", "new-1"))
+        .await
+        .unwrap();
+    let publisher = session
+        .declare_publisher(key_raw("b2", "new-1"))
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+    for seq in 0..3 {
+        publisher
+            .put(raw("new-1", seq, vec![[0.1, -0.2, 0.98]; 50]))
+            .await
+            .unwrap();
+    }
+    for b in collect(&sub, 3).await {
+        assert_eq!(b.info.mode, Mode::None);
+        assert_eq!(b.info.calibration_version, 0);
+        assert_eq!(b.batch_flags, flags::UNCALIBRATED);
+        for s in &b.samples {
+            assert_eq!(s.accel_mps2, [0.1, -0.2, 0.98], "raw values pass through");
+            assert!(s.uncertainty_mps2.iter().all(|u| u.is_nan()));
+            assert_eq!(s.flags, flags::UNCALIBRATED);
+        }
+    }
+    let st = status(&session, "b2").await;
+    let s = st
+        .sensors
+        .iter()
+        .find(|s| s.sensor_id.as_str() == "new-1")
+        .expect("sensor in status");
+    assert_eq!(s.calibration_version, None);
+    assert_eq!(s.mode, Mode::None);
+    assert_eq!((s.batches, s.samples, s.flagged_samples), (3, 150, 150));
+    assert!(s.last_seen.is_some());
+    let page = metrics(gw.metrics.expect("metrics enabled")).await;
+    assert!(
+        page.contains("triax_sensor_uncalibrated_samples_total{sensor=\"new-1\"} 150"),
+        "{page}"
+    );
+    assert!(
+        page.contains("triax_gateway_uncalibrated_sensors 1"),
+        "{page}"
+    );
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_payloads_are_counted_and_the_stream_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(&store, &[sample::record("acc-1", 1)]);
+    let gw = start(config("b3", &store)).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(key_corrected("b3", "acc-1"))
+        .await
+        .unwrap();
+    let publisher = session
+        .declare_publisher(key_raw("b3", "acc-1"))
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+    let good = |seq| raw("acc-1", seq, vec![[0.0, 0.0, 0.98]; 10]);
+    publisher.put(good(0)).await.unwrap();
+    publisher.put(b"not a batch".to_vec()).await.unwrap();
+    let mut cut = good(1);
+    cut.truncate(cut.len() - 5);
+    publisher.put(cut).await.unwrap();
+    // A valid batch of another sensor on this sensor's key.
+    publisher
+        .put(raw("acc-2", 1, vec![[0.0; 3]; 10]))
+        .await
+        .unwrap();
+    publisher.put(good(1)).await.unwrap();
+    publisher.put(good(2)).await.unwrap();
+    let batches = collect(&sub, 3).await;
+    assert_eq!(
+        batches
+            .iter()
+            .map(|b| b.header.sequence)
+            .collect::<Vec<_>>(),
+        [0, 1, 2]
+    );
+    assert!(batches.iter().all(|b| b.batch_flags == 0));
+    let st = status(&session, "b3").await;
+    assert_eq!(st.malformed, 3);
+    let s = st
+        .sensors
+        .iter()
+        .find(|s| s.sensor_id.as_str() == "acc-1")
+        .unwrap();
+    assert_eq!(
+        (s.rejects, s.batches, s.calibration_version),
+        (3, 3, Some(1))
+    );
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gaps_and_duplicates_are_flagged_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(&store, &[sample::record("acc-1", 1)]);
+    let gw = start(config("b4", &store)).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(key_corrected("b4", "acc-1"))
+        .await
+        .unwrap();
+    let publisher = session
+        .declare_publisher(key_raw("b4", "acc-1"))
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+    let order = [0, 1, 3, 3, 2, 4];
+    for seq in order {
+        publisher
+            .put(raw("acc-1", seq, vec![[0.0, 0.0, 0.98]; 10]))
+            .await
+            .unwrap();
+    }
+    let got: Vec<(u64, u16)> = collect(&sub, order.len())
+        .await
+        .iter()
+        .map(|b| (b.header.sequence, b.batch_flags))
+        .collect();
+    assert_eq!(
+        got,
+        [
+            (0, 0),
+            (1, 0),
+            (3, flags::SEQUENCE_GAP),
+            (3, flags::DUPLICATE),
+            (2, flags::DUPLICATE),
+            (4, 0)
+        ]
+    );
+    let st = status(&session, "b4").await;
+    let s = &st.sensors[0];
+    assert_eq!((s.gaps, s.missing_batches, s.duplicates), (1, 1, 2));
+    assert_eq!(
+        s.flagged_samples, 30,
+        "the gap and duplicate batches' samples"
+    );
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn restart_keeps_calibrations() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &[sample::record("acc-1", 1), sample::record("acc-1", 2)],
+    );
+    for run in 0..2 {
+        let gw = start(config("b5", &store)).await;
+        let session = client(&gw.endpoint).await;
+        let sub = session
+            .declare_subscriber(key_corrected("b5", "acc-1"))
+            .await
+            .unwrap();
+        let publisher = session
+            .declare_publisher(key_raw("b5", "acc-1"))
+            .await
+            .unwrap();
+        wait_matching(&publisher).await;
+        publisher
+            .put(raw("acc-1", 0, vec![[0.0, 0.0, 0.98]; 10]))
+            .await
+            .unwrap();
+        let b = &collect(&sub, 1).await[0];
+        assert_eq!(b.info.calibration_version, 2, "run {run}");
+        assert_eq!(b.info.mode, Mode::Dynamic);
+        session.close().await.unwrap();
+        // Stopping releases the store's lock, or the second start would fail.
+        gw.stop().await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn split_mode_and_tilt_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    // The sample record's static and dynamic gains differ by 2 %.
+    let record = sample::record("incl-1", 1);
+    seed_store(&store, std::slice::from_ref(&record));
+    let mut cfg = config("b6", &store);
+    cfg.sensors.insert(
+        SensorId::new("incl-1").unwrap(),
+        SensorSettings {
+            mode: CorrectionMode::Split,
+            tilt: true,
+            tilt_interval_s: 0.5,
+            ..SensorSettings::default()
+        },
+    );
+    let gw = start(cfg).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(key_corrected("b6", "incl-1"))
+        .await
+        .unwrap();
+    let tilt_sub = session
+        .declare_subscriber(
+            Key::Tilt(
+                BuildingId::new("b6").unwrap(),
+                SensorId::new("incl-1").unwrap(),
+            )
+            .to_string(),
+        )
+        .await
+        .unwrap();
+    let publisher = session
+        .declare_publisher(key_raw("b6", "incl-1"))
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+
+    let (roll, pitch) = (2f64.to_radians(), (-1f64).to_radians());
+    let g = 9.81;
+    let gravity = [
+        -g * pitch.sin(),
+        g * pitch.cos() * roll.sin(),
+        g * pitch.cos() * roll.cos(),
+    ];
+    let sway = |t: f64| {
+        [
+            0.3 * (2.0 * PI * 3.0 * t).sin(),
+            0.2 * (2.0 * PI * 4.0 * t).cos(),
+            0.0,
+        ]
+    };
+    let zero = [0.0; 3];
+    let n_batches = 20u64;
+    for seq in 0..n_batches {
+        let samples = (0..50)
+            .map(|i| {
+                let t = (seq * 50 + i) as f64 / 100.0;
+                // Gravity through the static sensitivity, sway through the dynamic one.
+                let vs = outputs(
+                    &record.static_set.sensitivity,
+                    &record.static_set.offset,
+                    gravity,
+                );
+                let vd = outputs(&record.dynamic.sensitivity, &zero, sway(t));
+                [0, 1, 2].map(|k| (vs[k] + vd[k]) as f32)
+            })
+            .collect();
+        publisher.put(raw("incl-1", seq, samples)).await.unwrap();
+    }
+    let batches = collect(&sub, n_batches as usize).await;
+    for (seq, b) in batches.iter().enumerate().skip(4) {
+        assert_eq!(b.info.mode, Mode::Split);
+        for (i, s) in b.samples.iter().enumerate() {
+            let w = sway((seq * 50 + i) as f64 / 100.0);
+            for k in 0..3 {
+                let truth = gravity[k] + w[k];
+                let err = (f64::from(s.accel_mps2[k]) - truth).abs();
+                assert!(
+                    err <= 2.0 * f64::from(s.uncertainty_mps2[k]),
+                    "batch {seq} sample {i} axis {k}: error {err}"
+                );
+            }
+        }
+    }
+    // Tilt every 0.5 s of sensor time over 10 s: check the settled ones.
+    let mut tilts = Vec::new();
+    while let Ok(Ok(s)) =
+        tokio::time::timeout(Duration::from_millis(500), tilt_sub.recv_async()).await
+    {
+        tilts.push(from_json::<TiltSample>(&s.payload().to_bytes()).expect("tilt decodes"));
+    }
+    assert!(tilts.len() >= 10, "{} tilt samples", tilts.len());
+    let last = tilts.last().unwrap();
+    assert_eq!(last.calibration_version, 1);
+    assert!(last.roll_uncertainty_deg > 0.0 && last.roll_uncertainty_deg < 0.5);
+    assert!(
+        (last.roll_deg - 2.0).abs() <= 2.0 * last.roll_uncertainty_deg,
+        "{last:?}"
+    );
+    assert!(
+        (last.pitch_deg + 1.0).abs() <= 2.0 * last.pitch_uncertainty_deg,
+        "{last:?}"
+    );
+    session.close().await.unwrap();
+    gw.stop().await;
+}

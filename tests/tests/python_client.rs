@@ -1,0 +1,301 @@
+//! The Python client (`examples/python/triax_client.py`, written from PROTOCOL.md alone) against
+//! the Rust implementation, through a real gateway on loopback:
+//!
+//! Python `simulate` ──raw──▶ `triax_gateway::run` ──corrected──▶ Python `subscribe --json`
+//!
+//! while a Rust session decodes the same raw and corrected payloads. Every value Python encoded
+//! must be what Rust decodes from the raw stream, and every corrected value Python decoded must
+//! be bit for bit what `CorrectedBatch::decode` reads.
+//!
+//! Needs a Python interpreter with `eclipse-zenoh` installed, named by `TRIAX_PYTHON` (CI sets
+//! it). Without it the test says it skipped, and checks nothing.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use serde_json::Value;
+use triax_calibration_store::Store;
+use triax_protocol::record::sample;
+use triax_protocol::{BuildingId, CorrectedBatch, Key, Mode, RawBatch, SensorId};
+
+const BUILDING: &str = "pyb";
+const SENSOR: &str = "py-01";
+/// 2026-06-01T00:00:00Z: inside the sample record's validity, whatever the machine's clock says.
+const START_NS: i64 = 1_780_272_000_000_000_000;
+const BATCHES_SENT: usize = 12;
+const BATCHES_CHECKED: usize = 6;
+
+fn script() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/python/triax_client.py")
+}
+
+/// A loopback port that was free a moment ago (zenoh 1.10 reports the port it bound for
+/// `tcp/127.0.0.1:0` only through an unstable API, and the Python peers must be told where to
+/// connect).
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap().port()
+}
+
+/// Returns once something accepts connections on the port: the gateway has bound it.
+async fn wait_for_listener(port: u16) {
+    for _ in 0..200 {
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    panic!("nothing listens on 127.0.0.1:{port} after 10 s");
+}
+
+/// Kills the child when the test ends early, so a failed assertion leaves no process behind.
+struct Reaped(Child);
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts the client; its stdout lines arrive on the returned channel.
+fn python(python: &str, args: &[String]) -> (Reaped, std::sync::mpsc::Receiver<String>) {
+    let mut child = Command::new(python)
+        .arg(script())
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {python}: {e}"));
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (Reaped(child), rx)
+}
+
+fn next_line(rx: &std::sync::mpsc::Receiver<String>, what: &str) -> Value {
+    let line = rx
+        .recv_timeout(Duration::from_secs(30))
+        .unwrap_or_else(|e| panic!("no {what} from the Python client within 30 s: {e}"));
+    serde_json::from_str(&line).unwrap_or_else(|e| panic!("{what}: {e}: {line}"))
+}
+
+fn f64_list(v: &Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        // null stands for a non-finite value in the client's JSON.
+        .map(|x| x.as_f64().unwrap_or(f64::NAN))
+        .collect()
+}
+
+fn same_f32(python: f64, rust: f32) -> bool {
+    (python.is_nan() && rust.is_nan()) || python == f64::from(rust)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn python_client_round_trips_through_a_gateway() {
+    let Ok(py) = std::env::var("TRIAX_PYTHON") else {
+        println!("skipped: TRIAX_PYTHON not set (a Python with eclipse-zenoh is needed)");
+        return;
+    };
+
+    // A gateway whose store already holds the sensor's calibration.
+    let dir = tempfile::tempdir().unwrap();
+    let store_path = dir.path().join("store");
+    {
+        let store = Store::open(&store_path).unwrap();
+        store
+            .put(&sample::record(SENSOR, 1))
+            .unwrap()
+            .expect("sample record is accepted");
+    }
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let config = triax_gateway::Config::for_tests(BUILDING, &store_path, vec![endpoint.clone()]);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let gateway = tokio::spawn(triax_gateway::run(config, async {
+        let _ = stopped.await;
+    }));
+
+    wait_for_listener(port).await;
+
+    // A Rust consumer beside the Python one.
+    let mut zc = zenoh::Config::default();
+    zc.insert_json5("mode", "\"peer\"").unwrap();
+    zc.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    zc.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    let session = zenoh::open(zc).await.unwrap();
+    let b = BuildingId::new(BUILDING).unwrap();
+    let s = SensorId::new(SENSOR).unwrap();
+    let raw_sub = session
+        .declare_subscriber(Key::Raw(b.clone(), s.clone()).to_string())
+        .await
+        .unwrap();
+    let corrected_sub = session
+        .declare_subscriber(Key::Corrected(b, s).to_string())
+        .await
+        .unwrap();
+
+    let common = |cmd: &str| -> Vec<String> {
+        [
+            cmd,
+            "--building",
+            BUILDING,
+            "--sensor",
+            SENSOR,
+            "--connect",
+            &endpoint,
+            "--no-multicast",
+            "--json",
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let mut sub_args = common("subscribe");
+    sub_args
+        .extend(["--count", &BATCHES_CHECKED.to_string(), "--timeout-s", "30"].map(String::from));
+    let (mut subscriber, sub_lines) = python(&py, &sub_args);
+    let ready = next_line(&sub_lines, "ready line");
+    assert_eq!(ready["event"], "ready", "{ready}");
+
+    let mut sim_args = common("simulate");
+    sim_args.extend(
+        [
+            "--count",
+            &BATCHES_SENT.to_string(),
+            "--batch-samples",
+            "20",
+            "--interval-s",
+            "0.1",
+            "--start-ns",
+            &START_NS.to_string(),
+            "--temperature-c",
+            "21.5",
+            "--warmup-s",
+            "1.5",
+        ]
+        .map(String::from),
+    );
+    let (mut simulator, sim_lines) = python(&py, &sim_args);
+
+    // What Python says it sent, and what Python decoded.
+    let mut sent = BTreeMap::new();
+    for _ in 0..BATCHES_SENT {
+        let v = next_line(&sim_lines, "simulated batch");
+        sent.insert(v["sequence"].as_u64().unwrap(), v);
+    }
+    let mut decoded = BTreeMap::new();
+    for _ in 0..BATCHES_CHECKED {
+        let v = next_line(&sub_lines, "decoded batch");
+        decoded.insert(v["sequence"].as_u64().unwrap(), v);
+    }
+    assert!(simulator.0.wait().unwrap().success(), "simulator failed");
+    assert!(subscriber.0.wait().unwrap().success(), "subscriber failed");
+
+    // What Rust decoded of the same streams.
+    let mut raw = BTreeMap::new();
+    while let Ok(Some(sample)) = raw_sub.try_recv() {
+        let r = RawBatch::decode(&sample.payload().to_bytes()).expect("Python's raw batch decodes");
+        raw.insert(r.header.sequence, r);
+    }
+    let mut corrected = BTreeMap::new();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while decoded.keys().any(|k| !corrected.contains_key(k)) {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        let sample = tokio::time::timeout(left, corrected_sub.recv_async())
+            .await
+            .expect("Rust sees every corrected batch Python decoded")
+            .unwrap();
+        let c = CorrectedBatch::decode(&sample.payload().to_bytes()).unwrap();
+        corrected.insert(c.header.sequence, c);
+    }
+
+    // Python encoder ⇄ Rust decoder.
+    assert!(!raw.is_empty(), "no raw batch reached the Rust session");
+    for (seq, r) in &raw {
+        let p = &sent[seq];
+        assert_eq!(p["timestamp_ns"].as_i64().unwrap(), r.header.timestamp_ns);
+        assert_eq!(
+            p["sample_rate_hz"].as_f64().unwrap(),
+            r.header.sample_rate_hz
+        );
+        assert_eq!(r.header.sensor_id.as_str(), SENSOR);
+        assert_eq!(r.temperature_c, Some(21.5));
+        let ps = p["samples"].as_array().unwrap();
+        assert_eq!(ps.len(), r.samples.len());
+        for (pv, rv) in ps.iter().zip(&r.samples) {
+            let pv = f64_list(pv);
+            for j in 0..3 {
+                assert!(same_f32(pv[j], rv[j]), "raw seq {seq}: {pv:?} vs {rv:?}");
+            }
+        }
+    }
+
+    // Rust encoder (the gateway) ⇄ Python decoder.
+    for (seq, p) in &decoded {
+        let c = &corrected[seq];
+        assert_eq!(p["sensor_id"], SENSOR);
+        assert_eq!(p["timestamp_ns"].as_i64().unwrap(), c.header.timestamp_ns);
+        assert_eq!(
+            p["sample_rate_hz"].as_f64().unwrap(),
+            c.header.sample_rate_hz
+        );
+        assert_eq!(p["batch_flags"].as_u64().unwrap(), u64::from(c.batch_flags));
+        assert_eq!(
+            p["calibration_version"].as_u64().unwrap(),
+            c.info.calibration_version
+        );
+        assert_eq!(c.info.calibration_version, 1, "the stored record was used");
+        assert_eq!(c.info.mode, Mode::Dynamic);
+        assert_eq!(p["mode"], "dynamic");
+        assert!(same_f32(
+            p["coverage_factor"].as_f64().unwrap(),
+            c.info.coverage_factor
+        ));
+        let ps = p["samples"].as_array().unwrap();
+        assert_eq!(ps.len(), c.samples.len());
+        for (i, (pv, cv)) in ps.iter().zip(&c.samples).enumerate() {
+            let a = f64_list(&pv["accel_mps2"]);
+            let u = f64_list(&pv["uncertainty_mps2"]);
+            for j in 0..3 {
+                assert!(
+                    same_f32(a[j], cv.accel_mps2[j]) && same_f32(u[j], cv.uncertainty_mps2[j]),
+                    "corrected seq {seq} sample {i}: python a={a:?} u={u:?}, rust {cv:?}"
+                );
+            }
+            assert_eq!(pv["flags"].as_u64().unwrap(), u64::from(cv.flags));
+            // Calibrated values, not raw outputs: gravity reads about 9.81 m/s² on z.
+            assert!((cv.accel_mps2[2] - 9.81).abs() < 0.5, "{cv:?}");
+            assert!(cv
+                .uncertainty_mps2
+                .iter()
+                .all(|u| u.is_finite() && *u > 0.0));
+        }
+    }
+
+    println!(
+        "checked {} raw batch(es) Python encoded and {} corrected batch(es) Python decoded",
+        raw.len(),
+        decoded.len()
+    );
+    drop((raw_sub, corrected_sub));
+    session.close().await.unwrap();
+    stop.send(()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), gateway)
+        .await
+        .expect("gateway stops on shutdown")
+        .unwrap()
+        .unwrap();
+}

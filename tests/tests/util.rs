@@ -1,0 +1,151 @@
+//! Helpers shared by the gateway tests: loopback ports, a gateway started and stopped at will,
+//! Zenoh client sessions, simulated raw batches.
+#![allow(dead_code)] // Each test binary that includes this module uses a different subset.
+
+use std::path::Path;
+use std::time::Duration;
+
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use triax_calibration_store::Store;
+use triax_gateway::{Config, Gateway};
+use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
+use triax_protocol::record::CalibrationRecord;
+use triax_protocol::SensorId;
+
+/// Longest any step of a test waits for the network.
+pub const TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A loopback TCP port nobody listens on right now. Zenoh 1.10 cannot report the port it bound
+/// for `:0` through its stable API, so tests pick one and hand it over.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("loopback is available")
+}
+
+/// Writes records into the store at `path` (the store must not be open elsewhere).
+pub fn seed_store(path: &Path, records: &[CalibrationRecord]) {
+    let store = Store::open(path).expect("store opens");
+    for r in records {
+        store
+            .put(r)
+            .expect("store works")
+            .expect("record is accepted");
+    }
+}
+
+/// A gateway running in the background.
+pub struct Running {
+    pub endpoint: String,
+    pub metrics: Option<std::net::SocketAddr>,
+    stop: Option<oneshot::Sender<()>>,
+    task: JoinHandle<Result<(), triax_gateway::GatewayError>>,
+}
+
+impl Running {
+    /// Stops the gateway and waits until it has released the store.
+    pub async fn stop(mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        tokio::time::timeout(TIMEOUT, &mut self.task)
+            .await
+            .expect("gateway stops in time")
+            .expect("gateway task does not panic")
+            .expect("gateway stops cleanly");
+    }
+}
+
+/// A test configuration: building `building`, store at `store`, listening on a fresh port.
+pub fn config(building: &str, store: &Path) -> Config {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    Config::for_tests(building, store, vec![endpoint])
+}
+
+pub async fn start(config: Config) -> Running {
+    let endpoint = config.zenoh.listen[0].clone();
+    let gateway = Gateway::start(config).await.expect("gateway starts");
+    let metrics = gateway.metrics_addr();
+    let (tx, rx) = oneshot::channel::<()>();
+    let task = tokio::spawn(gateway.run_until(async move {
+        let _ = rx.await;
+    }));
+    Running {
+        endpoint,
+        metrics,
+        stop: Some(tx),
+        task,
+    }
+}
+
+/// A peer session connected to `endpoint`, with no scouting and no listener.
+pub async fn client(endpoint: &str) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\"".to_owned()),
+        ("connect/endpoints", format!("[\"{endpoint}\"]")),
+        ("listen/endpoints", "[]".to_owned()),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        c.insert_json5(k, &v).expect("valid zenoh setting");
+    }
+    zenoh::open(c).await.expect("client session opens")
+}
+
+/// Waits until `publisher` has a matching subscriber (the gateway's).
+pub async fn wait_matching(publisher: &zenoh::pubsub::Publisher<'_>) {
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while !publisher
+        .matching_status()
+        .await
+        .expect("matching status")
+        .matching()
+    {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no subscriber matched in time"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Receives `n` corrected batches from a subscriber's channel.
+pub async fn collect(
+    sub: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    n: usize,
+) -> Vec<CorrectedBatch> {
+    let mut out = Vec::with_capacity(n);
+    while out.len() < n {
+        let s = tokio::time::timeout(TIMEOUT, sub.recv_async())
+            .await
+            .unwrap_or_else(|_| panic!("only {} of {n} corrected batches arrived", out.len()))
+            .expect("subscriber open");
+        out.push(CorrectedBatch::decode(&s.payload().to_bytes()).expect("corrected batch decodes"));
+    }
+    out
+}
+
+/// A raw batch at 100 Hz starting at `sequence × n / 100` seconds after a fixed epoch.
+pub fn raw(sensor: &str, sequence: u64, samples: Vec<[f32; 3]>) -> Vec<u8> {
+    let n = samples.len() as i64;
+    RawBatch {
+        header: BatchHeader {
+            sensor_id: SensorId::new(sensor).expect("test ids are valid"),
+            sequence,
+            timestamp_ns: 1_800_000_000_000_000_000 + sequence as i64 * n * 10_000_000,
+            sample_rate_hz: 100.0,
+        },
+        temperature_c: None,
+        samples,
+    }
+    .encode()
+}
+
+/// Outputs of a sensor with sensitivity `s` and offset `q` under acceleration `a`:
+/// `V = S·(a − q)`.
+pub fn outputs(s: &[[f64; 3]; 3], q: &[f64; 3], a: [f64; 3]) -> [f64; 3] {
+    let d = [a[0] - q[0], a[1] - q[1], a[2] - q[2]];
+    [0, 1, 2].map(|i| s[i][0] * d[0] + s[i][1] * d[1] + s[i][2] * d[2])
+}
