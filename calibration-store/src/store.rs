@@ -54,9 +54,13 @@ impl<T> Scan<T> {
 /// A current record and the corrector it loads into, from [`Store::load_current`].
 #[derive(Debug, Clone)]
 pub struct Loaded {
-    pub record: CalibrationRecord,
+    pub sensor_id: SensorId,
+    pub version: u64,
     pub corrector: Result<Corrector, LoadError>,
 }
+
+/// Records decoded per step when loading every current record.
+const LOAD_CHUNK: usize = 1024;
 
 /// Below this many items, spawning threads costs more than it saves.
 const MIN_PARALLEL_ITEMS: usize = 256;
@@ -520,41 +524,47 @@ impl Store {
     /// corrector, decoding and loading on every core. A record that no longer loads (stored by
     /// a build with looser checks) comes with its [`LoadError`] rather than being dropped.
     pub fn load_current(&self) -> Result<Scan<Vec<Loaded>>, StoreError> {
+        // The record itself is dropped as soon as its corrector is built: a gateway with ten
+        // thousand sensors keeps only the correctors, never every record at once.
         self.map_current(|record| Loaded {
             corrector: Corrector::from_record(&record),
-            record,
+            sensor_id: record.sensor_id,
+            version: record.version,
         })
     }
 
-    /// Reads every current entry, then decodes and maps them in parallel.
+    /// Reads every current entry, then decodes and maps them in parallel, a chunk at a time so
+    /// that at most [`LOAD_CHUNK`] encoded records are held at once.
     fn map_current<T: Send>(
         &self,
         f: impl Fn(CalibrationRecord) -> T + Sync,
     ) -> Result<Scan<Vec<T>>, StoreError> {
         let listed = self.list()?;
         let mut skipped = listed.skipped;
-        let mut raw = Vec::with_capacity(listed.value.len());
-        for SensorVersion { sensor_id, version } in listed.value {
-            let key = keys::record_key(&sensor_id, version);
-            match self
-                .records
-                .get(&key)
-                .map_err(|e| db_error("read record", e))?
-            {
-                Some(value) => raw.push((key, value)),
-                None => skipped.push(corrupt(
-                    keys::CURRENT_TREE,
-                    sensor_id.to_string(),
-                    format!("index names version {version}, which is not stored"),
-                )),
+        let mut value = Vec::with_capacity(listed.value.len());
+        let mut raw = Vec::with_capacity(LOAD_CHUNK.min(listed.value.len()));
+        for chunk in listed.value.chunks(LOAD_CHUNK) {
+            raw.clear();
+            for SensorVersion { sensor_id, version } in chunk {
+                let key = keys::record_key(sensor_id, *version);
+                match self
+                    .records
+                    .get(&key)
+                    .map_err(|e| db_error("read record", e))?
+                {
+                    Some(v) => raw.push((key, v)),
+                    None => skipped.push(corrupt(
+                        keys::CURRENT_TREE,
+                        sensor_id.to_string(),
+                        format!("index names version {version}, which is not stored"),
+                    )),
+                }
             }
-        }
-        let decoded = parallel_map(&raw, |(key, value)| decode_record(key, value).map(&f));
-        let mut value = Vec::with_capacity(decoded.len());
-        for item in decoded {
-            match item {
-                Ok(item) => value.push(item),
-                Err(entry) => skipped.push(entry),
+            for item in parallel_map(&raw, |(key, v)| decode_record(key, v).map(&f)) {
+                match item {
+                    Ok(item) => value.push(item),
+                    Err(entry) => skipped.push(entry),
+                }
             }
         }
         Ok(Scan { value, skipped })

@@ -151,7 +151,7 @@ fn load_current_gives_every_sensor_a_corrector_and_skips_the_corrupt_one() {
     let got: Vec<(String, u64)> = loaded
         .value
         .iter()
-        .map(|l| (l.record.sensor_id.to_string(), l.record.version))
+        .map(|l| (l.sensor_id.to_string(), l.version))
         .collect();
     let expected: Vec<(String, u64)> = sensors
         .iter()
