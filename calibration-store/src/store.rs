@@ -8,6 +8,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use sled::transaction::{ConflictableTransactionError, TransactionError, Transactional};
 use time::OffsetDateTime;
@@ -155,13 +156,36 @@ pub fn in_force_at(record: &CalibrationRecord, at: OffsetDateTime) -> bool {
 /// Page cache of the underlying database.
 const CACHE_CAPACITY_BYTES: u64 = 16 << 20;
 
+/// How long [`Store::open`] waits for a lock held by a holder that is closing.
+pub const DEFAULT_LOCK_WAIT: Duration = Duration::from_secs(3);
+
 impl Store {
     /// Opens the store at `path`, creating it if the directory holds none.
     ///
     /// Refuses a store written with a newer [`SCHEMA_VERSION`], a directory whose sled database
-    /// holds records but no schema version, and a store another process holds open.
+    /// holds records but no schema version, and a store another process holds open. A lock still
+    /// held after [`DEFAULT_LOCK_WAIT`] is [`StoreError::Locked`]: sled releases its directory
+    /// lock from a background thread shortly after the last handle is dropped, so a restart in
+    /// the same process, or right after the previous process exited, can find it briefly held.
     pub fn open(path: impl AsRef<Path>) -> Result<Store, StoreError> {
-        let path = path.as_ref().to_path_buf();
+        Store::open_waiting(path, DEFAULT_LOCK_WAIT)
+    }
+
+    /// [`Store::open`], waiting up to `lock_wait` for another holder to close.
+    pub fn open_waiting(path: impl AsRef<Path>, lock_wait: Duration) -> Result<Store, StoreError> {
+        let deadline = Instant::now() + lock_wait;
+        loop {
+            match Store::open_once(path.as_ref()) {
+                Err(StoreError::Locked { .. }) if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                other => return other,
+            }
+        }
+    }
+
+    fn open_once(path: &Path) -> Result<Store, StoreError> {
+        let path = path.to_path_buf();
         // sled's default page cache is 1 GiB; records are read once at start and on catch-up,
         // so a small cache keeps a gateway with 10 000 sensors within its memory budget.
         let db = sled::Config::new()

@@ -11,12 +11,20 @@
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde::Deserialize;
+use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
 
 /// Default metrics endpoint.
 pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9750";
+
+/// Default time between catch-up requests to the lab's registry.
+pub const DEFAULT_CATCHUP_INTERVAL_S: f64 = 60.0;
+
+/// Default time a catch-up request waits for the registry's replies.
+pub const DEFAULT_CATCHUP_TIMEOUT_S: f64 = 5.0;
 
 /// How a sensor's stream is corrected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, clap::ValueEnum)]
@@ -92,6 +100,28 @@ pub struct ZenohSettings {
     pub multicast_scouting: Option<bool>,
 }
 
+/// Calibration updates: whom to trust, how often to ask the lab's registry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationSettings {
+    /// Lab public keys whose signed records the gateway accepts. Empty: every push and every
+    /// registry record is refused with `unknown_key`.
+    pub trusted_lab_keys: Vec<LabPublicKey>,
+    /// Time between catch-up requests after the one at start; `None`: only at start.
+    pub catchup_interval: Option<Duration>,
+    /// How long one catch-up request waits for the registry's replies.
+    pub catchup_timeout: Duration,
+}
+
+impl Default for CalibrationSettings {
+    fn default() -> Self {
+        CalibrationSettings {
+            trusted_lab_keys: Vec::new(),
+            catchup_interval: Some(Duration::from_secs_f64(DEFAULT_CATCHUP_INTERVAL_S)),
+            catchup_timeout: Duration::from_secs_f64(DEFAULT_CATCHUP_TIMEOUT_S),
+        }
+    }
+}
+
 /// A validated configuration.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Config {
@@ -104,6 +134,7 @@ pub struct Config {
     /// Raw batches waiting per worker before the oldest is dropped.
     pub queue_capacity_batches: usize,
     pub zenoh: ZenohSettings,
+    pub calibration: CalibrationSettings,
     /// None: no metrics endpoint.
     pub metrics_listen: Option<SocketAddr>,
     /// Settings of sensors not listed in `sensors`.
@@ -177,6 +208,8 @@ pub struct FileConfig {
     #[serde(default)]
     pub zenoh: FileZenoh,
     #[serde(default)]
+    pub calibration: FileCalibration,
+    #[serde(default)]
     pub metrics: FileMetrics,
     #[serde(default)]
     pub defaults: FileSensor,
@@ -192,6 +225,19 @@ pub struct FileZenoh {
     pub listen: Option<Vec<String>>,
     pub connect: Option<Vec<String>>,
     pub multicast_scouting: Option<bool>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileCalibration {
+    /// Trusted lab public keys, 64 hex characters each.
+    pub trusted_lab_keys: Option<Vec<String>>,
+    /// Files holding one trusted lab public key each (as written by `triax-lab keygen`).
+    pub trusted_lab_key_files: Option<Vec<PathBuf>>,
+    /// Seconds between catch-up requests; 0: only at start.
+    pub catchup_interval_s: Option<f64>,
+    /// Seconds a catch-up request waits for the registry.
+    pub catchup_timeout_s: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -289,6 +335,7 @@ impl FileConfig {
             connect,
             multicast_scouting: z.multicast_scouting,
         };
+        let calibration = calibration_settings(self.calibration)?;
         let metrics_listen = if self.metrics.enabled.unwrap_or(true) {
             let text = self
                 .metrics
@@ -320,11 +367,68 @@ impl FileConfig {
             workers,
             queue_capacity_batches,
             zenoh,
+            calibration,
             metrics_listen,
             defaults,
             sensors,
         })
     }
+}
+
+fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, ConfigError> {
+    let mut trusted_lab_keys = Vec::new();
+    for (i, text) in c.trusted_lab_keys.unwrap_or_default().iter().enumerate() {
+        let key = public_key_from_hex(text)
+            .map_err(|e| invalid(format!("calibration.trusted_lab_keys[{i}]"), e.to_string()))?;
+        trusted_lab_keys.push(key);
+    }
+    for (i, path) in c
+        .trusted_lab_key_files
+        .unwrap_or_default()
+        .iter()
+        .enumerate()
+    {
+        let field = || format!("calibration.trusted_lab_key_files[{i}]");
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| invalid(field(), format!("cannot read {}: {e}", path.display())))?;
+        let key = public_key_from_hex(&text)
+            .map_err(|e| invalid(field(), format!("{}: {e}", path.display())))?;
+        trusted_lab_keys.push(key);
+    }
+    // The same key listed twice (inline and in a file) is harmless; keep one.
+    let mut unique: Vec<LabPublicKey> = Vec::with_capacity(trusted_lab_keys.len());
+    for k in trusted_lab_keys {
+        if !unique.contains(&k) {
+            unique.push(k);
+        }
+    }
+    let seconds = |name: &str, v: f64| -> Result<f64, ConfigError> {
+        // Below a millisecond is a typo; above a day, catch-up would be pointless.
+        if v.is_finite() && (0.001..=86_400.0).contains(&v) {
+            Ok(v)
+        } else {
+            Err(invalid(
+                format!("calibration.{name}"),
+                format!("{v} is not a number of seconds in 0.001..=86400"),
+            ))
+        }
+    };
+    let interval_s = c.catchup_interval_s.unwrap_or(DEFAULT_CATCHUP_INTERVAL_S);
+    let catchup_interval = if interval_s == 0.0 {
+        None
+    } else {
+        Some(Duration::from_secs_f64(seconds(
+            "catchup_interval_s",
+            interval_s,
+        )?))
+    };
+    let timeout_s = c.catchup_timeout_s.unwrap_or(DEFAULT_CATCHUP_TIMEOUT_S);
+    let catchup_timeout = Duration::from_secs_f64(seconds("catchup_timeout_s", timeout_s)?);
+    Ok(CalibrationSettings {
+        trusted_lab_keys: unique,
+        catchup_interval,
+        catchup_timeout,
+    })
 }
 
 fn sensor_settings(
@@ -406,6 +510,17 @@ pub struct ConfigArgs {
     /// Default correction mode of sensors not listed in the file.
     #[arg(long, value_enum, env = "TRIAX_MODE")]
     pub mode: Option<CorrectionMode>,
+    /// Trusted lab public key, 64 hex characters (repeat or comma-separate; replaces the file's
+    /// list).
+    #[arg(long, env = "TRIAX_TRUSTED_LAB_KEYS", value_delimiter = ',')]
+    pub trusted_lab_key: Vec<String>,
+    /// File holding a trusted lab public key (repeat or comma-separate; replaces the file's
+    /// list).
+    #[arg(long, env = "TRIAX_TRUSTED_LAB_KEY_FILES", value_delimiter = ',')]
+    pub trusted_lab_key_file: Vec<PathBuf>,
+    /// Seconds between catch-up requests to the lab's registry; 0: only at start.
+    #[arg(long, env = "TRIAX_CATCHUP_INTERVAL_S")]
+    pub catchup_interval_s: Option<f64>,
 }
 
 impl ConfigArgs {
@@ -452,6 +567,15 @@ impl ConfigArgs {
         }
         if let Some(m) = self.mode {
             f.defaults.mode = Some(m);
+        }
+        if !self.trusted_lab_key.is_empty() {
+            f.calibration.trusted_lab_keys = Some(self.trusted_lab_key.clone());
+        }
+        if !self.trusted_lab_key_file.is_empty() {
+            f.calibration.trusted_lab_key_files = Some(self.trusted_lab_key_file.clone());
+        }
+        if let Some(s) = self.catchup_interval_s {
+            f.calibration.catchup_interval_s = Some(s);
         }
     }
 }
@@ -514,6 +638,40 @@ mod tests {
         assert!(e.to_string().contains("unknown variant `fast`"), "{e}");
         let e = parse("bulding = \"x\"").unwrap_err();
         assert!(e.to_string().contains("unknown field `bulding`"), "{e}");
+    }
+
+    #[test]
+    fn trusted_keys_and_catchup_settings() {
+        let c = parse("").unwrap();
+        assert!(c.calibration.trusted_lab_keys.is_empty());
+        assert_eq!(
+            c.calibration.catchup_interval,
+            Some(Duration::from_secs(60))
+        );
+        let key = "d75a980182b10ab7d54bfed3c964073a0ee172f3daa62325af021a68f707511a";
+        let c = parse(&format!(
+            "[calibration]\ntrusted_lab_keys = [\"{key}\", \"{key}\"]\ncatchup_interval_s = 0"
+        ))
+        .unwrap();
+        assert_eq!(c.calibration.trusted_lab_keys.len(), 1);
+        assert_eq!(c.calibration.catchup_interval, None);
+        let e = parse("[calibration]\ntrusted_lab_keys = [\"abc\"]").unwrap_err();
+        assert!(
+            e.to_string().contains("`calibration.trusted_lab_keys[0]`"),
+            "{e}"
+        );
+        let e =
+            parse("[calibration]\ntrusted_lab_key_files = [\"/nonexistent/lab.pub\"]").unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("`calibration.trusted_lab_key_files[0]`: cannot read"),
+            "{e}"
+        );
+        let e = parse("[calibration]\ncatchup_timeout_s = -1").unwrap_err();
+        assert!(
+            e.to_string().contains("`calibration.catchup_timeout_s`"),
+            "{e}"
+        );
     }
 
     #[test]

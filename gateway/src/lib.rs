@@ -14,6 +14,8 @@
 //!   shard): sequence check, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
 //!                                                                  triax/<b>/tilt/<s>
 //! triax/<b>/status ◄─ queryable (GatewayStatus JSON)      http://<metrics>/metrics (Prometheus)
+//! triax/<b>/calibration/push/* ◄─ queryable: verify, store, swap, ack ─► calibration/ack/<s>
+//! triax/<b>/calibration/registry ─► query at start and periodically (catch-up)
 //! ```
 //!
 //! - [`config`]: TOML file, flags, environment; refused with field and reason.
@@ -22,12 +24,14 @@
 //! - [`kernel`]: the allocation-free sample path; the mode rules and the frequency detector.
 //! - [`tilt`], [`sequence`], [`filter`], [`inbox`]: its parts.
 //! - [`worker`], [`metrics`], [`net`], [`shutdown`]: the service around it.
+//! - [`push`], [`catchup`]: signed calibration updates from the lab, pushed or caught up.
 //! - [`demo`]: an embedded building with simulated sensor nodes.
 //!
 //! Architecture invariant: the sample path never touches the store. Calibrations are read from
 //! the store at start (and, later, on an accepted update) and live in [`SensorTable`]; the store
 //! is used from blocking tasks only.
 
+pub mod catchup;
 pub mod config;
 pub mod demo;
 pub mod filter;
@@ -35,6 +39,7 @@ pub mod inbox;
 pub mod kernel;
 pub mod metrics;
 pub mod net;
+pub mod push;
 pub mod sensors;
 pub mod sequence;
 pub mod shutdown;
@@ -48,14 +53,17 @@ use std::sync::Arc;
 
 use time::OffsetDateTime;
 use tokio::task::JoinHandle;
-use triax_calibration::corrector::Corrector;
 use triax_calibration_store::{Store, StoreError};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::GatewayStatus;
+use triax_protocol::signing::TrustedKeys;
 use triax_protocol::{to_json, Key, JSON_FORMAT_VERSION};
 use zenoh::sample::Sample;
 
-pub use config::{Config, ConfigArgs, ConfigError, CorrectionMode, SensorSettings};
+pub use catchup::{CatchUpError, CatchUpReport};
+pub use config::{
+    CalibrationSettings, Config, ConfigArgs, ConfigError, CorrectionMode, SensorSettings,
+};
 pub use sensors::{GatewayCounters, SensorTable};
 
 use inbox::Inbox;
@@ -103,6 +111,7 @@ pub struct Gateway {
     store: Arc<Store>,
     table: Arc<SensorTable>,
     counters: Arc<GatewayCounters>,
+    updater: Arc<push::Updater>,
     trigger: ShutdownTrigger,
     subscriber: Option<zenoh::pubsub::Subscriber<()>>,
     tasks: Vec<JoinHandle<()>>,
@@ -115,28 +124,10 @@ pub async fn run(config: Config, shutdown: impl Future) -> Result<(), GatewayErr
     Gateway::start(config).await?.run_until(shutdown).await
 }
 
-/// How long to wait for another holder of the store to let go.
-const STORE_LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(5);
-
-/// Opens the store, waiting a little while it is locked: sled releases its directory lock from
-/// a background thread shortly after the last handle is dropped, so a restart in the same
-/// process (or right after the previous process exited) can find it still held.
-fn open_store(path: &std::path::Path) -> Result<Store, StoreError> {
-    let deadline = std::time::Instant::now() + STORE_LOCK_WAIT;
-    loop {
-        match Store::open(path) {
-            Err(StoreError::Locked { .. }) if std::time::Instant::now() < deadline => {
-                std::thread::sleep(std::time::Duration::from_millis(50));
-            }
-            other => return other,
-        }
-    }
-}
-
 /// Loads every current record from the store into the table; returns how many loaded.
 async fn load_calibrations(store: &Arc<Store>, table: &SensorTable) -> Result<usize, StoreError> {
     let s = store.clone();
-    let scan = tokio::task::spawn_blocking(move || s.current_records())
+    let scan = tokio::task::spawn_blocking(move || s.load_current())
         .await
         .map_err(|e| StoreError::Io {
             action: "load records",
@@ -146,14 +137,14 @@ async fn load_calibrations(store: &Arc<Store>, table: &SensorTable) -> Result<us
         tracing::error!(entry = %skipped, "unreadable store entry: sensor stays uncalibrated");
     }
     let mut loaded = 0;
-    for record in &scan.value {
-        match Corrector::from_record(record) {
+    for l in scan.value {
+        match l.corrector {
             Ok(c) => {
                 table.install(c);
                 loaded += 1;
             }
             // The store validates on put; this is a record from an older, laxer build.
-            Err(e) => tracing::error!(sensor = %record.sensor_id, cause = %e,
+            Err(e) => tracing::error!(sensor = %l.sensor_id, version = l.version, cause = %e,
                 "stored record does not load: sensor stays uncalibrated"),
         }
     }
@@ -171,7 +162,7 @@ impl Gateway {
             source,
         };
         let open_path = path.clone();
-        let store = tokio::task::spawn_blocking(move || open_store(&open_path))
+        let store = tokio::task::spawn_blocking(move || Store::open(&open_path))
             .await
             .map_err(|e| GatewayError::Task(e.to_string()))?
             .map_err(store_err)?;
@@ -248,6 +239,27 @@ impl Gateway {
             }
         }));
 
+        let updater = Arc::new(push::Updater::new(
+            config.building.clone(),
+            config.gateway_name.clone(),
+            TrustedKeys::new(config.calibration.trusted_lab_keys.clone()),
+            store.clone(),
+            table.clone(),
+            counters.clone(),
+        ));
+        tasks.push(
+            push::serve(session.clone(), updater.clone(), shutdown.clone())
+                .await
+                .map_err(zenoh_err("declare the calibration push queryable"))?,
+        );
+        tasks.push(catchup::spawn(
+            session.clone(),
+            updater.clone(),
+            config.calibration.catchup_interval,
+            config.calibration.catchup_timeout,
+            shutdown.clone(),
+        ));
+
         let mut metrics_addr = None;
         if let Some(addr) = config.metrics_listen {
             let listener = tokio::net::TcpListener::bind(addr)
@@ -283,6 +295,7 @@ impl Gateway {
             store,
             table,
             counters,
+            updater,
             trigger,
             subscriber: Some(subscriber),
             tasks,
@@ -321,6 +334,17 @@ impl Gateway {
     /// The calibration store, for components that update it (from blocking tasks).
     pub fn store(&self) -> &Arc<Store> {
         &self.store
+    }
+
+    /// Asks the lab's registry for newer records now and applies them, as the periodic
+    /// catch-up does.
+    pub async fn catch_up(&self) -> Result<CatchUpReport, CatchUpError> {
+        catchup::catch_up(
+            &self.session,
+            &self.updater,
+            self.config.calibration.catchup_timeout,
+        )
+        .await
     }
 
     /// Serves until `shutdown` completes, then stops: no new batches, workers finish the one

@@ -5,14 +5,24 @@
 //! [`svg`]) and ties the steps together per command ([`commands`]). The `triax-lab` binary only
 //! parses arguments, reads the clock and writes files.
 //!
-//! Architecture invariant: nothing here writes a file; the commands return what should be
-//! written, so a failing input never leaves a partial output behind and tests need no disk
-//! for the outputs.
+//! Recalibration: [`keypair`] (the lab's Ed25519 key files), [`registry`] (every record issued
+//! and the buildings each sensor is assigned to), [`push`] (signed records to the buildings'
+//! gateways over Zenoh, acknowledgements back), [`serve`] (the registry answering gateways'
+//! catch-up queries), [`net`] (the Zenoh options they share).
+//!
+//! Architecture invariant: nothing here writes a file except [`registry`], which owns the
+//! registry directory; the other commands return what should be written, so a failing input
+//! never leaves a partial output behind and tests need no disk for the outputs.
 
 pub mod commands;
 pub mod input;
+pub mod keypair;
+pub mod net;
+pub mod push;
 pub mod record;
+pub mod registry;
 pub mod report;
+pub mod serve;
 pub mod svg;
 
 use std::path::PathBuf;

@@ -9,9 +9,14 @@
 //! triax-lab apply --record record.json --set dynamic --input data.csv --out corrected.csv
 //! triax-lab simulate --out-dir DIR [--seed 2015] [--duration-s 10]
 //! triax-lab store --store-dir DIR list|show|history|export|import …
+//! triax-lab keygen --out DIR                         # DIR/lab.key (0600), DIR/lab.pub
+//! triax-lab push --key lab.key --registry REG --building B [--building B2] rec.json|DIR… [-e tcp/router:7447]
+//! triax-lab serve --key lab.key --registry REG [-e tcp/router:7447]
+//! triax-lab assign --registry REG --sensor S [--building B…]   # or --show
 //! ```
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -24,8 +29,13 @@ use triax_lab::commands::{
     default_certificate_id, dynamic_summary, parse_set, run_apply, run_dynamic, run_fit,
     run_radius, run_simulate, run_static, run_tables, static_summary, tables_summary, FitOptions,
 };
+use triax_lab::keypair;
+use triax_lab::net::ZenohArgs;
+use triax_lab::push::{push_all, render, Push};
 use triax_lab::record::RecordMeta;
-use triax_protocol::SensorId;
+use triax_lab::registry::{Recorded, Registry};
+use triax_protocol::record::CalibrationRecord;
+use triax_protocol::{from_json, BuildingId, SensorId};
 
 #[derive(Parser)]
 #[command(
@@ -150,6 +160,62 @@ enum Command {
         #[arg(long, value_enum, default_value = "savitzky-golay")]
         reference: Reference,
     },
+    /// Makes the lab's Ed25519 key pair: DIR/lab.key (secret, mode 0600) and DIR/lab.pub
+    /// (the public key gateways list in `calibration.trusted_lab_keys`).
+    Keygen {
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
+    /// Signs records, records them in the registry, pushes them to every gateway of each
+    /// building and prints each gateway's answer. Exits non-zero if any record was refused (by
+    /// the registry or a gateway) or not acknowledged in time.
+    Push {
+        /// The lab's secret key file (from `keygen`).
+        #[arg(long, value_name = "FILE")]
+        key: PathBuf,
+        /// The lab's registry directory: every pushed record is stored there first, so an
+        /// offline gateway catches up from it.
+        #[arg(long, value_name = "DIR", env = "TRIAX_REGISTRY")]
+        registry: PathBuf,
+        /// Building to push to (repeat for several); its sensors are assigned to it.
+        #[arg(long = "building", required = true, value_name = "B")]
+        buildings: Vec<String>,
+        /// Seconds to wait for the gateways' acknowledgements.
+        #[arg(long, default_value_t = 5.0)]
+        timeout_s: f64,
+        /// Gateways expected to acknowledge, per building and record.
+        #[arg(long, default_value_t = 1)]
+        min_acks: usize,
+        #[command(flatten)]
+        zenoh: ZenohArgs,
+        /// Record files (JSON), or directories of them (every *.json, not recursive).
+        #[arg(required = true, value_name = "RECORD|DIR")]
+        records: Vec<PathBuf>,
+    },
+    /// Runs the lab's registry: answers gateways' catch-up queries with every newer record of
+    /// their building, signed with the lab key. Runs until Ctrl-C or SIGTERM.
+    Serve {
+        #[arg(long, value_name = "FILE")]
+        key: PathBuf,
+        #[arg(long, value_name = "DIR", env = "TRIAX_REGISTRY")]
+        registry: PathBuf,
+        #[command(flatten)]
+        zenoh: ZenohArgs,
+    },
+    /// Sets the buildings a sensor is served to (a sensor that moved), or shows every
+    /// assignment.
+    Assign {
+        #[arg(long, value_name = "DIR", env = "TRIAX_REGISTRY")]
+        registry: PathBuf,
+        #[arg(long, required_unless_present = "show")]
+        sensor: Option<String>,
+        /// Building (repeat for several; none: the sensor is served to no building).
+        #[arg(long = "building", value_name = "B")]
+        buildings: Vec<String>,
+        /// Print every assignment.
+        #[arg(long, conflicts_with_all = ["sensor", "buildings"])]
+        show: bool,
+    },
     /// Inspects, backs up or restores the lab's registry of issued records.
     Store {
         /// Registry directory (a calibration store).
@@ -168,6 +234,157 @@ fn write_file(path: &Path, contents: &[u8]) -> anyhow::Result<()> {
         }
     }
     std::fs::write(path, contents).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Writes a new file that must not exist yet, readable by its owner only when `private`.
+fn write_new_key_file(path: &Path, text: &str, private: bool) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(if private { 0o600 } else { 0o644 });
+    }
+    #[cfg(not(unix))]
+    let _ = private;
+    let mut f = options.open(path).with_context(|| {
+        format!(
+            "creating {} (an existing key is never overwritten)",
+            path.display()
+        )
+    })?;
+    f.write_all(text.as_bytes())
+        .and_then(|()| f.sync_all())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// Reads record files and every *.json of directories, sorted by sensor then version so that
+/// the registry accepts several versions of one sensor in one go.
+fn read_records(paths: &[PathBuf]) -> anyhow::Result<Vec<CalibrationRecord>> {
+    let mut files = Vec::new();
+    for p in paths {
+        if p.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(p)
+                .with_context(|| format!("reading directory {}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| f.is_file() && f.extension().is_some_and(|x| x == "json"))
+                .collect();
+            found.sort();
+            if found.is_empty() {
+                anyhow::bail!("{} holds no *.json record", p.display());
+            }
+            files.extend(found);
+        } else {
+            files.push(p.clone());
+        }
+    }
+    let mut records = Vec::with_capacity(files.len());
+    for f in &files {
+        let bytes = std::fs::read(f).with_context(|| format!("reading {}", f.display()))?;
+        let record: CalibrationRecord = from_json(&bytes)
+            .with_context(|| format!("{} is not a calibration record", f.display()))?;
+        records.push(record);
+    }
+    records.sort_by(|a, b| (&a.sensor_id, a.version).cmp(&(&b.sensor_id, b.version)));
+    Ok(records)
+}
+
+fn building_ids(names: &[String]) -> anyhow::Result<Vec<BuildingId>> {
+    names
+        .iter()
+        .map(|b| BuildingId::new(b.as_str()).map_err(|e| anyhow::anyhow!("--building {b}: {e}")))
+        .collect()
+}
+
+fn init_logging(default: &str) -> anyhow::Result<()> {
+    let text = std::env::var("TRIAX_LOG").unwrap_or_else(|_| default.to_owned());
+    let filter =
+        tracing_subscriber::EnvFilter::try_new(text).context("TRIAX_LOG is not a valid filter")?;
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+    Ok(())
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    // Zenoh needs the multi-thread runtime.
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")
+}
+
+/// Completes on SIGINT or SIGTERM.
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        if let Ok(mut term) = signal(SignalKind::terminate()) {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            return;
+        }
+    }
+    let _ = tokio::signal::ctrl_c().await;
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run_push(
+    key: &Path,
+    registry: PathBuf,
+    buildings: &[String],
+    timeout_s: f64,
+    min_acks: usize,
+    zenoh: &ZenohArgs,
+    paths: &[PathBuf],
+) -> anyhow::Result<bool> {
+    if !(timeout_s.is_finite() && timeout_s > 0.0) {
+        anyhow::bail!("--timeout-s must be a positive number of seconds");
+    }
+    let timeout = Duration::from_secs_f64(timeout_s);
+    let key = keypair::read_secret(key)?;
+    let buildings = building_ids(buildings)?;
+    let records = read_records(paths)?;
+    let registry = Registry::new(registry);
+    let recorded = registry.record(&records, &buildings)?;
+    let mut ok = true;
+    let mut pushes = Vec::new();
+    for (record, outcome) in records.iter().zip(recorded) {
+        match outcome {
+            Recorded::Accepted { .. } => pushes.push(Push::sign(record, &key)),
+            Recorded::Refused(why) => {
+                ok = false;
+                println!(
+                    "{:<16} {:<20} v{:<6} {:<24} REFUSED by the registry, not pushed: {why}",
+                    "-",
+                    record.sensor_id.as_str(),
+                    record.version,
+                    registry.dir().display()
+                );
+            }
+        }
+    }
+    if pushes.is_empty() {
+        return Ok(false);
+    }
+    let config = zenoh.config()?;
+    let reports = runtime()?.block_on(async {
+        let session = zenoh::open(config)
+            .await
+            .map_err(|e| anyhow::anyhow!("opening the zenoh session: {e}"))?;
+        let reports = push_all(&session, &buildings, &pushes, timeout).await;
+        if let Err(e) = session.close().await {
+            tracing::warn!(cause = %e, "zenoh session did not close cleanly");
+        }
+        anyhow::Ok(reports?)
+    })?;
+    let (text, all_ok) = render(&reports, min_acks, timeout);
+    print!("{text}");
+    Ok(ok && all_ok)
 }
 
 fn main() -> anyhow::Result<()> {
@@ -280,6 +497,95 @@ fn main() -> anyhow::Result<()> {
                 write_file(&out_dir.join(rel), contents.as_bytes())?;
             }
             println!("wrote {} files under {}", files.len(), out_dir.display());
+        }
+        Command::Keygen { out } => {
+            std::fs::create_dir_all(&out)
+                .with_context(|| format!("creating directory {}", out.display()))?;
+            let key = keypair::generate();
+            let secret = out.join(keypair::SECRET_FILE);
+            let public = out.join(keypair::PUBLIC_FILE);
+            write_new_key_file(&secret, &keypair::secret_text(&key), true)?;
+            let public_text = keypair::public_text(&key.verifying_key());
+            write_new_key_file(&public, &public_text, false)?;
+            println!(
+                "wrote {} (secret, mode 0600) and {}",
+                secret.display(),
+                public.display()
+            );
+            println!(
+                "public key (for calibration.trusted_lab_keys): {}",
+                public_text.trim_end()
+            );
+        }
+        Command::Push {
+            key,
+            registry,
+            buildings,
+            timeout_s,
+            min_acks,
+            zenoh,
+            records,
+        } => {
+            init_logging("warn")?;
+            if !run_push(
+                &key, registry, &buildings, timeout_s, min_acks, &zenoh, &records,
+            )? {
+                // The table above says what failed; the exit status says that something did.
+                std::process::exit(1);
+            }
+        }
+        Command::Serve {
+            key,
+            registry,
+            zenoh,
+        } => {
+            init_logging("info")?;
+            let key = keypair::read_secret(&key)?;
+            let registry = Registry::new(registry);
+            // Fails early on a registry another process cannot share or that is damaged.
+            let assignments = registry.assignments()?;
+            tracing::info!(registry = %registry.dir().display(), sensors = assignments.sensors.len(),
+                "registry opened");
+            let config = zenoh.config()?;
+            runtime()?.block_on(async {
+                let session = zenoh::open(config)
+                    .await
+                    .map_err(|e| anyhow::anyhow!("opening the zenoh session: {e}"))?;
+                triax_lab::serve::serve(&session, registry, key, shutdown_signal()).await?;
+                if let Err(e) = session.close().await {
+                    tracing::warn!(cause = %e, "zenoh session did not close cleanly");
+                }
+                anyhow::Ok(())
+            })?;
+        }
+        Command::Assign {
+            registry,
+            sensor,
+            buildings,
+            show,
+        } => {
+            let registry = Registry::new(registry);
+            if show {
+                for (s, b) in registry.assignments()?.sensors {
+                    let list: Vec<&str> = b.iter().map(|b| b.as_str()).collect();
+                    println!("{s:<20} {}", list.join(" "));
+                }
+            } else {
+                // clap requires --sensor unless --show.
+                let sensor = sensor.context("--sensor is required")?;
+                let sensor = SensorId::new(sensor.as_str())
+                    .map_err(|e| anyhow::anyhow!("--sensor {sensor}: {e}"))?;
+                let buildings = building_ids(&buildings)?;
+                let old = registry.assign(&sensor, &buildings)?;
+                let names = |v: Vec<&BuildingId>| {
+                    v.iter().map(|b| b.as_str()).collect::<Vec<_>>().join(" ")
+                };
+                println!(
+                    "{sensor}: [{}] -> [{}]",
+                    names(old.iter().collect()),
+                    names(buildings.iter().collect())
+                );
+            }
         }
         Command::Store { store_dir, command } => {
             let store = Store::open(&store_dir)?;

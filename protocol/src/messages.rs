@@ -1,5 +1,7 @@
-//! The low-rate JSON messages: signed calibration pushes and their acknowledgements, gateway
-//! status, tilt, alerts.
+//! The low-rate JSON messages: signed calibration pushes and their acknowledgements, registry
+//! catch-up requests, gateway status, tilt, alerts.
+
+use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 use time::OffsetDateTime;
@@ -110,6 +112,28 @@ pub enum RefusalReason {
     StaleVersion,
     /// The record could not be made durable.
     StoreFailure,
+}
+
+/// A gateway's catch-up request, the payload of a query on
+/// `triax/<building>/calibration/registry`.
+///
+/// The registry answers with one reply per [`SignedRecord`] of the building's sensors that is
+/// newer than `have` says: every version above `have[sensor]`, or every version of a sensor the
+/// gateway does not list, in increasing version order per sensor.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RegistryRequest {
+    pub format_version: u32,
+    /// The version in force for each sensor the gateway has a calibration for.
+    #[serde(default)]
+    pub have: BTreeMap<SensorId, u64>,
+}
+
+impl JsonMessage for RegistryRequest {
+    const WHAT: &'static str = "registry request";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
 }
 
 /// Per-sensor state reported by a gateway.
@@ -350,6 +374,23 @@ mod tests {
             statement: "interval 0.7..1.1 straddles 1.0".into(),
             at: t(),
         });
+    }
+
+    #[test]
+    fn registry_request_round_trips_and_defaults_to_nothing_known() {
+        let mut have = BTreeMap::new();
+        have.insert(SensorId::new("acc-1").unwrap(), 3);
+        let request = RegistryRequest {
+            format_version: JSON_FORMAT_VERSION,
+            have,
+        };
+        round_trip(&request);
+        let text = to_json(&request);
+        assert_eq!(text, br#"{"format_version":1,"have":{"acc-1":3}}"#);
+        let empty: RegistryRequest = from_json(br#"{"format_version":1}"#).unwrap();
+        assert!(empty.have.is_empty());
+        assert!(from_json::<RegistryRequest>(br#"{"format_version":1,"hav":{}}"#).is_err());
+        assert!(from_json::<RegistryRequest>(br#"{"format_version":1,"have":{"a/b":1}}"#).is_err());
     }
 
     #[test]
