@@ -38,6 +38,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
+pub use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::{BuildingId, SensorId};
 
 use crate::decision::{Direction, Limit};
@@ -106,27 +107,6 @@ fn above(threshold: f64) -> Limit {
         threshold,
         direction: Direction::Above,
     }
-}
-
-/// How the service joins Zenoh.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum ZenohMode {
-    Peer,
-    Client,
-}
-
-/// Zenoh settings; the JSON5 file, when given, is the base the other fields override.
-#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ZenohSettings {
-    pub config_file: Option<PathBuf>,
-    pub mode: Option<ZenohMode>,
-    #[serde(default)]
-    pub listen: Vec<String>,
-    #[serde(default)]
-    pub connect: Vec<String>,
-    pub multicast_scouting: Option<bool>,
 }
 
 /// Settings of the window and decision logic, shared by every sensor.
@@ -353,6 +333,9 @@ impl FileConfig {
                 "no building to watch: list one under [buildings.<id>] or set watch_all_buildings",
             ));
         }
+        self.zenoh
+            .validate()
+            .map_err(|e| invalid(format!("zenoh.{}", e.field), e.reason))?;
         Ok(Config {
             settings,
             zenoh: self.zenoh,

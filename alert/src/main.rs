@@ -10,7 +10,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use triax_alert::config::{Config, ZenohMode};
+use triax_alert::config::Config;
+use triax_net::ZenohArgs;
 
 #[derive(Debug, Parser)]
 #[command(name = "triax-alert", version, about)]
@@ -18,18 +19,8 @@ struct Args {
     /// TOML configuration: thresholds per building and sensor, window, staleness.
     #[arg(long, short, env = "TRIAX_ALERT_CONFIG")]
     config: PathBuf,
-    /// Zenoh mode, over the file's.
-    #[arg(long, value_enum)]
-    mode: Option<ZenohMode>,
-    /// Zenoh endpoints to connect to (repeatable), replacing the file's.
-    #[arg(long)]
-    connect: Vec<String>,
-    /// Zenoh endpoints to listen on (repeatable), replacing the file's.
-    #[arg(long)]
-    listen: Vec<String>,
-    /// Turn off Zenoh multicast scouting.
-    #[arg(long)]
-    no_multicast_scouting: bool,
+    #[command(flatten)]
+    zenoh: ZenohArgs,
 }
 
 #[tokio::main]
@@ -43,18 +34,11 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let mut config = Config::from_file(&args.config)
         .with_context(|| format!("loading {}", args.config.display()))?;
-    if args.mode.is_some() {
-        config.zenoh.mode = args.mode;
-    }
-    if !args.connect.is_empty() {
-        config.zenoh.connect = args.connect;
-    }
-    if !args.listen.is_empty() {
-        config.zenoh.listen = args.listen;
-    }
-    if args.no_multicast_scouting {
-        config.zenoh.multicast_scouting = Some(false);
-    }
+    args.zenoh.apply_to(&mut config.zenoh);
+    config
+        .zenoh
+        .validate()
+        .context("command-line Zenoh options")?;
     tracing::info!(
         buildings = config.buildings.len(),
         watch_all_buildings = config.watch_all_buildings,

@@ -16,7 +16,7 @@ use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, TiltSample};
 use triax_protocol::{from_json, to_json, CorrectedBatch, Key};
 
-use crate::config::{Config, ZenohMode, ZenohSettings};
+use crate::config::Config;
 use crate::monitor::Monitor;
 
 /// Messages waiting for the monitor before new ones are dropped (and counted).
@@ -25,8 +25,8 @@ pub const INBOX_CAPACITY: usize = 4096;
 /// Why the service could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
-    #[error("zenoh configuration `{key}`: {message}")]
-    ZenohConfig { key: String, message: String },
+    #[error(transparent)]
+    ZenohConfig(#[from] triax_net::ZenohConfigError),
     #[error("zenoh: {what}: {message}")]
     Zenoh { what: &'static str, message: String },
 }
@@ -36,41 +36,6 @@ fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError 
         what,
         message: e.to_string(),
     }
-}
-
-/// Builds the session configuration: the JSON5 file as the base, the settings on top.
-pub fn zenoh_config(s: &ZenohSettings) -> Result<zenoh::Config, ServiceError> {
-    let mut c = match &s.config_file {
-        Some(path) => zenoh::Config::from_file(path).map_err(|e| ServiceError::ZenohConfig {
-            key: format!("file {}", path.display()),
-            message: e.to_string(),
-        })?,
-        None => zenoh::Config::default(),
-    };
-    let mut set = |key: &str, value: String| {
-        c.insert_json5(key, &value)
-            .map_err(|e| ServiceError::ZenohConfig {
-                key: key.to_owned(),
-                message: e.to_string(),
-            })
-    };
-    match (s.mode, &s.config_file) {
-        (Some(ZenohMode::Client), _) => set("mode", "\"client\"".into())?,
-        (Some(ZenohMode::Peer), _) | (None, None) => set("mode", "\"peer\"".into())?,
-        (None, Some(_)) => {}
-    }
-    // A list of strings always serialises to JSON.
-    let list = |v: &[String]| serde_json::to_string(v).expect("strings serialise");
-    if !s.listen.is_empty() {
-        set("listen/endpoints", list(&s.listen))?;
-    }
-    if !s.connect.is_empty() {
-        set("connect/endpoints", list(&s.connect))?;
-    }
-    if let Some(on) = s.multicast_scouting {
-        set("scouting/multicast/enabled", on.to_string())?;
-    }
-    Ok(c)
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -116,7 +81,7 @@ fn stale_check_period(config: &Config) -> Duration {
 /// Opens a Zenoh session from `config.zenoh`, subscribes to the corrected and tilt streams of
 /// the watched buildings, publishes every alert on `triax/<building>/alert/<sensor>` and logs it.
 pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(), ServiceError> {
-    let session = zenoh::open(zenoh_config(&config.zenoh)?)
+    let session = zenoh::open(config.zenoh.to_config()?)
         .await
         .map_err(zenoh_error("open session"))?;
     let (tx, mut rx) = mpsc::channel::<Inbound>(INBOX_CAPACITY);

@@ -4,7 +4,6 @@
 use std::time::Duration;
 
 use triax_alert::config::{Config, ZenohMode, ZenohSettings};
-use triax_alert::service::zenoh_config;
 use triax_protocol::keys::{all_buildings, Stream};
 use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
 use triax_protocol::{
@@ -15,22 +14,14 @@ use triax_protocol::{
 const RATE_HZ: f64 = 100.0;
 const BATCH: usize = 10;
 
-/// A loopback port that was free a moment ago. Zenoh 1.10 reports the port it bound for
-/// `tcp/127.0.0.1:0` only through an unstable API, so the site peer listens on a port reserved
-/// this way and the service under test listens on `tcp/127.0.0.1:0` and connects to it.
+/// The site peer listens on a port reserved by [`triax_net::free_loopback_port`]; the service
+/// under test listens on `tcp/127.0.0.1:0` and connects to it.
 fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
+    triax_net::free_loopback_port().unwrap()
 }
 
 fn settings(listen: &str, connect: Vec<String>) -> ZenohSettings {
-    ZenohSettings {
-        config_file: None,
-        mode: Some(ZenohMode::Peer),
-        listen: vec![listen.into()],
-        connect,
-        multicast_scouting: Some(false),
-    }
+    ZenohSettings::loopback(ZenohMode::Peer, vec![listen.into()], connect)
 }
 
 fn batch(sequence: u64, amplitude_mps2: f64) -> CorrectedBatch {
@@ -102,10 +93,13 @@ async fn publish_until(
 #[tokio::test(flavor = "multi_thread")]
 async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
     let port = free_port();
-    let site =
-        zenoh::open(zenoh_config(&settings(&format!("tcp/127.0.0.1:{port}"), vec![])).unwrap())
-            .await
-            .unwrap();
+    let site = zenoh::open(
+        settings(&format!("tcp/127.0.0.1:{port}"), vec![])
+            .to_config()
+            .unwrap(),
+    )
+    .await
+    .unwrap();
     let alerts = site
         .declare_subscriber(all_buildings(Stream::Alert))
         .await

@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::Deserialize;
+pub use triax_net::{ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
 
@@ -76,28 +77,6 @@ impl Default for SensorSettings {
             frequency_floor_mps2: 0.01,
         }
     }
-}
-
-/// How the gateway joins Zenoh.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum ZenohMode {
-    /// An embedded peer: one building needs no router.
-    Peer,
-    /// A client of a site router (`connect` names it).
-    Client,
-}
-
-/// Zenoh settings; the JSON5 file, when given, is the base that the other fields override.
-/// A field left unset keeps the file's value, or Zenoh's default without a file (for the mode,
-/// `peer`; for multicast scouting, on).
-#[derive(Debug, Clone, PartialEq)]
-pub struct ZenohSettings {
-    pub config_file: Option<PathBuf>,
-    pub mode: Option<ZenohMode>,
-    pub listen: Vec<String>,
-    pub connect: Vec<String>,
-    pub multicast_scouting: Option<bool>,
 }
 
 /// Calibration updates: whom to trust, how often to ask the lab's registry.
@@ -206,7 +185,7 @@ pub struct FileConfig {
     pub workers: Option<usize>,
     pub queue_capacity_batches: Option<usize>,
     #[serde(default)]
-    pub zenoh: FileZenoh,
+    pub zenoh: ZenohSettings,
     #[serde(default)]
     pub calibration: FileCalibration,
     #[serde(default)]
@@ -215,16 +194,6 @@ pub struct FileConfig {
     pub defaults: FileSensor,
     #[serde(default)]
     pub sensors: BTreeMap<String, FileSensor>,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FileZenoh {
-    pub config_file: Option<PathBuf>,
-    pub mode: Option<ZenohMode>,
-    pub listen: Option<Vec<String>>,
-    pub connect: Option<Vec<String>>,
-    pub multicast_scouting: Option<bool>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -296,45 +265,10 @@ impl FileConfig {
                 format!("{queue_capacity_batches} is outside 1..=1000000"),
             ));
         }
-        let z = self.zenoh;
-        let endpoints = |field: &str, list: Vec<String>| -> Result<Vec<String>, ConfigError> {
-            for (i, e) in list.iter().enumerate() {
-                // A Zenoh endpoint is `<protocol>/<address>`; the rest is Zenoh's to check.
-                let ok = e
-                    .split_once('/')
-                    .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty());
-                if !ok {
-                    return Err(invalid(
-                        format!("zenoh.{field}[{i}]"),
-                        format!("{e:?} is not a Zenoh endpoint like \"tcp/0.0.0.0:7447\""),
-                    ));
-                }
-            }
-            Ok(list)
-        };
-        let mode = z.mode;
-        let connect = endpoints("connect", z.connect.unwrap_or_default())?;
-        if mode == Some(ZenohMode::Client) && connect.is_empty() && z.config_file.is_none() {
-            return Err(invalid(
-                "zenoh.connect",
-                "client mode needs at least one router endpoint to connect to",
-            ));
-        }
-        if let Some(p) = &z.config_file {
-            if !p.is_file() {
-                return Err(invalid(
-                    "zenoh.config_file",
-                    format!("{} is not a readable file", p.display()),
-                ));
-            }
-        }
-        let zenoh = ZenohSettings {
-            config_file: z.config_file,
-            mode,
-            listen: endpoints("listen", z.listen.unwrap_or_default())?,
-            connect,
-            multicast_scouting: z.multicast_scouting,
-        };
+        let zenoh = self.zenoh;
+        zenoh
+            .validate()
+            .map_err(|e| invalid(format!("zenoh.{}", e.field), e.reason))?;
         let calibration = calibration_settings(self.calibration)?;
         let metrics_listen = if self.metrics.enabled.unwrap_or(true) {
             let text = self
@@ -483,21 +417,8 @@ pub struct ConfigArgs {
     /// Directory of the calibration store.
     #[arg(long, env = "TRIAX_STORE")]
     pub store: Option<PathBuf>,
-    /// Zenoh JSON5 configuration file (the base the other Zenoh flags override).
-    #[arg(long, env = "TRIAX_ZENOH_CONFIG")]
-    pub zenoh_config: Option<PathBuf>,
-    /// Zenoh mode.
-    #[arg(long, value_enum, env = "TRIAX_ZENOH_MODE")]
-    pub zenoh_mode: Option<ZenohMode>,
-    /// Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeat or comma-separate).
-    #[arg(long, env = "TRIAX_LISTEN", value_delimiter = ',')]
-    pub listen: Vec<String>,
-    /// Zenoh endpoint to connect to, e.g. tcp/router:7447 (repeat or comma-separate).
-    #[arg(long, env = "TRIAX_CONNECT", value_delimiter = ',')]
-    pub connect: Vec<String>,
-    /// Turn off Zenoh multicast scouting.
-    #[arg(long, env = "TRIAX_NO_MULTICAST_SCOUTING")]
-    pub no_multicast_scouting: bool,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
     /// Metrics endpoint address, e.g. 0.0.0.0:9750.
     #[arg(long, env = "TRIAX_METRICS_LISTEN")]
     pub metrics_listen: Option<String>,
@@ -541,21 +462,7 @@ impl ConfigArgs {
         if let Some(s) = &self.store {
             f.store_path = Some(s.clone());
         }
-        if let Some(z) = &self.zenoh_config {
-            f.zenoh.config_file = Some(z.clone());
-        }
-        if let Some(m) = &self.zenoh_mode {
-            f.zenoh.mode = Some(m.clone());
-        }
-        if !self.listen.is_empty() {
-            f.zenoh.listen = Some(self.listen.clone());
-        }
-        if !self.connect.is_empty() {
-            f.zenoh.connect = Some(self.connect.clone());
-        }
-        if self.no_multicast_scouting {
-            f.zenoh.multicast_scouting = Some(false);
-        }
+        self.zenoh.apply_to(&mut f.zenoh);
         if let Some(m) = &self.metrics_listen {
             f.metrics.listen = Some(m.clone());
         }

@@ -321,12 +321,6 @@ impl DemoReport {
     }
 }
 
-fn free_local_port() -> std::io::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port())
-}
-
 /// Runs the demo until `opts.duration` passes or `shutdown` completes.
 pub async fn run(
     base: Config,
@@ -352,7 +346,7 @@ pub async fn run(
     .map_err(|e| DemoError::Store(e.to_string()))?
     .map_err(DemoError::Store)?;
 
-    let port = free_local_port().map_err(|e| DemoError::Zenoh(e.to_string()))?;
+    let port = triax_net::free_loopback_port().map_err(|e| DemoError::Zenoh(e.to_string()))?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let mut config = base;
     // A literal of valid characters.

@@ -38,7 +38,6 @@ pub mod filter;
 pub mod inbox;
 pub mod kernel;
 pub mod metrics;
-pub mod net;
 pub mod push;
 pub mod sensors;
 pub mod sequence;
@@ -75,7 +74,7 @@ pub enum GatewayError {
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error(transparent)]
-    ZenohConfig(#[from] net::ZenohConfigError),
+    ZenohConfig(#[from] triax_net::ZenohConfigError),
     #[error("calibration store {path}: {source}")]
     Store {
         path: std::path::PathBuf,
@@ -171,7 +170,7 @@ impl Gateway {
         let loaded = load_calibrations(&store, &table).await.map_err(store_err)?;
         tracing::info!(building = %config.building, calibrations = loaded, store = %path.display(), "calibrations loaded");
 
-        let zconfig = net::zenoh_config(&config.zenoh)?;
+        let zconfig = config.zenoh.to_config()?;
         let session = zenoh::open(zconfig)
             .await
             .map_err(zenoh_err("open session"))?;

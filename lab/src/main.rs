@@ -30,10 +30,11 @@ use triax_lab::commands::{
     run_radius, run_simulate, run_static, run_tables, static_summary, tables_summary, FitOptions,
 };
 use triax_lab::keypair;
-use triax_lab::net::ZenohArgs;
+use triax_lab::net::zenoh_config;
 use triax_lab::push::{push_all, render, Push};
 use triax_lab::record::RecordMeta;
 use triax_lab::registry::{Recorded, Registry};
+use triax_net::ZenohArgs;
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{from_json, BuildingId, SensorId};
 
@@ -371,7 +372,7 @@ fn run_push(
     if pushes.is_empty() {
         return Ok(false);
     }
-    let config = zenoh.config()?;
+    let config = zenoh_config(zenoh)?;
     let reports = runtime()?.block_on(async {
         let session = zenoh::open(config)
             .await
@@ -546,7 +547,7 @@ fn main() -> anyhow::Result<()> {
             let assignments = registry.assignments()?;
             tracing::info!(registry = %registry.dir().display(), sensors = assignments.sensors.len(),
                 "registry opened");
-            let config = zenoh.config()?;
+            let config = zenoh_config(&zenoh)?;
             runtime()?.block_on(async {
                 let session = zenoh::open(config)
                     .await

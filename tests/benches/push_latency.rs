@@ -10,17 +10,19 @@
 //!
 //! `cargo bench -p triax-tests --bench push_latency` (needs `zenohd` 1.10 on PATH).
 
-use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use triax_gateway::config::ZenohMode;
 use triax_gateway::{Config, Gateway};
-use triax_lab::net::ZenohArgs;
 use triax_lab::push::{push_one, Push};
 use triax_protocol::messages::PushOutcome;
 use triax_protocol::record::sample;
 use triax_protocol::signing::LabSigningKey;
 use triax_protocol::BuildingId;
+
+#[path = "../tests/util.rs"]
+mod util;
+
+use util::Router;
 
 const GATEWAYS: usize = 2;
 
@@ -37,25 +39,7 @@ fn main() {
 }
 
 async fn run(pushes: usize) {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("loopback")
-        .port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut router = Command::new("zenohd")
-        .args(["--no-multicast-scouting", "--listen", &endpoint])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap_or_else(|e| {
-            panic!("cannot start `zenohd` ({e}): install it with `cargo install zenohd --version 1.10.2 --locked`")
-        });
-    while tokio::net::TcpStream::connect(("127.0.0.1", port))
-        .await
-        .is_err()
-    {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    let router = Router::start().await;
 
     let key = LabSigningKey::from_bytes(&[7; 32]);
     let dir = tempfile::tempdir().expect("temporary directory");
@@ -64,8 +48,7 @@ async fn run(pushes: usize) {
     for i in 0..GATEWAYS {
         let mut c = Config::for_tests("bench", &dir.path().join(format!("gw{i}")), vec![]);
         c.gateway_name = format!("gw-bench-{i}");
-        c.zenoh.mode = Some(ZenohMode::Client);
-        c.zenoh.connect = vec![endpoint.clone()];
+        c.zenoh = router.client_settings();
         c.calibration.trusted_lab_keys = vec![key.verifying_key()];
         c.calibration.catchup_interval = None;
         let gw = Gateway::start(c).await.expect("gateway starts");
@@ -78,13 +61,9 @@ async fn run(pushes: usize) {
             })),
         ));
     }
-    let lab = zenoh::open(
-        ZenohArgs::connect_to(&endpoint, "client")
-            .config()
-            .expect("client config"),
-    )
-    .await
-    .expect("lab session opens");
+    let lab = zenoh::open(router.client_settings().to_config().expect("client config"))
+        .await
+        .expect("lab session opens");
     let building = BuildingId::new("bench").expect("valid id");
     // Warm-up until both gateways answer (declarations cross the router).
     let mut version = 1;
@@ -150,6 +129,5 @@ async fn run(pushes: usize) {
         let _ = tx.send(());
         let _ = task.await;
     }
-    let _ = router.kill();
-    let _ = router.wait();
+    drop(router);
 }

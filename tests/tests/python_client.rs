@@ -10,6 +10,8 @@
 //! Needs a Python interpreter with `eclipse-zenoh` installed, named by `TRIAX_PYTHON` (CI sets
 //! it). Without it the test says it skipped, and checks nothing.
 
+mod util;
+
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -20,6 +22,7 @@ use serde_json::Value;
 use triax_calibration_store::Store;
 use triax_protocol::record::sample;
 use triax_protocol::{BuildingId, CorrectedBatch, Key, Mode, RawBatch, SensorId};
+use util::{free_port, wait_for_listener};
 
 const BUILDING: &str = "pyb";
 const SENSOR: &str = "py-01";
@@ -30,25 +33,6 @@ const BATCHES_CHECKED: usize = 6;
 
 fn script() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/python/triax_client.py")
-}
-
-/// A loopback port that was free a moment ago (zenoh 1.10 reports the port it bound for
-/// `tcp/127.0.0.1:0` only through an unstable API, and the Python peers must be told where to
-/// connect).
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
-
-/// Returns once something accepts connections on the port: the gateway has bound it.
-async fn wait_for_listener(port: u16) {
-    for _ in 0..200 {
-        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
-            return;
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    panic!("nothing listens on 127.0.0.1:{port} after 10 s");
 }
 
 /// Kills the child when the test ends early, so a failed assertion leaves no process behind.

@@ -21,7 +21,6 @@
 
 mod util;
 
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -29,7 +28,6 @@ use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use triax_calibration::corrector::Corrector;
-use triax_gateway::config::ZenohMode;
 use triax_gateway::{Config, Gateway, GatewayCounters, SensorTable};
 use triax_lab::push::{push_all, push_one, Push, PushReport};
 use triax_lab::registry::{Recorded, Registry};
@@ -39,59 +37,17 @@ use triax_protocol::messages::{PushAck, PushOutcome, RefusalReason};
 use triax_protocol::record::{sample, CalibrationRecord, SetKind};
 use triax_protocol::signing::{sign, LabSigningKey};
 use triax_protocol::{from_json, BuildingId, CorrectedBatch, Key, SensorId};
-use util::{free_port, raw, TIMEOUT};
+use util::{raw, Router, TIMEOUT};
 use zenoh::qos::CongestionControl;
 
 /// How long a push waits for acknowledgements when no gateway is expected to answer.
 const SHORT_TIMEOUT: Duration = Duration::from_secs(1);
 
-/// A `zenohd` router on a loopback port, killed when dropped.
-struct Router {
-    endpoint: String,
-    child: Child,
-}
-
-impl Router {
-    async fn start() -> Router {
-        let port = free_port();
-        let endpoint = format!("tcp/127.0.0.1:{port}");
-        let child = Command::new("zenohd")
-            .args(["--no-multicast-scouting", "--listen", &endpoint])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| {
-                panic!(
-                    "cannot start `zenohd` ({e}): these tests need the Zenoh router on PATH; \
-                     install it with `cargo install zenohd --version 1.10.2 --locked`"
-                )
-            });
-        let deadline = tokio::time::Instant::now() + TIMEOUT;
-        while tokio::net::TcpStream::connect(("127.0.0.1", port))
-            .await
-            .is_err()
-        {
-            assert!(
-                tokio::time::Instant::now() < deadline,
-                "zenohd did not listen on {endpoint} in time"
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        Router { endpoint, child }
-    }
-}
-
-impl Drop for Router {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 /// A Zenoh client of the router.
 async fn client(router: &Router) -> zenoh::Session {
-    let config = triax_lab::net::ZenohArgs::connect_to(&router.endpoint, "client")
-        .config()
+    let config = router
+        .client_settings()
+        .to_config()
         .expect("valid client config");
     zenoh::open(config).await.expect("client session opens")
 }
@@ -138,8 +94,7 @@ fn gateway_config(
 ) -> Config {
     let mut c = Config::for_tests(building, store, vec![]);
     c.gateway_name = name.to_owned();
-    c.zenoh.mode = Some(ZenohMode::Client);
-    c.zenoh.connect = vec![router.endpoint.clone()];
+    c.zenoh = router.client_settings();
     c.calibration.trusted_lab_keys = vec![lab_key().verifying_key()];
     c.calibration.catchup_interval = Some(Duration::from_secs_f64(catchup_s));
     c.calibration.catchup_timeout = Duration::from_secs(2);

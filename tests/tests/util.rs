@@ -3,12 +3,14 @@
 #![allow(dead_code)] // Each test binary that includes this module uses a different subset.
 
 use std::path::Path;
+use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use triax_calibration_store::Store;
 use triax_gateway::{Config, Gateway};
+use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::SensorId;
@@ -16,13 +18,62 @@ use triax_protocol::SensorId;
 /// Longest any step of a test waits for the network.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
 
-/// A loopback TCP port nobody listens on right now. Zenoh 1.10 cannot report the port it bound
-/// for `:0` through its stable API, so tests pick one and hand it over.
+/// A loopback TCP port nobody listens on right now (see [`triax_net::free_loopback_port`]).
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("loopback is available")
+    triax_net::free_loopback_port().expect("loopback is available")
+}
+
+/// Returns once something accepts connections on `port` of 127.0.0.1: a listener there is up.
+pub async fn wait_for_listener(port: u16) {
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while tokio::net::TcpStream::connect(("127.0.0.1", port))
+        .await
+        .is_err()
+    {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "nothing listened on 127.0.0.1:{port} in time"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// A `zenohd` router on a loopback port, killed when dropped.
+pub struct Router {
+    pub endpoint: String,
+    child: Child,
+}
+
+impl Router {
+    pub async fn start() -> Router {
+        let port = free_port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let child = Command::new("zenohd")
+            .args(["--no-multicast-scouting", "--listen", &endpoint])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "cannot start `zenohd` ({e}): these tests need the Zenoh router on PATH; \
+                     install it with `cargo install zenohd --version 1.10.2 --locked`"
+                )
+            });
+        wait_for_listener(port).await;
+        Router { endpoint, child }
+    }
+
+    /// Settings of a client of this router, on loopback.
+    pub fn client_settings(&self) -> ZenohSettings {
+        ZenohSettings::loopback(ZenohMode::Client, vec![], vec![self.endpoint.clone()])
+    }
+}
+
+impl Drop for Router {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }
 
 /// Writes records into the store at `path` (the store must not be open elsewhere).

@@ -75,12 +75,6 @@ fn sensor_id(i: usize) -> SensorId {
     SensorId::new(format!("s{i:05}")).expect("generated ids are valid")
 }
 
-fn free_port() -> Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port())
-}
-
 fn record(i: usize) -> CalibrationRecord {
     let mut r = sample::record(sensor_id(i).as_str(), 1);
     let mut cov = [[0.0; 12]; 12];
@@ -223,7 +217,7 @@ async fn throughput(
 }
 
 async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
-    let port = free_port()?;
+    let port = triax_net::free_loopback_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let dir = tempfile::tempdir()?;
     let store_path = dir.path().join("store");
@@ -434,7 +428,7 @@ async fn rss_check(n: usize) -> Result<()> {
     let store_path = dir.path().join("store");
     let sp = store_path.clone();
     tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
-    let port = free_port()?;
+    let port = triax_net::free_loopback_port()?;
     let mut child = std::process::Command::new(std::env::current_exe()?)
         .arg("--rss-child")
         .arg(&store_path)

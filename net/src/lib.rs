@@ -1,0 +1,277 @@
+//! How a Triax program joins Zenoh: one settings type for the `[zenoh]` table of a TOML file,
+//! one set of command-line flags flattened into every binary (as in Zenoh's own examples), and
+//! one function that turns them into a `zenoh::Config`.
+//!
+//! The JSON5 file, when given, is the base; the other settings override it. A setting left unset
+//! keeps the file's value, or, without a file, Zenoh's default (multicast scouting on), except
+//! the mode, which defaults to `peer`: a building needs no router.
+
+use std::path::PathBuf;
+
+use serde::Deserialize;
+
+/// How a program joins Zenoh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ZenohMode {
+    /// An embedded peer: talks to other peers directly, no router needed.
+    Peer,
+    /// A client of a router (`connect` names it).
+    Client,
+}
+
+impl ZenohMode {
+    fn as_str(self) -> &'static str {
+        match self {
+            ZenohMode::Peer => "peer",
+            ZenohMode::Client => "client",
+        }
+    }
+}
+
+/// The `[zenoh]` table of a configuration file.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohSettings {
+    /// Zenoh JSON5 configuration file, the base the other settings override.
+    pub config_file: Option<PathBuf>,
+    pub mode: Option<ZenohMode>,
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`; empty keeps the file's or Zenoh's.
+    #[serde(default)]
+    pub listen: Vec<String>,
+    /// Endpoints to connect to, e.g. `tls/site-router:7448`.
+    #[serde(default)]
+    pub connect: Vec<String>,
+    pub multicast_scouting: Option<bool>,
+}
+
+/// The same settings as command-line flags (and `TRIAX_*` environment variables), to
+/// `#[command(flatten)]` into a binary's arguments. Flags override the file.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ZenohArgs {
+    /// Zenoh JSON5 configuration file (the base the other Zenoh flags override).
+    #[arg(long, env = "TRIAX_ZENOH_CONFIG")]
+    pub zenoh_config: Option<PathBuf>,
+    /// Zenoh mode.
+    #[arg(long, value_enum, env = "TRIAX_ZENOH_MODE")]
+    pub zenoh_mode: Option<ZenohMode>,
+    /// Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeat or comma-separate).
+    #[arg(long, env = "TRIAX_LISTEN", value_delimiter = ',')]
+    pub listen: Vec<String>,
+    /// Zenoh endpoint to connect to, e.g. tcp/router:7447 (repeat or comma-separate).
+    #[arg(long, env = "TRIAX_CONNECT", value_delimiter = ',')]
+    pub connect: Vec<String>,
+    /// Turn off Zenoh multicast scouting.
+    #[arg(long, env = "TRIAX_NO_MULTICAST_SCOUTING")]
+    pub no_multicast_scouting: bool,
+}
+
+impl ZenohArgs {
+    /// Puts the flags that were given over `settings`.
+    pub fn apply_to(&self, settings: &mut ZenohSettings) {
+        if let Some(f) = &self.zenoh_config {
+            settings.config_file = Some(f.clone());
+        }
+        if let Some(m) = self.zenoh_mode {
+            settings.mode = Some(m);
+        }
+        if !self.listen.is_empty() {
+            settings.listen = self.listen.clone();
+        }
+        if !self.connect.is_empty() {
+            settings.connect = self.connect.clone();
+        }
+        if self.no_multicast_scouting {
+            settings.multicast_scouting = Some(false);
+        }
+    }
+
+    /// The settings the flags alone describe.
+    pub fn settings(&self) -> ZenohSettings {
+        let mut s = ZenohSettings::default();
+        self.apply_to(&mut s);
+        s
+    }
+}
+
+/// A setting that cannot work, named by its field in the `[zenoh]` table.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("config field `zenoh.{field}`: {reason}")]
+pub struct ZenohSettingsError {
+    pub field: String,
+    pub reason: String,
+}
+
+/// Zenoh refused the configuration built from the settings.
+#[derive(Debug, thiserror::Error)]
+#[error("zenoh configuration `{key}`: {message}")]
+pub struct ZenohConfigError {
+    pub key: String,
+    pub message: String,
+}
+
+impl ZenohSettings {
+    /// Settings for tests, demos and benches: loopback only, multicast scouting off.
+    pub fn loopback(mode: ZenohMode, listen: Vec<String>, connect: Vec<String>) -> ZenohSettings {
+        ZenohSettings {
+            config_file: None,
+            mode: Some(mode),
+            listen,
+            connect,
+            multicast_scouting: Some(false),
+        }
+    }
+
+    /// Checks what can be checked before Zenoh starts: endpoint shapes, a client with nowhere
+    /// to connect, a configuration file that is not there.
+    pub fn validate(&self) -> Result<(), ZenohSettingsError> {
+        let invalid = |field: String, reason: String| Err(ZenohSettingsError { field, reason });
+        for (field, list) in [("listen", &self.listen), ("connect", &self.connect)] {
+            for (i, e) in list.iter().enumerate() {
+                // A Zenoh endpoint is `<protocol>/<address>`; the rest is Zenoh's to check.
+                let ok = e
+                    .split_once('/')
+                    .is_some_and(|(p, a)| !p.is_empty() && !a.is_empty());
+                if !ok {
+                    return invalid(
+                        format!("{field}[{i}]"),
+                        format!("{e:?} is not a Zenoh endpoint like \"tcp/0.0.0.0:7447\""),
+                    );
+                }
+            }
+        }
+        if self.mode == Some(ZenohMode::Client)
+            && self.connect.is_empty()
+            && self.config_file.is_none()
+        {
+            return invalid(
+                "connect".into(),
+                "client mode needs at least one router endpoint to connect to".into(),
+            );
+        }
+        if let Some(p) = &self.config_file {
+            if !p.is_file() {
+                return invalid(
+                    "config_file".into(),
+                    format!("{} is not a readable file", p.display()),
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The session configuration: the file (or Zenoh's defaults), then the settings on top.
+    pub fn to_config(&self) -> Result<zenoh::Config, ZenohConfigError> {
+        let mut c = match &self.config_file {
+            Some(path) => zenoh::Config::from_file(path).map_err(|e| ZenohConfigError {
+                key: format!("file {}", path.display()),
+                message: e.to_string(),
+            })?,
+            None => zenoh::Config::default(),
+        };
+        let mut set = |key: &str, value: String| {
+            c.insert_json5(key, &value).map_err(|e| ZenohConfigError {
+                key: key.to_owned(),
+                message: e.to_string(),
+            })
+        };
+        // A list of strings always serialises to JSON.
+        let list = |items: &[String]| serde_json::to_string(items).expect("strings serialise");
+        match (self.mode, &self.config_file) {
+            (Some(m), _) => set("mode", format!("\"{}\"", m.as_str()))?,
+            (None, None) => set("mode", "\"peer\"".into())?,
+            (None, Some(_)) => {}
+        }
+        if !self.listen.is_empty() {
+            set("listen/endpoints", list(&self.listen))?;
+        }
+        if !self.connect.is_empty() {
+            set("connect/endpoints", list(&self.connect))?;
+        }
+        if let Some(on) = self.multicast_scouting {
+            set("scouting/multicast/enabled", on.to_string())?;
+        }
+        Ok(c)
+    }
+}
+
+/// A TCP port on 127.0.0.1 that was free a moment ago, for demos, tests and benches that start
+/// a Zenoh listener other sessions must connect to: Zenoh 1.10's stable API does not report the
+/// port a `:0` listener bound.
+pub fn free_loopback_port() -> std::io::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        zenoh: ZenohArgs,
+    }
+
+    #[test]
+    fn settings_reach_the_zenoh_config() {
+        let s =
+            ZenohSettings::loopback(ZenohMode::Client, vec![], vec!["tcp/127.0.0.1:7447".into()]);
+        s.validate().unwrap();
+        let c = s.to_config().unwrap();
+        assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
+        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        assert!(c
+            .get_json("connect/endpoints")
+            .unwrap()
+            .contains("127.0.0.1:7447"));
+        assert_eq!(
+            ZenohSettings::default()
+                .to_config()
+                .unwrap()
+                .get_json("mode")
+                .unwrap(),
+            "\"peer\"",
+            "a building needs no router"
+        );
+    }
+
+    #[test]
+    fn flags_override_the_file() {
+        let mut s: ZenohSettings = toml::from_str(
+            "mode = \"peer\"\nlisten = [\"tcp/0.0.0.0:7447\"]\nmulticast_scouting = true\n",
+        )
+        .unwrap();
+        let cli = Cli::parse_from([
+            "x",
+            "--zenoh-mode",
+            "client",
+            "--connect",
+            "tcp/a:1,tcp/b:2",
+            "--no-multicast-scouting",
+        ]);
+        cli.zenoh.apply_to(&mut s);
+        assert_eq!(s.mode, Some(ZenohMode::Client));
+        assert_eq!(s.listen, ["tcp/0.0.0.0:7447"], "unset flags keep the file");
+        assert_eq!(s.connect, ["tcp/a:1", "tcp/b:2"]);
+        assert_eq!(s.multicast_scouting, Some(false));
+    }
+
+    #[test]
+    fn bad_settings_name_their_field() {
+        let mut s = ZenohSettings {
+            listen: vec!["0.0.0.0:7447".into()],
+            ..ZenohSettings::default()
+        };
+        let e = s.validate().unwrap_err();
+        assert_eq!(e.field, "listen[0]");
+        assert!(e.to_string().contains("zenoh.listen[0]"), "{e}");
+        s.listen.clear();
+        s.mode = Some(ZenohMode::Client);
+        assert_eq!(s.validate().unwrap_err().field, "connect");
+        s.config_file = Some("/nonexistent/zenoh.json5".into());
+        assert_eq!(s.validate().unwrap_err().field, "config_file");
+    }
+}
