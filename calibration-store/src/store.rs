@@ -439,6 +439,12 @@ impl Store {
         }
     }
 
+    /// The version of the sensor's current (highest-version) record, whether or not that
+    /// record is still readable: what a newer put must exceed.
+    pub fn current_version(&self, sensor_id: &SensorId) -> Result<Option<u64>, StoreError> {
+        Ok(self.current_version_of(sensor_id)?.value)
+    }
+
     /// The sensor's current (highest-version) record, whatever its validity window.
     ///
     /// An unreadable index entry is logged and worked around; an unreadable current record is

@@ -114,7 +114,7 @@ impl SimSensor {
     fn static_part(&self, t_s: f64) -> [f64; 3] {
         let [roll, pitch] = self.tilt_at(t_s);
         [
-            -G_MPS2 * pitch.sin(),
+            G_MPS2 * pitch.sin(),
             G_MPS2 * pitch.cos() * roll.sin(),
             G_MPS2 * pitch.cos() * roll.cos(),
         ]

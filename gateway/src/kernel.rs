@@ -303,7 +303,7 @@ impl SensorKernel {
                 common |= flags::OUTSIDE_FREQUENCY;
             }
         }
-        if let Some(t) = design.tilt.as_mut() {
+        if let Some(t) = design.tilt.as_mut().filter(|_| in_sequence) {
             let mut any = false;
             for v in scratch.v.iter().filter(|v| finite(**v)) {
                 self.tilt.output_lp = t.step(*v);
@@ -352,6 +352,9 @@ impl SensorKernel {
                 }
             }
             CorrectionMode::Split => {
+                // A duplicate is corrected through the crossover as it stands, which then
+                // forgets it: old signal must not shift the low band of the live stream.
+                let saved = design.crossover.clone().filter(|_| !in_sequence);
                 // Without a realisable crossover everything is low band.
                 for i in 0..n {
                     let v = scratch.v[i];
@@ -359,6 +362,9 @@ impl SensorKernel {
                         Some(x) if finite(v) => x.step(v),
                         _ => v,
                     };
+                }
+                if saved.is_some() {
+                    design.crossover = saved;
                 }
                 split_all(static_set, dynamic_set, scratch);
                 for i in 0..n {
@@ -400,7 +406,7 @@ impl SensorKernel {
         let batch_flags = union | stream_flags;
         w.finish(batch_flags);
 
-        if self.settings.tilt {
+        if self.settings.tilt && in_sequence {
             self.tilt.flags |= batch_flags;
             self.tilt.timestamp_ns = batch_end_ns(raw);
         }
@@ -739,6 +745,51 @@ mod tests {
                 u >= single.uncertainty_mps2[0] * 0.999 && u < single.uncertainty_mps2[0] * 1.5
             );
         }
+    }
+
+    /// A duplicate batch is old signal: it must leave the crossover and the tilt low pass as
+    /// they were, so the live stream after it is corrected exactly as without it.
+    #[test]
+    fn duplicates_leave_filter_memory_untouched() {
+        let r = sample::record("k", 1);
+        let c = Corrector::from_record(&r).unwrap();
+        let tilting = SensorSettings {
+            crossover_hz: 0.5,
+            tilt: true,
+            ..settings(CorrectionMode::Split)
+        };
+        let wave = |seq: u64, amp: f64| -> Vec<[f32; 3]> {
+            (0..50)
+                .map(|i| {
+                    let t = (seq as f64 * 50.0 + i as f64) / 100.0;
+                    outputs_for(&r, [amp * (2.0 * PI * 0.3 * t).sin(), 0.2, 9.81])
+                })
+                .collect()
+        };
+        let step = |k: &mut SensorKernel, bytes: &[u8], stream_flags: u16| {
+            let view = RawBatchView::parse(bytes).unwrap();
+            let mut out = Vec::new();
+            k.correct_batch(
+                &view,
+                Some(&c),
+                stream_flags,
+                &mut Scratch::default(),
+                &mut out,
+            );
+            CorrectedBatch::decode(&out).unwrap()
+        };
+        let mut clean = SensorKernel::new(tilting.clone());
+        let mut with_dup = SensorKernel::new(tilting);
+        for k in [&mut clean, &mut with_dup] {
+            step(k, &batch(0, wave(0, 1.0)), 0);
+        }
+        // An old batch, with very different signal, arrives again.
+        let dup = step(&mut with_dup, &batch(0, wave(7, 5.0)), flags::DUPLICATE);
+        assert_eq!(dup.batch_flags & flags::DUPLICATE, flags::DUPLICATE);
+        let a = step(&mut clean, &batch(1, wave(1, 1.0)), 0);
+        let b = step(&mut with_dup, &batch(1, wave(1, 1.0)), 0);
+        assert_eq!(a, b);
+        assert_eq!(clean.tilt_state(), with_dup.tilt_state());
     }
 
     #[test]

@@ -207,7 +207,7 @@ impl Gateway {
             .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
             .callback(move |sample: Sample| {
                 let key = sample.key_expr().as_str();
-                let sensor = key.rsplit_once('/').map_or(key, |(_, s)| s);
+                let sensor = keys::sensor_chunk(key);
                 route[worker::shard(sensor, route.len())].push(sample);
             })
             .await

@@ -101,10 +101,17 @@ fn main() -> anyhow::Result<()> {
         if cli.demo {
             let opts = DemoOptions {
                 sensors: cli.demo_sensors,
-                duration: cli
-                    .demo_duration_s
-                    .filter(|s| s.is_finite() && *s > 0.0)
-                    .map(Duration::from_secs_f64),
+                duration: match cli.demo_duration_s {
+                    None => None,
+                    Some(s) => Some(
+                        Duration::try_from_secs_f64(s)
+                            .ok()
+                            .filter(|d| !d.is_zero())
+                            .with_context(|| {
+                                format!("--demo-duration-s {s} is not a positive number of seconds")
+                            })?,
+                    ),
+                },
                 ..DemoOptions::default()
             };
             demo::run(config, opts, shutdown_signal()).await?;

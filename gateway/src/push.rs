@@ -180,7 +180,30 @@ impl Updater {
             );
         }
         let store = self.store.clone();
-        let put = tokio::task::spawn_blocking(move || store.put(&record)).await;
+        // The store's current version, not only the one in force, bounds what may be
+        // installed: a sensor whose current record could not be loaded at start has nothing in
+        // force, and the store answers "already stored" for any identical older version.
+        let put =
+            tokio::task::spawn_blocking(move || match store.current_version(&record.sensor_id) {
+                Ok(Some(current)) if record.version < current => Ok(Err(current)),
+                Ok(_) => store.put(&record).map(Ok),
+                Err(e) => Err(e),
+            })
+            .await;
+        let put = match put {
+            Ok(Ok(Err(current))) => {
+                return refused(
+                    RefusalReason::StaleVersion,
+                    format!(
+                        "version {version} is older than version {current} in the store: a \
+                         replay; a rollback is issued as a new, higher version"
+                    ),
+                )
+            }
+            Ok(Ok(Ok(outcome))) => Ok(Ok(outcome)),
+            Ok(Err(e)) => Ok(Err(e)),
+            Err(e) => Err(e),
+        };
         let already_stored = match put {
             Ok(Ok(Ok(PutOutcome::Stored | PutOutcome::Repaired))) => false,
             Ok(Ok(Ok(PutOutcome::AlreadyStored))) => true,
@@ -449,5 +472,32 @@ mod tests {
         let signed = sign(&sample::record("acc-1", 1), &key(1));
         let o = u.apply(Source::CatchUp, None, &signed).await;
         assert_eq!(reason(&o), Some(RefusalReason::UnknownKey));
+    }
+
+    /// A sensor whose current record is stored but not in force (it failed to load at start)
+    /// must not be rolled back by a replay of an older record the store still holds.
+    #[tokio::test]
+    async fn a_replay_cannot_roll_back_a_sensor_with_nothing_in_force() {
+        let f = fixture();
+        let u = &f.updater;
+        let v1 = sign(&sample::record("acc-1", 1), &key(1));
+        for version in [1, 2] {
+            u.store
+                .put(&sample::record("acc-1", version))
+                .unwrap()
+                .unwrap();
+        }
+        assert_eq!(u.version_in_force(&s("acc-1")), None);
+        let outcome = u.apply_payload(&s("acc-1"), &to_json(&v1)).await;
+        assert_eq!(
+            reason(&outcome),
+            Some(RefusalReason::StaleVersion),
+            "{outcome:?}"
+        );
+        assert_eq!(
+            u.version_in_force(&s("acc-1")),
+            None,
+            "nothing was installed"
+        );
     }
 }

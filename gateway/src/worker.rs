@@ -25,7 +25,7 @@ use crate::sequence::{SequenceTracker, Verdict};
 use crate::shutdown::Shutdown;
 use crate::tilt::tilt;
 use triax_protocol::record::SetKind;
-use triax_protocol::BuildingId;
+use triax_protocol::{keys, BuildingId};
 
 /// What every worker shares.
 pub struct Shared {
@@ -102,8 +102,7 @@ async fn handle(
     sample: Sample,
 ) {
     let key = sample.key_expr().as_str();
-    // The subscription is `triax/<building>/raw/*`: the last chunk is the sensor.
-    let sensor = key.rsplit_once('/').map_or(key, |(_, s)| s);
+    let sensor = keys::sensor_chunk(key);
     let payload = sample.payload().to_bytes();
     let view = match RawBatchView::parse(&payload) {
         Ok(v) => v,
@@ -199,7 +198,9 @@ impl SensorState {
         scratch: &mut Scratch,
     ) -> (Vec<u8>, Option<Vec<u8>>) {
         let c = &self.entry.counters;
-        let verdict = self.sequence.observe(view.header.sequence);
+        let verdict = self
+            .sequence
+            .observe(view.header.sequence, view.header.timestamp_ns);
         match verdict {
             Verdict::Gap { missing } => {
                 self.kernel.discontinuity();

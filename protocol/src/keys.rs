@@ -263,6 +263,14 @@ pub fn all_sensors(building: &BuildingId, stream: Stream) -> String {
     format!("{ROOT}/{building}/{}/*", stream.path())
 }
 
+/// The sensor chunk of a key received on a per-sensor subscription ([`all_sensors`],
+/// [`all_buildings`]): its last chunk, unvalidated, for routing on the hot path without
+/// allocating. Zenoh delivers only keys that match the subscription, so the last chunk is the
+/// sensor's; the payload's own sensor id is checked against it afterwards.
+pub fn sensor_chunk(key: &str) -> &str {
+    key.rsplit_once('/').map_or(key, |(_, sensor)| sensor)
+}
+
 /// Key expression for every sensor of one stream family in every building,
 /// e.g. `triax/*/corrected/*`.
 pub fn all_buildings(stream: Stream) -> String {
@@ -345,6 +353,13 @@ mod tests {
             Key::parse("triax/h q/raw/s"),
             Err(KeyError::BadId { .. })
         ));
+    }
+
+    #[test]
+    fn sensor_chunk_is_the_last_chunk() {
+        let k = Key::Raw(b("hq"), s("acc-9")).to_string();
+        assert_eq!(sensor_chunk(&k), "acc-9");
+        assert_eq!(sensor_chunk("acc-9"), "acc-9");
     }
 
     #[test]

@@ -200,7 +200,7 @@ pub struct TiltSample {
     pub timestamp_ns: i64,
     /// Rotation about x: atan2(a_y, a_z), degrees.
     pub roll_deg: f64,
-    /// Rotation about y: atan2(−a_x, √(a_y² + a_z²)), degrees.
+    /// Elevation of the x axis above the horizontal: atan2(a_x, √(a_y² + a_z²)), degrees.
     pub pitch_deg: f64,
     /// Standard uncertainties (k = 1), degrees.
     pub roll_uncertainty_deg: f64,

@@ -18,6 +18,10 @@ use crate::keys::SensorId;
 /// Number of calibration parameters: the 9 entries of S (row-major) then the 3 of q.
 pub const N_PARAMS: usize = 12;
 
+/// Accepted range of a set's coverage factor k.
+pub const MIN_COVERAGE_FACTOR: f64 = 0.1;
+pub const MAX_COVERAGE_FACTOR: f64 = 10.0;
+
 /// One sensor's calibration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -235,10 +239,14 @@ impl CalibrationSet {
                 ));
             }
         }
-        if !(self.coverage_factor.is_finite() && self.coverage_factor > 0.0) {
+        // The corrected stream carries k as an f32; a range also keeps typos out.
+        if !(MIN_COVERAGE_FACTOR..=MAX_COVERAGE_FACTOR).contains(&self.coverage_factor) {
             return Err((
                 "coverage_factor".into(),
-                format!("{} is not a positive finite number", self.coverage_factor),
+                format!(
+                    "{} is outside {MIN_COVERAGE_FACTOR}..={MAX_COVERAGE_FACTOR}",
+                    self.coverage_factor
+                ),
             ));
         }
         let d = &self.domain;
@@ -403,6 +411,10 @@ mod tests {
         let e = r.validate().unwrap_err();
         assert_eq!(e.field, "static.covariance[2][5]");
         assert!(e.to_string().contains("sensor s1, version 1"), "{e}");
+
+        let mut r = sample::record("s1", 1);
+        r.dynamic.coverage_factor = 1e39;
+        assert_eq!(r.validate().unwrap_err().field, "dynamic.coverage_factor");
 
         let mut r = sample::record("s1", 1);
         r.version = 0;

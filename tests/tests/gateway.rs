@@ -17,7 +17,6 @@
 mod util;
 
 use std::f64::consts::PI;
-use std::time::Duration;
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -384,7 +383,7 @@ async fn split_mode_and_tilt_stream() {
     let (roll, pitch) = (2f64.to_radians(), (-1f64).to_radians());
     let g = 9.81;
     let gravity = [
-        -g * pitch.sin(),
+        g * pitch.sin(),
         g * pitch.cos() * roll.sin(),
         g * pitch.cos() * roll.cos(),
     ];
@@ -428,11 +427,18 @@ async fn split_mode_and_tilt_stream() {
             }
         }
     }
-    // Tilt every 0.5 s of sensor time over 10 s: check the settled ones.
-    let mut tilts = Vec::new();
-    while let Ok(Ok(s)) =
-        tokio::time::timeout(Duration::from_millis(500), tilt_sub.recv_async()).await
+    // Tilt every 0.5 s of sensor time over 10 s: wait for the estimate made at the stream's
+    // end (within one publishing interval of it), then check the settled ones.
+    let stream_end_ns = 1_800_000_000_000_000_000 + n_batches as i64 * 500_000_000;
+    let mut tilts: Vec<TiltSample> = Vec::new();
+    while tilts
+        .last()
+        .is_none_or(|t| t.timestamp_ns < stream_end_ns - 1_000_000_000)
     {
+        let s = tokio::time::timeout(TIMEOUT, tilt_sub.recv_async())
+            .await
+            .expect("the tilt stream reaches the end of the raw stream in time")
+            .unwrap();
         tilts.push(from_json::<TiltSample>(&s.payload().to_bytes()).expect("tilt decodes"));
     }
     assert!(tilts.len() >= 10, "{} tilt samples", tilts.len());

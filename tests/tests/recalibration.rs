@@ -172,11 +172,35 @@ async fn wait_gateways(session: &zenoh::Session, building: &str, sensor: &str, n
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    // Matching says "at least one"; the count is checked by the acknowledgements themselves,
-    // after a short settle so that every declaration has crossed the router.
+    // Matching says "at least one". For more, wait until `n` gateways answer a status query
+    // (each declares its push queryable right after its status queryable), then settle briefly
+    // so the push declarations have crossed the router too; the acknowledgements count them.
     if n > 1 {
+        while status_replies(session, building).await < n {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "fewer than {n} gateways of {building} answered in time"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
         tokio::time::sleep(Duration::from_millis(300)).await;
     }
+}
+
+/// How many gateways of `building` answer a status query.
+async fn status_replies(session: &zenoh::Session, building: &str) -> usize {
+    let replies = session
+        .get(Key::Status(b(building)).to_string())
+        .target(zenoh::query::QueryTarget::All)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_millis(500))
+        .await
+        .expect("status query");
+    let mut n = 0;
+    while let Ok(reply) = replies.recv_async().await {
+        n += usize::from(reply.result().is_ok());
+    }
+    n
 }
 
 /// Records in the registry (assigned to the buildings), then pushes to every building.
@@ -477,8 +501,12 @@ async fn gateway_stopped_during_a_push_catches_up_after_restart() {
     east.wait_version("e-1", 2).await;
     east.wait_version("e-2", 1).await;
     assert_eq!(east.counters.pushes_refused.load(Ordering::Relaxed), 0);
-    // Another building's gateway, asking all along, was never given east's sensors.
-    tokio::time::sleep(Duration::from_millis(600)).await;
+    // Another building's gateway, asking all along, was never given east's sensors. A record
+    // of its own, registered after east's, marks a catch-up round that saw east's records too.
+    registry
+        .record(&[record("w-1", 1, 0.0)], &[b("west")])
+        .expect("registry works");
+    other.wait_version("w-1", 1).await;
     assert_eq!(other.version("e-1"), None);
     assert_eq!(other.version("e-2"), None);
 

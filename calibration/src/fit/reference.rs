@@ -231,8 +231,11 @@ pub fn kinematics(
                 return Err(too_short(2 * 4 + 1));
             };
             let samples_per_cycle = motion.period_s() / dt;
+            // The float-to-int cast saturates; a window longer than the recording (a motion far
+            // slower than the recording is long) is refused before any arithmetic can overflow.
             let half = ((SAVITZKY_GOLAY_HALF_WINDOW_CYCLES * samples_per_cycle).round() as usize)
-                .max(SAVITZKY_GOLAY_DEGREE);
+                .max(SAVITZKY_GOLAY_DEGREE)
+                .min(n);
             if n < 2 * half + 1 {
                 return Err(too_short(2 * half + 1));
             }

@@ -230,13 +230,13 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         System::Relay => {
             let s = session(Some(&endpoint), None).await?;
             let out = s.clone();
-            let prefix_len = format!("{}/{}/raw/", keys::ROOT, BUILDING).len();
-            let corrected_prefix = format!("{}/{}/corrected/", keys::ROOT, BUILDING);
             let sub = s
                 .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
                 .callback(move |sample| {
-                    let key = sample.key_expr().as_str();
-                    let target = format!("{corrected_prefix}{}", &key[prefix_len..]);
+                    // The bench's own sensor ids are valid, so the chunk parses.
+                    let sensor = SensorId::new(keys::sensor_chunk(sample.key_expr().as_str()))
+                        .expect("bench sensor ids are valid");
+                    let target = Key::Corrected(building(), sensor).to_string();
                     let _ = out
                         .put(target, sample.payload().clone())
                         .congestion_control(CongestionControl::Block)
