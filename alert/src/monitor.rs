@@ -478,6 +478,11 @@ impl Monitor {
         while ts.window.front().is_some_and(|t| t.timestamp_ns <= horizon) {
             ts.window.pop_front();
         }
+        // Bounded by count as well as by time, like the acceleration window: a sender with a
+        // very high tilt rate must not grow the service's memory.
+        while ts.window.len() > MAX_WINDOW_SAMPLES {
+            ts.window.pop_front();
+        }
         let Some(limit) = state.limits.tilt_change() else {
             return Vec::new();
         };

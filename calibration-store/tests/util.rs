@@ -36,7 +36,25 @@ pub fn raw_record_key(sensor: &str, version: u64) -> Vec<u8> {
 
 /// Writes bytes straight into a tree of a closed store, bypassing every rule.
 pub fn write_raw(path: &Path, tree: &str, key: &[u8], value: &[u8]) {
-    let db = sled::open(path).unwrap();
+    let db = open_raw(path);
     db.open_tree(tree).unwrap().insert(key, value).unwrap();
     db.flush().unwrap();
+}
+
+/// Opens the sled database under a store, waiting while the store that just closed still holds
+/// its lock (sled releases it from a background thread, as `Store::open` knows).
+pub fn open_raw(path: &Path) -> sled::Db {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    loop {
+        match sled::open(path) {
+            Ok(db) => return db,
+            Err(e)
+                if e.to_string().contains("could not acquire lock")
+                    && std::time::Instant::now() < deadline =>
+            {
+                std::thread::sleep(std::time::Duration::from_millis(20))
+            }
+            Err(e) => panic!("cannot open {}: {e}", path.display()),
+        }
+    }
 }

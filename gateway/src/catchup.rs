@@ -22,6 +22,9 @@ use zenoh::query::ConsolidationMode;
 use crate::push::{Source, Updater};
 use crate::shutdown::Shutdown;
 
+/// Most signed records one catch-up round holds (about 5 KiB each with full covariances).
+pub const MAX_RECORDS_PER_ROUND: usize = 16_384;
+
 /// What one catch-up round did.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct CatchUpReport {
@@ -35,6 +38,8 @@ pub struct CatchUpReport {
     pub refused: usize,
     /// Replies that were not signed records, or Zenoh error replies.
     pub malformed: usize,
+    /// Replies beyond [`MAX_RECORDS_PER_ROUND`], left for the next round.
+    pub deferred: usize,
 }
 
 /// Why a catch-up round could not ask.
@@ -73,6 +78,12 @@ pub async fn catch_up(
     // claimed sensor and version.
     let mut served: Vec<((SensorId, u64), SignedRecord)> = Vec::new();
     while let Ok(reply) = replies.recv_async().await {
+        if served.len() >= MAX_RECORDS_PER_ROUND {
+            // Memory stays bounded whoever answers; what is left over comes in the next round,
+            // which asks from the versions applied in this one.
+            report.deferred += 1;
+            continue;
+        }
         let signed = match reply.result() {
             Ok(sample) => from_json::<SignedRecord>(&sample.payload().to_bytes()),
             Err(e) => {
@@ -133,17 +144,31 @@ pub(crate) fn spawn(
                 r = catch_up(&session, &updater, timeout) => r,
                 _ = shutdown.recv() => return,
             };
-            match round {
-                Ok(r) if r.applied + r.refused + r.malformed > 0 => tracing::info!(
-                    building = %updater.building(),
-                    served = r.served,
-                    applied = r.applied,
-                    refused = r.refused,
-                    malformed = r.malformed,
-                    "caught up with the lab's registry"
-                ),
-                Ok(r) => tracing::debug!(served = r.served, "registry has nothing newer"),
-                Err(e) => tracing::warn!(cause = %e, "catch-up failed; will ask again"),
+            let more = match round {
+                Ok(r) if r.applied + r.refused + r.malformed + r.deferred > 0 => {
+                    tracing::info!(
+                        building = %updater.building(),
+                        served = r.served,
+                        applied = r.applied,
+                        refused = r.refused,
+                        malformed = r.malformed,
+                        deferred = r.deferred,
+                        "caught up with the lab's registry"
+                    );
+                    r.deferred > 0
+                }
+                Ok(r) => {
+                    tracing::debug!(served = r.served, "registry has nothing newer");
+                    false
+                }
+                Err(e) => {
+                    tracing::warn!(cause = %e, "catch-up failed; will ask again");
+                    false
+                }
+            };
+            if more {
+                // The registry has more than one round holds: ask again at once.
+                continue;
             }
             let Some(interval) = interval else { return };
             tokio::select! {

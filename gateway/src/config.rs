@@ -18,6 +18,9 @@ pub use triax_net::{ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
 
+/// Default bound on the sensors one gateway tracks.
+pub const DEFAULT_MAX_SENSORS: usize = 100_000;
+
 /// Default metrics endpoint.
 pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9750";
 
@@ -112,6 +115,9 @@ pub struct Config {
     pub workers: usize,
     /// Raw batches waiting per worker before the oldest is dropped.
     pub queue_capacity_batches: usize,
+    /// Most sensors the gateway tracks; batches from further, uncalibrated ids are counted and
+    /// skipped, so a misbehaving network cannot grow the gateway's memory without bound.
+    pub max_sensors: usize,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
     /// None: no metrics endpoint.
@@ -184,6 +190,7 @@ pub struct FileConfig {
     pub store_path: Option<PathBuf>,
     pub workers: Option<usize>,
     pub queue_capacity_batches: Option<usize>,
+    pub max_sensors: Option<usize>,
     #[serde(default)]
     pub zenoh: ZenohSettings,
     #[serde(default)]
@@ -258,6 +265,10 @@ impl FileConfig {
             Some(n) if n > 256 => return Err(invalid("workers", format!("{n} is above 256"))),
             Some(n) => n,
         };
+        let max_sensors = self.max_sensors.unwrap_or(DEFAULT_MAX_SENSORS);
+        if max_sensors == 0 {
+            return Err(invalid("max_sensors", "must be at least 1"));
+        }
         let queue_capacity_batches = self.queue_capacity_batches.unwrap_or(1024);
         if !(1..=1_000_000).contains(&queue_capacity_batches) {
             return Err(invalid(
@@ -300,6 +311,7 @@ impl FileConfig {
                 .unwrap_or_else(|| PathBuf::from("triax-store")),
             workers,
             queue_capacity_batches,
+            max_sensors,
             zenoh,
             calibration,
             metrics_listen,

@@ -70,6 +70,13 @@ pub fn render(src: &MetricsSource) -> String {
     );
     gauge(
         &mut out,
+        "triax_gateway_over_capacity_batches_total",
+        "counter",
+        "Raw batches skipped because they came from a new sensor past max_sensors.",
+        c.over_capacity.load(Relaxed),
+    );
+    gauge(
+        &mut out,
         "triax_gateway_tilt_samples_total",
         "counter",
         "Tilt samples published.",

@@ -117,6 +117,16 @@ impl SensorTable {
             .clone()
     }
 
+    /// The entry of a sensor seen on the network: created on first sight while the table holds
+    /// fewer than `max_sensors`; none for a new id past that bound. Calibrated sensors always
+    /// have their entry (made by [`install`](Self::install)).
+    pub fn seen(&self, id: &SensorId) -> Option<Arc<SensorEntry>> {
+        if let Some(e) = self.read().get(id) {
+            return Some(e.clone());
+        }
+        (self.len() < self.config.max_sensors).then(|| self.entry(id))
+    }
+
     /// Puts `corrector` in force for its sensor from the next batch on; returns the version it
     /// replaced. The caller has already made the record durable.
     pub fn install(&self, corrector: Corrector) -> Option<u64> {
@@ -141,6 +151,10 @@ impl SensorTable {
         let mut v: Vec<_> = self.read().values().cloned().collect();
         v.sort_by(|a, b| a.id.cmp(&b.id));
         v
+    }
+
+    pub fn max_sensors(&self) -> usize {
+        self.config.max_sensors
     }
 
     pub fn len(&self) -> usize {
@@ -170,6 +184,8 @@ pub struct GatewayCounters {
     pub tilt_samples: AtomicU64,
     pub pushes_accepted: AtomicU64,
     pub pushes_refused: AtomicU64,
+    /// Raw batches skipped because they came from a new sensor id past `max_sensors`.
+    pub over_capacity: AtomicU64,
 }
 
 #[cfg(test)]
@@ -196,5 +212,21 @@ mod tests {
         assert_eq!(held.version(), 1, "a batch in flight keeps its snapshot");
         assert_eq!(e.calibration_version(), Some(2));
         assert_eq!(t.versions(), [(id, 2)]);
+    }
+
+    #[test]
+    fn the_table_is_bounded_for_unknown_sensors_only() {
+        let mut config = Config::for_tests("b", std::path::Path::new("/nonexistent"), vec![]);
+        config.max_sensors = 2;
+        let t = SensorTable::new(Arc::new(config));
+        let id = |s: &str| SensorId::new(s).unwrap();
+        assert!(t.seen(&id("a")).is_some());
+        assert!(t.seen(&id("b")).is_some());
+        assert!(t.seen(&id("c")).is_none(), "a third unknown id is refused");
+        assert!(t.seen(&id("a")).is_some(), "known ids still pass");
+        // A calibration always gets its entry: it comes signed from the lab.
+        t.install(Corrector::from_record(&sample::record("c", 1)).unwrap());
+        assert_eq!(t.len(), 3);
+        assert!(t.seen(&id("c")).is_some());
     }
 }

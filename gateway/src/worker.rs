@@ -81,8 +81,11 @@ pub async fn run(
 fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
     shared.counters.malformed.fetch_add(1, Relaxed);
     match SensorId::new(sensor) {
+        // A sensor past the table's bound is counted only gateway-wide.
         Ok(id) => {
-            let entry = shared.table.entry(&id);
+            let Some(entry) = shared.table.seen(&id) else {
+                return;
+            };
             let n = entry.counters.rejects.fetch_add(1, Relaxed) + 1;
             // First and then every thousandth: a broken node must not flood the log.
             if n == 1 || n % 1000 == 0 {
@@ -113,7 +116,19 @@ async fn handle(
         return reject(shared, sensor, &cause);
     }
     if !sensors.contains_key(sensor) {
-        match SensorState::new(shared, &view.header.sensor_id).await {
+        let Some(entry) = shared.table.seen(&view.header.sensor_id) else {
+            let n = shared.counters.over_capacity.fetch_add(1, Relaxed) + 1;
+            if n == 1 || n % 1000 == 0 {
+                tracing::warn!(
+                    sensor,
+                    skipped = n,
+                    max_sensors = shared.table.max_sensors(),
+                    "sensor table full: batch from a new sensor skipped"
+                );
+            }
+            return;
+        };
+        match SensorState::new(shared, entry).await {
             Ok(s) => {
                 sensors.insert(sensor.into(), s);
             }
@@ -149,8 +164,8 @@ async fn handle(
 }
 
 impl SensorState {
-    async fn new(shared: &Shared, id: &SensorId) -> zenoh::Result<SensorState> {
-        let entry = shared.table.entry(id);
+    async fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
+        let id = &entry.id.clone();
         let b = shared.building.clone();
         // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its
         // inbox fills, and the inbox drops the oldest batch and counts it.
