@@ -106,42 +106,25 @@ impl Biquad3 {
     }
 }
 
-/// A fourth-order Butterworth high pass (two cascaded sections).
+/// A fourth-order Butterworth filter, high or low pass (two cascaded sections).
 #[derive(Debug, Clone, PartialEq)]
-pub struct HighPass4 {
+pub struct Butterworth4 {
     sections: [Biquad3; 2],
 }
 
-impl HighPass4 {
-    pub fn new(cutoff_hz: f64, sample_rate_hz: f64) -> HighPass4 {
-        HighPass4 {
+impl Butterworth4 {
+    pub fn high_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Butterworth4 {
+        Butterworth4::new(cutoff_hz, sample_rate_hz, true)
+    }
+
+    pub fn low_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Butterworth4 {
+        Butterworth4::new(cutoff_hz, sample_rate_hz, false)
+    }
+
+    fn new(cutoff_hz: f64, sample_rate_hz: f64, high: bool) -> Butterworth4 {
+        Butterworth4 {
             sections: BUTTERWORTH4_Q
-                .map(|q| Biquad3::new(Coefficients::design(cutoff_hz, sample_rate_hz, q, true))),
-        }
-    }
-
-    #[inline(always)]
-    pub fn step(&mut self, x: [f64; 3]) -> [f64; 3] {
-        let y = self.sections[0].step(x);
-        self.sections[1].step(y)
-    }
-
-    pub fn reset(&mut self) {
-        self.sections.iter_mut().for_each(Biquad3::reset);
-    }
-}
-
-/// A fourth-order Butterworth low pass (two cascaded sections).
-#[derive(Debug, Clone, PartialEq)]
-pub struct LowPass4 {
-    sections: [Biquad3; 2],
-}
-
-impl LowPass4 {
-    pub fn new(cutoff_hz: f64, sample_rate_hz: f64) -> LowPass4 {
-        LowPass4 {
-            sections: BUTTERWORTH4_Q
-                .map(|q| Biquad3::new(Coefficients::design(cutoff_hz, sample_rate_hz, q, false))),
+                .map(|q| Biquad3::new(Coefficients::design(cutoff_hz, sample_rate_hz, q, high))),
         }
     }
 
@@ -184,14 +167,14 @@ mod tests {
         let mut lp = Biquad3::new(Coefficients::low_pass(1.0, fs));
         assert!(gain(|x| lp.step(x), 10.0, fs) < 0.011);
 
-        let mut hp = HighPass4::new(12.5, fs);
+        let mut hp = Butterworth4::high_pass(12.5, fs);
         assert!(
             gain(|x| hp.step(x), 5.0, fs) < 0.03,
             "in-band sway is rejected"
         );
-        let mut hp = HighPass4::new(12.5, fs);
+        let mut hp = Butterworth4::high_pass(12.5, fs);
         assert!(gain(|x| hp.step(x), 30.0, fs) > 0.95);
-        let mut lp4 = LowPass4::new(0.4, fs);
+        let mut lp4 = Butterworth4::low_pass(0.4, fs);
         assert!(gain(|x| lp4.step(x), 2.0, fs) < 0.002);
     }
 
@@ -200,7 +183,7 @@ mod tests {
         let mut lp = Biquad3::new(Coefficients::low_pass(0.1, 100.0));
         let y = lp.step([0.0, 0.0, 9.81]);
         assert!((y[2] - 9.81).abs() < 1e-12);
-        let mut hp = HighPass4::new(12.5, 100.0);
+        let mut hp = Butterworth4::high_pass(12.5, 100.0);
         let y = hp.step([0.0, 0.0, 9.81]);
         assert!(y[2].abs() < 1e-12);
     }

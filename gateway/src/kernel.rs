@@ -57,7 +57,7 @@ use triax_protocol::record::SetKind;
 use triax_protocol::RawBatchView;
 
 use crate::config::{CorrectionMode, SensorSettings};
-use crate::filter::{realisable, Biquad3, Coefficients, HighPass4, LowPass4};
+use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients};
 
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
@@ -88,8 +88,8 @@ struct Design {
 
 #[derive(Debug, Clone)]
 struct Detector {
-    high: Option<HighPass4>,
-    low: Option<LowPass4>,
+    high: Option<Butterworth4>,
+    low: Option<Butterworth4>,
     /// S⁻¹ of the set the band maps through.
     s_inv_high: [[f64; 3]; 3],
     s_inv_low: [[f64; 3]; 3],
@@ -545,9 +545,10 @@ fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<De
     };
     let high_hz = high_set.domain().frequency_max_hz * FREQUENCY_MARGIN;
     let low_hz = low_set.domain().frequency_min_hz / FREQUENCY_MARGIN;
-    let high = realisable(high_hz, sample_rate_hz).then(|| HighPass4::new(high_hz, sample_rate_hz));
+    let high = realisable(high_hz, sample_rate_hz)
+        .then(|| Butterworth4::high_pass(high_hz, sample_rate_hz));
     let low = (low_set.domain().frequency_min_hz > 0.0 && realisable(low_hz, sample_rate_hz))
-        .then(|| LowPass4::new(low_hz, sample_rate_hz));
+        .then(|| Butterworth4::low_pass(low_hz, sample_rate_hz));
     if high.is_none() && low.is_none() {
         return None;
     }
