@@ -30,7 +30,7 @@ use std::sync::Arc;
 use time::OffsetDateTime;
 use tokio::task::JoinHandle;
 use triax_calibration::corrector::Corrector;
-use triax_calibration_store::{PutOutcome, Rejection, Store};
+use triax_calibration_store::{PutOutcome, Rejection, Store, StoreError};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::{PushAck, PushOutcome, RefusalReason, SignedRecord};
 use triax_protocol::signing::TrustedKeys;
@@ -182,41 +182,42 @@ impl Updater {
         let store = self.store.clone();
         // The store's current version, not only the one in force, bounds what may be
         // installed: a sensor whose current record could not be loaded at start has nothing in
-        // force, and the store answers "already stored" for any identical older version.
-        let put =
-            tokio::task::spawn_blocking(move || match store.current_version(&record.sensor_id) {
-                Ok(Some(current)) if record.version < current => Ok(Err(current)),
-                Ok(_) => store.put(&record).map(Ok),
-                Err(e) => Err(e),
+        // force, and the store answers "already stored" for any identical older version (so
+        // that re-importing a backup is idempotent), which a push must not take as current.
+        let stored =
+            tokio::task::spawn_blocking(move || -> Result<bool, (RefusalReason, String)> {
+                let store_failure = |e: StoreError| {
+                    tracing::error!(cause = %e, "calibration store failed");
+                    (RefusalReason::StoreFailure, e.to_string())
+                };
+                match store
+                    .current_version(&record.sensor_id)
+                    .map_err(store_failure)?
+                {
+                    Some(current) if record.version < current => Err((
+                        RefusalReason::StaleVersion,
+                        format!(
+                            "version {} is older than version {current} in the store: a replay; a \
+                         rollback is issued as a new, higher version",
+                            record.version
+                        ),
+                    )),
+                    _ => match store.put(&record).map_err(store_failure)? {
+                        Ok(PutOutcome::Stored | PutOutcome::Repaired) => Ok(false),
+                        Ok(PutOutcome::AlreadyStored) => Ok(true),
+                        Err(Rejection::Invalid(e)) => {
+                            Err((RefusalReason::InvalidRecord, e.to_string()))
+                        }
+                        Err(r @ (Rejection::Stale { .. } | Rejection::Conflict { .. })) => {
+                            Err((RefusalReason::StaleVersion, r.to_string()))
+                        }
+                    },
+                }
             })
             .await;
-        let put = match put {
-            Ok(Ok(Err(current))) => {
-                return refused(
-                    RefusalReason::StaleVersion,
-                    format!(
-                        "version {version} is older than version {current} in the store: a \
-                         replay; a rollback is issued as a new, higher version"
-                    ),
-                )
-            }
-            Ok(Ok(Ok(outcome))) => Ok(Ok(outcome)),
-            Ok(Err(e)) => Ok(Err(e)),
-            Err(e) => Err(e),
-        };
-        let already_stored = match put {
-            Ok(Ok(Ok(PutOutcome::Stored | PutOutcome::Repaired))) => false,
-            Ok(Ok(Ok(PutOutcome::AlreadyStored))) => true,
-            Ok(Ok(Err(Rejection::Invalid(e)))) => {
-                return refused(RefusalReason::InvalidRecord, e.to_string())
-            }
-            Ok(Ok(Err(r @ (Rejection::Stale { .. } | Rejection::Conflict { .. })))) => {
-                return refused(RefusalReason::StaleVersion, r.to_string())
-            }
-            Ok(Err(e)) => {
-                tracing::error!(cause = %e, "calibration store failed");
-                return refused(RefusalReason::StoreFailure, e.to_string());
-            }
+        let already_stored = match stored {
+            Ok(Ok(already_stored)) => already_stored,
+            Ok(Err((reason, detail))) => return refused(reason, detail),
             Err(e) => return refused(RefusalReason::StoreFailure, format!("store task: {e}")),
         };
         // An identical record already in force needs no swap; one stored but not in force (it

@@ -165,7 +165,7 @@ async fn handle(
 
 impl SensorState {
     async fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
-        let id = &entry.id.clone();
+        let id = &entry.id;
         let b = shared.building.clone();
         // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its
         // inbox fills, and the inbox drops the oldest batch and counts it.
