@@ -73,7 +73,13 @@ pub struct Corrected {
 /// Coefficients of a symmetric quadratic form in `x = (x₀, x₁, x₂, x₃)`:
 /// `c[0]x₀² + c[1]x₁² + c[2]x₂² + c[3]x₃² + c[4]x₀x₁ + c[5]x₀x₂ + c[6]x₀x₃ + c[7]x₁x₂ + c[8]x₁x₃
 /// + c[9]x₂x₃` (off-diagonal terms already doubled).
-type QuadForm = [f64; 10];
+///
+/// Stored in f32, evaluated in f64. A gateway holds two sets of six forms for each of its
+/// sensors, and f32 halves them; a coefficient then carries a relative error below 6·10⁻⁸, so a
+/// variance does too unless its terms cancel, and even a thousandfold cancellation (a parameter
+/// correlation far beyond what a fit produces) leaves the uncertainty right to 10⁻⁴ of itself,
+/// where two significant digits are what an uncertainty is quoted to.
+type QuadForm = [f32; 10];
 
 fn quad_form(m: &SMatrix<f64, 4, 4>) -> QuadForm {
     // Only the symmetric part matters to a quadratic form.
@@ -90,11 +96,13 @@ fn quad_form(m: &SMatrix<f64, 4, 4>) -> QuadForm {
         s(1, 3),
         s(2, 3),
     ]
+    .map(|c| c as f32)
 }
 
 /// Evaluates a quadratic form at `(x₀, x₁, x₂, w)`.
 #[inline(always)]
 fn eval(c: &QuadForm, x: [f64; 3], w: f64) -> f64 {
+    let c = c.map(f64::from);
     let [x0, x1, x2] = x;
     x0 * (c[0] * x0 + c[4] * x1 + c[5] * x2 + c[6] * w)
         + x1 * (c[1] * x1 + c[7] * x2 + c[8] * w)
@@ -173,7 +181,7 @@ impl SetCorrector {
             .try_inverse()
             .expect("well-conditioned matrix is invertible");
 
-        let mut param_cov = [[0.0; 10]; 6];
+        let mut param_cov = [[0.0f32; 10]; 6];
         if let Some(cov) = &set.covariance {
             let sigma = SMatrix::<f64, 12, 12>::from_fn(|i, j| cov[i][j]);
             if let Some(min_eigenvalue) = negative_eigenvalue(&sigma) {
@@ -414,8 +422,9 @@ mod tests {
         let out = c.set(SetKind::Dynamic).correct([6.0, 4.0, 5.0]);
         // a′₀ = 6/2 = 3; ∂a₀/∂S₀₀ = −(1/2)·3 = −1.5; noise: 0.02/2 = 0.01.
         let ux = ((1.5 * sigma).powi(2) + 0.01f64.powi(2)).sqrt();
-        assert!((out.uncertainty_mps2[0] - ux).abs() < 1e-15, "{out:?}");
-        assert!((out.uncertainty_mps2[1] - tau).abs() < 1e-15);
+        // The parameter part is stored in f32 (relative 6·10⁻⁸); the constant part in f64.
+        assert!((out.uncertainty_mps2[0] / ux - 1.0).abs() < 1e-7, "{out:?}");
+        assert!((out.uncertainty_mps2[1] / tau - 1.0).abs() < 1e-7);
         assert!((out.uncertainty_mps2[2] - 0.05).abs() < 1e-15);
         // The static set has no covariance and no stated uncertainty: only noise.
         let s = c.set(SetKind::Static).correct([6.0, 4.0, 5.0]);
@@ -492,6 +501,62 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The stored (f32) quadratic forms against J·Σ·Jᵀ built directly in f64, including a
+    /// covariance whose gain and offset terms are correlated at −0.999, where the terms of the
+    /// variance cancel most.
+    #[test]
+    fn f32_forms_match_direct_propagation() {
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut correlated = [[0.0; 12]; 12];
+        for (i, row) in correlated.iter_mut().enumerate() {
+            row[i] = 1e-6;
+        }
+        // S_zz (index 8) against q_z (index 11): σ_S = 2·10⁻³, σ_q = 2·10⁻², ρ = −0.999.
+        correlated[8][8] = 4e-6;
+        correlated[11][11] = 4e-4;
+        correlated[8][11] = -0.999 * 2e-3 * 2e-2;
+        correlated[11][8] = correlated[8][11];
+        let covs = [random_covariance(&mut rng, 0.004, 0.01), correlated];
+        for (case, cov) in covs.into_iter().enumerate() {
+            let mut r = sample::record("direct", 1);
+            r.dynamic.sensitivity = [[0.98, 0.03, -0.02], [0.01, 1.05, 0.04], [-0.03, 0.02, 0.95]];
+            r.dynamic.covariance = Some(Box::new(cov));
+            r.dynamic.uncertainty_mps2 = [0.0; 3];
+            r.sensor.output_noise = None;
+            let c = Corrector::from_record(&r).unwrap();
+            let set = c.set(SetKind::Dynamic);
+            let s_inv = Matrix3::from_fn(|i, j| r.dynamic.sensitivity[i][j])
+                .try_inverse()
+                .unwrap();
+            let sigma = SMatrix::<f64, 12, 12>::from_fn(|i, j| cov[i][j]);
+            for v in [[0.1, -0.2, 9.3], [4.0, -3.0, 0.5], [0.0, 0.0, 0.0]] {
+                let a = s_inv * Vector3::from(v);
+                let mut j = SMatrix::<f64, 3, 12>::zeros();
+                for k in 0..3 {
+                    for i in 0..3 {
+                        for m in 0..3 {
+                            j[(k, 3 * i + m)] = -s_inv[(k, i)] * a[m];
+                        }
+                    }
+                    j[(k, 9 + k)] = 1.0;
+                }
+                let direct = j * sigma * j.transpose();
+                let stored = set.covariance(v);
+                for k in 0..3 {
+                    for l in 0..3 {
+                        let scale = (direct[(k, k)] * direct[(l, l)]).sqrt();
+                        assert!(
+                            (stored[k][l] - direct[(k, l)]).abs() < 1e-6 * scale,
+                            "case {case} v {v:?} [{k}][{l}]: stored {:e} direct {:e}",
+                            stored[k][l],
+                            direct[(k, l)]
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// JCGM 101: draw the parameters, the output noise and the stated error, push each draw

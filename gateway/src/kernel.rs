@@ -77,22 +77,24 @@ pub struct BatchOutcome {
 }
 
 /// Filters designed for one sample rate and one calibration version.
+///
+/// A gateway keeps one per sensor, ten thousand of them, so what most sensors lack stays out
+/// of line: the crossover (split mode only), the tilt low pass (inclinometers only) and the
+/// detector's low pass (records with a lower band edge). What every calibrated sensor has, the
+/// detector's high pass, stays inline.
 #[derive(Debug, Clone)]
 struct Design {
     sample_rate_hz: f64,
     version: u64,
-    crossover: Option<Biquad3>,
+    crossover: Option<Box<Biquad3>>,
     detector: Option<Detector>,
-    tilt: Option<Biquad3>,
+    tilt: Option<Box<Biquad3>>,
 }
 
 #[derive(Debug, Clone)]
 struct Detector {
     high: Option<Butterworth4>,
-    low: Option<Butterworth4>,
-    /// S⁻¹ of the set the band maps through.
-    s_inv_high: [[f64; 3]; 3],
-    s_inv_low: [[f64; 3]; 3],
+    low: Option<Box<Butterworth4>>,
     threshold_mps2: [f64; 3],
 }
 
@@ -208,7 +210,10 @@ impl SensorKernel {
                 CorrectionMode::Split => {
                     keep.as_ref().and_then(|d| d.crossover.clone()).or_else(|| {
                         realisable(s.crossover_hz, sample_rate_hz).then(|| {
-                            Biquad3::new(Coefficients::low_pass(s.crossover_hz, sample_rate_hz))
+                            Box::new(Biquad3::new(Coefficients::low_pass(
+                                s.crossover_hz,
+                                sample_rate_hz,
+                            )))
                         })
                     })
                 }
@@ -217,7 +222,10 @@ impl SensorKernel {
             let tilt = if s.tilt {
                 keep.as_ref().and_then(|d| d.tilt.clone()).or_else(|| {
                     realisable(s.tilt_cutoff_hz, sample_rate_hz).then(|| {
-                        Biquad3::new(Coefficients::low_pass(s.tilt_cutoff_hz, sample_rate_hz))
+                        Box::new(Biquad3::new(Coefficients::low_pass(
+                            s.tilt_cutoff_hz,
+                            sample_rate_hz,
+                        )))
                     })
                 })
             } else {
@@ -299,7 +307,7 @@ impl SensorKernel {
         // A duplicate is an old stretch of signal: it would corrupt the detector's memory.
         let in_sequence = stream_flags & flags::DUPLICATE == 0;
         if let Some(d) = design.detector.as_mut().filter(|_| in_sequence) {
-            if d.out_of_band(&scratch.v) {
+            if d.out_of_band(&scratch.v, band_sets(mode, c)) {
                 common |= flags::OUTSIDE_FREQUENCY;
             }
         }
@@ -354,7 +362,11 @@ impl SensorKernel {
             CorrectionMode::Split => {
                 // A duplicate is corrected through the crossover as it stands, which then
                 // forgets it: old signal must not shift the low band of the live stream.
-                let saved = design.crossover.clone().filter(|_| !in_sequence);
+                let saved = design
+                    .crossover
+                    .as_deref()
+                    .cloned()
+                    .filter(|_| !in_sequence);
                 // Without a realisable crossover everything is low band.
                 for i in 0..n {
                     let v = scratch.v[i];
@@ -363,8 +375,8 @@ impl SensorKernel {
                         _ => v,
                     };
                 }
-                if saved.is_some() {
-                    design.crossover = saved;
+                if let (Some(saved), Some(x)) = (saved, design.crossover.as_mut()) {
+                    **x = saved;
                 }
                 split_all(static_set, dynamic_set, scratch);
                 for i in 0..n {
@@ -537,18 +549,24 @@ fn uncalibrated(raw: &RawBatchView<'_>, stream_flags: u16, out: &mut Vec<u8>) ->
     }
 }
 
-fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<Detector> {
-    let (low_set, high_set) = match s.mode {
+/// The sets whose band edges the detector checks, low edge first: in split mode the static
+/// set's lower edge and the dynamic set's upper one.
+fn band_sets(mode: CorrectionMode, c: &Corrector) -> (&SetCorrector, &SetCorrector) {
+    match mode {
         CorrectionMode::Static => (c.set(SetKind::Static), c.set(SetKind::Static)),
         CorrectionMode::Dynamic => (c.set(SetKind::Dynamic), c.set(SetKind::Dynamic)),
         CorrectionMode::Split => (c.set(SetKind::Static), c.set(SetKind::Dynamic)),
-    };
+    }
+}
+
+fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<Detector> {
+    let (low_set, high_set) = band_sets(s.mode, c);
     let high_hz = high_set.domain().frequency_max_hz * FREQUENCY_MARGIN;
     let low_hz = low_set.domain().frequency_min_hz / FREQUENCY_MARGIN;
     let high = realisable(high_hz, sample_rate_hz)
         .then(|| Butterworth4::high_pass(high_hz, sample_rate_hz));
     let low = (low_set.domain().frequency_min_hz > 0.0 && realisable(low_hz, sample_rate_hz))
-        .then(|| Butterworth4::low_pass(low_hz, sample_rate_hz));
+        .then(|| Box::new(Butterworth4::low_pass(low_hz, sample_rate_hz)));
     if high.is_none() && low.is_none() {
         return None;
     }
@@ -561,8 +579,6 @@ fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<De
     Some(Detector {
         high,
         low,
-        s_inv_high: s_inv(high_set),
-        s_inv_low: s_inv(low_set),
         threshold_mps2,
     })
 }
@@ -603,7 +619,13 @@ impl Moments {
 }
 
 impl Detector {
-    fn out_of_band(&mut self, samples: &[[f64; 3]]) -> bool {
+    /// `sets`: the sets whose `S⁻¹` maps the low and the high band to m/s², from
+    /// [`band_sets`] of the corrector the detector was designed for.
+    fn out_of_band(
+        &mut self,
+        samples: &[[f64; 3]],
+        (low_set, high_set): (&SetCorrector, &SetCorrector),
+    ) -> bool {
         let mut high = Moments::default();
         let mut low = Moments::default();
         let mut n = 0usize;
@@ -619,8 +641,8 @@ impl Detector {
                 low.add(l.step(v));
             }
         }
-        (self.high.is_some() && high.exceeds(n, &self.s_inv_high, &self.threshold_mps2))
-            || (self.low.is_some() && low.exceeds(n, &self.s_inv_low, &self.threshold_mps2))
+        (self.high.is_some() && high.exceeds(n, &s_inv(high_set), &self.threshold_mps2))
+            || (self.low.is_some() && low.exceeds(n, &s_inv(low_set), &self.threshold_mps2))
     }
 }
 

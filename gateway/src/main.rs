@@ -74,14 +74,12 @@ async fn shutdown_signal() {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Before any thread exists: the allocator's settings are process-wide.
+    triax_gateway::memory::configure_allocator();
     let cli = Cli::parse();
     let default_log = if cli.demo { "warn" } else { "info" };
-    let filter = tracing_subscriber::EnvFilter::try_new(cli.log.as_deref().unwrap_or(default_log))
+    triax_gateway::init_logging(cli.log.as_deref().unwrap_or(default_log))
         .context("--log is not a valid filter")?;
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .init();
 
     let config = cli.config.load().context("configuration refused")?;
 

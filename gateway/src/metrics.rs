@@ -89,6 +89,22 @@ pub fn render(src: &MetricsSource) -> String {
         "Raw batches waiting for a worker.",
         (src.queued)() as u64,
     );
+    gauge(
+        &mut out,
+        "triax_gateway_sensors_online",
+        "gauge",
+        "Sensors whose stream is being corrected (seen since start).",
+        c.sensors_online.load(Relaxed),
+    );
+    if let Some(bytes) = crate::memory::resident_bytes() {
+        gauge(
+            &mut out,
+            "process_resident_memory_bytes",
+            "gauge",
+            "Resident memory of the gateway process.",
+            bytes,
+        );
+    }
     let sensors = src.table.snapshot();
     gauge(
         &mut out,

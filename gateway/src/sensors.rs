@@ -186,6 +186,9 @@ pub struct GatewayCounters {
     pub pushes_refused: AtomicU64,
     /// Raw batches skipped because they came from a new sensor id past `max_sensors`.
     pub over_capacity: AtomicU64,
+    /// Sensors whose stream a worker has taken on since start (each holds its correction state
+    /// and its publisher keys).
+    pub sensors_online: AtomicU64,
 }
 
 #[cfg(test)]

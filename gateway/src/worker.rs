@@ -3,17 +3,18 @@
 //! batch and, for inclinometers, the tilt stream.
 //!
 //! A sensor always lands on the same worker, so its batches are corrected in order and its
-//! state (sequence tracker, filter memory, publishers) needs no lock. One tracing span per
-//! sensor, entered per batch, never one per sample.
+//! state (sequence tracker, filter memory, publishers) needs no lock. Events name their sensor
+//! in a field rather than in a span: a span per sensor would cost every sensor a registry
+//! entry for the rare event.
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
-use tracing::Instrument;
 use triax_protocol::batch::corrected_len;
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
+use zenoh::key_expr::KeyExpr;
 use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
@@ -47,14 +48,14 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
 
 struct SensorState {
     entry: Arc<SensorEntry>,
-    publisher: Publisher<'static>,
-    tilt_publisher: Option<Publisher<'static>>,
+    corrected_key: KeyExpr<'static>,
+    /// Boxed: most sensors are not inclinometers, and a `Publisher` is large.
+    tilt_publisher: Option<Box<Publisher<'static>>>,
     sequence: SequenceTracker,
     kernel: SensorKernel,
     next_tilt_ns: i64,
     /// Version of the last batch, to log changes once.
     last_version: Option<u64>,
-    span: tracing::Span,
 }
 
 /// Runs one worker until shutdown.
@@ -64,7 +65,7 @@ pub async fn run(
     shared: Arc<Shared>,
     mut shutdown: Shutdown,
 ) {
-    let mut sensors: HashMap<Box<str>, SensorState> = HashMap::new();
+    let mut sensors: HashMap<Box<str>, Box<SensorState>> = HashMap::new();
     let mut scratch = Scratch::default();
     tracing::debug!(worker = index, "worker started");
     loop {
@@ -99,7 +100,7 @@ fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
 }
 
 async fn handle(
-    sensors: &mut HashMap<Box<str>, SensorState>,
+    sensors: &mut HashMap<Box<str>, Box<SensorState>>,
     scratch: &mut Scratch,
     shared: &Shared,
     sample: Sample,
@@ -130,7 +131,8 @@ async fn handle(
         };
         match SensorState::new(shared, entry).await {
             Ok(s) => {
-                sensors.insert(sensor.into(), s);
+                sensors.insert(sensor.into(), Box::new(s));
+                shared.counters.sensors_online.fetch_add(1, Relaxed);
             }
             Err(e) => {
                 shared.counters.publish_errors.fetch_add(1, Relaxed);
@@ -141,26 +143,26 @@ async fn handle(
     }
     // Inserted just above when missing.
     let state = sensors.get_mut(sensor).expect("sensor state exists");
-    let span = state.span.clone();
-    let (corrected, tilt_json) = span.in_scope(|| state.correct(&view, scratch));
-    async {
-        if let Err(e) = state.publisher.put(corrected).await {
-            shared.counters.publish_errors.fetch_add(1, Relaxed);
-            tracing::warn!(cause = %e, "corrected batch not published");
-        } else {
-            shared.counters.published_batches.fetch_add(1, Relaxed);
-        }
-        if let (Some(json), Some(p)) = (tilt_json, &state.tilt_publisher) {
-            match p.put(json).await {
-                Ok(()) => {
-                    shared.counters.tilt_samples.fetch_add(1, Relaxed);
-                }
-                Err(e) => tracing::warn!(cause = %e, "tilt sample not published"),
+    let (corrected, tilt_json) = state.correct(&view, scratch);
+    if let Err(e) = shared
+        .session
+        .put(&state.corrected_key, corrected)
+        .congestion_control(CongestionControl::Block)
+        .await
+    {
+        shared.counters.publish_errors.fetch_add(1, Relaxed);
+        tracing::warn!(sensor, cause = %e, "corrected batch not published");
+    } else {
+        shared.counters.published_batches.fetch_add(1, Relaxed);
+    }
+    if let (Some(json), Some(p)) = (tilt_json, &state.tilt_publisher) {
+        match p.put(json).await {
+            Ok(()) => {
+                shared.counters.tilt_samples.fetch_add(1, Relaxed);
             }
+            Err(e) => tracing::warn!(sensor, cause = %e, "tilt sample not published"),
         }
     }
-    .instrument(span)
-    .await;
 }
 
 impl SensorState {
@@ -169,39 +171,35 @@ impl SensorState {
         let b = shared.building.clone();
         // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its
         // inbox fills, and the inbox drops the oldest batch and counts it.
-        let publisher = shared
+        let corrected_key = shared
             .session
-            .declare_publisher(Key::Corrected(b.clone(), id.clone()).to_string())
-            .congestion_control(CongestionControl::Block)
+            .declare_keyexpr(Key::Corrected(b.clone(), id.clone()).to_string())
             .await?;
         let tilt_publisher = if entry.settings.tilt {
-            Some(
+            Some(Box::new(
                 shared
                     .session
                     .declare_publisher(Key::Tilt(b, id.clone()).to_string())
                     .await?,
-            )
+            ))
         } else {
             None
         };
-        let span = tracing::info_span!("sensor", sensor = %id);
-        span.in_scope(|| {
-            tracing::info!(
-                mode = ?entry.settings.mode,
-                tilt = entry.settings.tilt,
-                calibration_version = ?entry.calibration_version(),
-                "sensor online"
-            )
-        });
+        tracing::info!(
+            sensor = %id,
+            mode = ?entry.settings.mode,
+            tilt = entry.settings.tilt,
+            calibration_version = ?entry.calibration_version(),
+            "sensor online"
+        );
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             entry,
-            publisher,
+            corrected_key,
             tilt_publisher,
             sequence: SequenceTracker::default(),
             next_tilt_ns: i64::MIN,
             last_version: None,
-            span,
         })
     }
 
@@ -221,16 +219,16 @@ impl SensorState {
                 self.kernel.discontinuity();
                 c.gaps.fetch_add(1, Relaxed);
                 c.missing_batches.fetch_add(missing, Relaxed);
-                tracing::debug!(sequence = view.header.sequence, missing, "sequence gap");
+                tracing::debug!(sensor = %self.entry.id, sequence = view.header.sequence, missing, "sequence gap");
             }
             Verdict::Duplicate => {
                 c.duplicates.fetch_add(1, Relaxed);
-                tracing::debug!(sequence = view.header.sequence, "duplicate batch");
+                tracing::debug!(sensor = %self.entry.id, sequence = view.header.sequence, "duplicate batch");
             }
             Verdict::Restart => {
                 self.kernel.discontinuity();
                 c.restarts.fetch_add(1, Relaxed);
-                tracing::info!(sequence = view.header.sequence, "sensor node restarted");
+                tracing::info!(sensor = %self.entry.id, sequence = view.header.sequence, "sensor node restarted");
             }
             Verdict::InOrder | Verdict::First => {}
         }
@@ -238,8 +236,12 @@ impl SensorState {
         let version = corrector.as_ref().map(|c| c.version());
         if version != self.last_version {
             match version {
-                Some(v) => tracing::info!(calibration_version = v, "calibration in force"),
-                None => tracing::warn!("no calibration: publishing flagged uncalibrated"),
+                Some(v) => {
+                    tracing::info!(sensor = %self.entry.id, calibration_version = v, "calibration in force")
+                }
+                None => {
+                    tracing::warn!(sensor = %self.entry.id, "no calibration: publishing flagged uncalibrated")
+                }
             }
             self.last_version = version;
         }

@@ -15,8 +15,9 @@
 //! publish (stamped in the batch header) to its arrival at the subscriber: p50 and p99.
 //!
 //! Then the memory check: a child process runs the gateway alone with `--rss-sensors`
-//! calibrations, the publisher sends one batch per sensor, and the child's resident set
-//! (`VmRSS`, and the peak `VmHWM`) is read from /proc.
+//! calibrations, with the binary's allocator settings and logging; the publisher sends three
+//! batches per sensor at a building's pace (one batch per sensor per second); once every sensor is online and the gateway has settled, the child's
+//! resident set (`VmRSS`, and the peak `VmHWM`) is read from /proc.
 //!
 //! Run in release: `cargo run --release -p triax-gateway --bin triax-gateway-bench`.
 
@@ -400,27 +401,35 @@ fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
         .ok()
 }
 
-/// The memory check's child: a gateway alone, until killed.
+/// The memory check's child: a gateway alone, until killed. Prints `ready N` once its N
+/// calibrations are loaded, then `online N` whenever the number of sensors it corrects changes.
 async fn rss_child(store: &str, port: u16) -> Result<()> {
     let config = Config::for_tests(
         BUILDING,
         std::path::Path::new(store),
         vec![format!("tcp/127.0.0.1:{port}")],
     );
-    let me = std::process::id();
-    let kib = |what: &str| {
-        eprintln!(
-            "  rss after {what}: {:.1} MiB",
-            proc_status_kib(me, "VmRSS:").unwrap_or(0) as f64 / 1024.0
-        )
-    };
-    kib("runtime start");
     let gateway = Gateway::start(config).await?;
-    kib("gateway start");
     println!("ready {}", gateway.sensors().len());
+    let counters = gateway.counters().clone();
+    tokio::spawn(async move {
+        let mut last = 0;
+        loop {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            let now = counters.sensors_online.load(Relaxed);
+            if now != last {
+                println!("online {now}");
+                last = now;
+            }
+        }
+    });
     gateway.run_until(std::future::pending::<()>()).await?;
     Ok(())
 }
+
+/// How long the memory check lets the gateway settle after the last batch: a few of the
+/// gateway's growth-settle periods, so that its own post-growth release has run.
+const RSS_SETTLE: Duration = Duration::from_secs(3);
 
 async fn rss_check(n: usize) -> Result<()> {
     use std::io::BufRead;
@@ -435,14 +444,28 @@ async fn rss_check(n: usize) -> Result<()> {
         .arg("--port")
         .arg(port.to_string())
         .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
         .spawn()
         .context("starting the gateway child")?;
     let pid = child.id();
-    let mut line = String::new();
     let stdout = child.stdout.take().context("child stdout")?;
     let mut reader = std::io::BufReader::new(stdout);
+    let mut line = String::new();
     reader.read_line(&mut line)?;
+    if !line.starts_with("ready") {
+        let _ = child.kill();
+        bail!("the gateway child did not start: {line:?}");
+    }
     let loaded_rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
+    let online = Arc::new(AtomicU64::new(0));
+    let seen = online.clone();
+    std::thread::spawn(move || {
+        for line in reader.lines().map_while(Result::ok) {
+            if let Some(k) = line.strip_prefix("online ").and_then(|k| k.parse().ok()) {
+                seen.store(k, Relaxed);
+            }
+        }
+    });
 
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let pub_session = session(None, Some(&endpoint)).await?;
@@ -458,28 +481,55 @@ async fn rss_check(n: usize) -> Result<()> {
         );
     }
     tokio::time::sleep(Duration::from_millis(500)).await;
-    for round in 0..3u64 {
+    // At a building's own pace, every sensor sending one 100-sample batch a second (100 Hz):
+    // three rounds, and more until every sensor is online (at most 30).
+    let t_first = Instant::now();
+    let mut rounds = 0u64;
+    for round in 0..30u64 {
+        if round >= 3 && online.load(Relaxed) >= n as u64 {
+            break;
+        }
+        rounds += 1;
+        let t0 = Instant::now();
         for (i, p) in publishers.iter().enumerate() {
             p.put(raw_batch(&sensor_id(i), round, &samples))
                 .await
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
+            let due = Duration::from_secs_f64((i + 1) as f64 / n as f64);
+            if let Some(ahead) = due.checked_sub(t0.elapsed()) {
+                if ahead > Duration::from_millis(2) {
+                    tokio::time::sleep(ahead).await;
+                }
+            }
         }
-        tokio::time::sleep(Duration::from_millis(500)).await;
     }
-    tokio::time::sleep(Duration::from_secs(1)).await;
+    let online_after_s = t_first.elapsed().as_secs_f64();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while online.load(Relaxed) < n as u64 && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    tokio::time::sleep(RSS_SETTLE).await;
     let rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
     let hwm = proc_status_kib(pid, "VmHWM:").unwrap_or(0);
     let _ = child.kill();
     let _ = child.wait();
     let _ = pub_session.close().await;
+    let online = online.load(Relaxed);
     println!("\n## Memory: {n} sensors, each with a calibration and 3 batches of {SAMPLES_PER_BATCH} samples");
+    if online < n as u64 {
+        println!("(only {online} of {n} sensors came online)");
+    }
+    println!(
+        "{online} sensors online after {rounds} rounds of one batch per sensor ({online_after_s:.1} s)\n"
+    );
     println!("| state | VmRSS (MiB) |\n|---|---|");
     println!(
         "| gateway started, {n} calibrations loaded | {:.1} |",
         loaded_rss as f64 / 1024.0
     );
     println!(
-        "| after every sensor published (current) | {:.1} |",
+        "| {online} sensors online, settled {} s | {:.1} |",
+        RSS_SETTLE.as_secs(),
         rss as f64 / 1024.0
     );
     println!("| peak (VmHWM) | {:.1} |", hwm as f64 / 1024.0);
@@ -488,6 +538,12 @@ async fn rss_check(n: usize) -> Result<()> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
+    if args.rss_child.is_some() {
+        // The memory check measures the service as it runs: same allocator settings, same
+        // logging (to the parent's null device).
+        triax_gateway::memory::configure_allocator();
+        triax_gateway::init_logging("info")?;
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
