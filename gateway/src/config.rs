@@ -21,6 +21,9 @@ use triax_protocol::{BuildingId, Mode, SensorId};
 /// Default bound on the sensors one gateway tracks.
 pub const DEFAULT_MAX_SENSORS: usize = 100_000;
 
+/// Default of [`Config::declared_keys_max`].
+pub const DEFAULT_DECLARED_KEYS_MAX: usize = 1024;
+
 /// Default metrics endpoint.
 pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9750";
 
@@ -118,6 +121,16 @@ pub struct Config {
     /// Most sensors the gateway tracks; batches from further, uncalibrated ids are counted and
     /// skipped, so a misbehaving network cannot grow the gateway's memory without bound.
     pub max_sensors: usize,
+    /// Most output keys (corrected and tilt) declared to Zenoh; the keys of further sensors are
+    /// published undeclared.
+    ///
+    /// Why a bound: Zenoh 1.10 keeps about 2 KiB of routing state per declared key, and each
+    /// declaration scans every key already declared, so ten thousand declared keys cost 20 MiB
+    /// and several seconds of start-up during which batches are dropped. An undeclared key
+    /// costs nothing to hold but its route is worked out again on every put, a few
+    /// microseconds: nothing at a sensor's one batch a second, a third of the throughput for
+    /// a handful of sensors streaming flat out. The first sensors online get declared keys.
+    pub declared_keys_max: usize,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
     /// None: no metrics endpoint.
@@ -191,6 +204,7 @@ pub struct FileConfig {
     pub workers: Option<usize>,
     pub queue_capacity_batches: Option<usize>,
     pub max_sensors: Option<usize>,
+    pub declared_keys_max: Option<usize>,
     #[serde(default)]
     pub zenoh: ZenohSettings,
     #[serde(default)]
@@ -312,6 +326,7 @@ impl FileConfig {
             workers,
             queue_capacity_batches,
             max_sensors,
+            declared_keys_max: self.declared_keys_max.unwrap_or(DEFAULT_DECLARED_KEYS_MAX),
             zenoh,
             calibration,
             metrics_listen,

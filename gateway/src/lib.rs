@@ -215,6 +215,7 @@ impl Gateway {
             session: session.clone(),
             table: table.clone(),
             counters: counters.clone(),
+            declared_keys_max: config.declared_keys_max,
         });
         let mut tasks = Vec::new();
         for (i, inbox) in inboxes.iter().enumerate() {

@@ -96,6 +96,13 @@ pub fn render(src: &MetricsSource) -> String {
         "Sensors whose stream is being corrected (seen since start).",
         c.sensors_online.load(Relaxed),
     );
+    gauge(
+        &mut out,
+        "triax_gateway_declared_keys",
+        "gauge",
+        "Output keys declared to Zenoh; further sensors publish on undeclared keys.",
+        c.declared_keys.load(Relaxed) as u64,
+    );
     if let Some(bytes) = crate::memory::resident_bytes() {
         gauge(
             &mut out,

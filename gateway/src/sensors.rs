@@ -12,7 +12,7 @@
 //! await.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicI64, AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicI64, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, RwLock};
 
 use arc_swap::ArcSwapOption;
@@ -189,6 +189,8 @@ pub struct GatewayCounters {
     /// Sensors whose stream a worker has taken on since start (each holds its correction state
     /// and its publisher keys).
     pub sensors_online: AtomicU64,
+    /// Output keys declared to Zenoh (at most `declared_keys_max`).
+    pub declared_keys: AtomicUsize,
 }
 
 #[cfg(test)]

@@ -15,7 +15,6 @@ use triax_protocol::batch::corrected_len;
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
 use zenoh::key_expr::KeyExpr;
-use zenoh::pubsub::Publisher;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 
@@ -34,6 +33,28 @@ pub struct Shared {
     pub session: zenoh::Session,
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
+    /// [`crate::Config::declared_keys_max`].
+    pub declared_keys_max: usize,
+}
+
+impl Shared {
+    /// The key to publish `key` on: declared to Zenoh while fewer than `declared_keys_max`
+    /// are, undeclared after (see [`crate::Config::declared_keys_max`]).
+    async fn output_key(&self, key: Key) -> zenoh::Result<KeyExpr<'static>> {
+        let text = key.to_string();
+        let declare = self
+            .counters
+            .declared_keys
+            .fetch_update(Relaxed, Relaxed, |n| {
+                (n < self.declared_keys_max).then_some(n + 1)
+            })
+            .is_ok();
+        if declare {
+            self.session.declare_keyexpr(text).await
+        } else {
+            KeyExpr::try_from(text)
+        }
+    }
 }
 
 /// Which worker serves a sensor: FNV-1a of its id, so the choice is stable and cheap.
@@ -49,8 +70,8 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
 struct SensorState {
     entry: Arc<SensorEntry>,
     corrected_key: KeyExpr<'static>,
-    /// Boxed: most sensors are not inclinometers, and a `Publisher` is large.
-    tilt_publisher: Option<Box<Publisher<'static>>>,
+    /// Only for inclinometers.
+    tilt_key: Option<KeyExpr<'static>>,
     sequence: SequenceTracker,
     kernel: SensorKernel,
     next_tilt_ns: i64,
@@ -144,6 +165,8 @@ async fn handle(
     // Inserted just above when missing.
     let state = sensors.get_mut(sensor).expect("sensor state exists");
     let (corrected, tilt_json) = state.correct(&view, scratch);
+    // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its inbox
+    // fills, and the inbox drops the oldest batch and counts it.
     if let Err(e) = shared
         .session
         .put(&state.corrected_key, corrected)
@@ -155,8 +178,8 @@ async fn handle(
     } else {
         shared.counters.published_batches.fetch_add(1, Relaxed);
     }
-    if let (Some(json), Some(p)) = (tilt_json, &state.tilt_publisher) {
-        match p.put(json).await {
+    if let (Some(json), Some(key)) = (tilt_json, &state.tilt_key) {
+        match shared.session.put(key, json).await {
             Ok(()) => {
                 shared.counters.tilt_samples.fetch_add(1, Relaxed);
             }
@@ -169,19 +192,11 @@ impl SensorState {
     async fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
         let id = &entry.id;
         let b = shared.building.clone();
-        // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its
-        // inbox fills, and the inbox drops the oldest batch and counts it.
         let corrected_key = shared
-            .session
-            .declare_keyexpr(Key::Corrected(b.clone(), id.clone()).to_string())
+            .output_key(Key::Corrected(b.clone(), id.clone()))
             .await?;
-        let tilt_publisher = if entry.settings.tilt {
-            Some(Box::new(
-                shared
-                    .session
-                    .declare_publisher(Key::Tilt(b, id.clone()).to_string())
-                    .await?,
-            ))
+        let tilt_key = if entry.settings.tilt {
+            Some(shared.output_key(Key::Tilt(b, id.clone())).await?)
         } else {
             None
         };
@@ -196,7 +211,7 @@ impl SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             entry,
             corrected_key,
-            tilt_publisher,
+            tilt_key,
             sequence: SequenceTracker::default(),
             next_tilt_ns: i64::MIN,
             last_version: None,
@@ -264,7 +279,7 @@ impl SensorState {
         c.last_seen_ns.store(now_ns(), Relaxed);
 
         let mut tilt_json = None;
-        if let (Some(corrector), true) = (&corrector, self.tilt_publisher.is_some()) {
+        if let (Some(corrector), true) = (&corrector, self.tilt_key.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
                 let est = tilt(corrector.set(SetKind::Static), t.output_lp);
