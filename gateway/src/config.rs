@@ -615,6 +615,7 @@ mod tests {
         assert!(c.sensor("roof-incl-1").tilt);
         assert_eq!(c.zenoh.listen, ["tcp/0.0.0.0:7447"]);
         assert_eq!(c.defaults, SensorSettings::default());
+        assert_eq!(c.declared_keys_max, DEFAULT_DECLARED_KEYS_MAX);
     }
 
     #[test]

@@ -8,6 +8,8 @@
 //!   the corrected values fall within the tagged k = 2 interval at the expected rate.
 //! - `uncalibrated_sensor_is_published_flagged_and_counted`: no record: raw values pass through
 //!   flagged `uncalibrated`, mode none, NaN uncertainty; counted in status and metrics.
+//! - `sensors_past_the_declared_key_budget_publish_undeclared`: with room for one declared key,
+//!   three sensors' streams all arrive.
 //! - `malformed_payloads_are_counted_and_the_stream_goes_on`
 //! - `gaps_and_duplicates_are_flagged_and_counted`
 //! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
@@ -201,6 +203,42 @@ async fn uncalibrated_sensor_is_published_flagged_and_counted() {
         page.contains("triax_gateway_uncalibrated_sensors 1"),
         "{page}"
     );
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sensors_past_the_declared_key_budget_publish_undeclared() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config("b8", &dir.path().join("store"));
+    cfg.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    cfg.declared_keys_max = 1;
+    let gw = start(cfg).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber("triax/b8/corrected/*")
+        .await
+        .unwrap();
+    let ids = ["u-1", "u-2", "u-3"];
+    for id in ids {
+        let publisher = session.declare_publisher(key_raw("b8", id)).await.unwrap();
+        wait_matching(&publisher).await;
+        publisher
+            .put(raw(id, 0, vec![[0.1, -0.2, 0.98]; 10]))
+            .await
+            .unwrap();
+    }
+    let mut got: Vec<String> = collect(&sub, 3)
+        .await
+        .into_iter()
+        .map(|b| b.header.sensor_id.to_string())
+        .collect();
+    got.sort();
+    assert_eq!(got, ids, "declared or not, every sensor's stream arrives");
+    let page = metrics(gw.metrics.expect("metrics enabled")).await;
+    assert!(page.contains("triax_gateway_declared_keys 1\n"), "{page}");
+    assert!(page.contains("triax_gateway_sensors_online 3\n"), "{page}");
+    assert!(page.contains("process_resident_memory_bytes "), "{page}");
     session.close().await.unwrap();
     gw.stop().await;
 }
