@@ -37,15 +37,21 @@ impl<T> Inbox<T> {
     /// Enqueues `item`, dropping the oldest entry if the queue is full. Never blocks beyond the
     /// short critical section.
     pub fn push(&self, item: T) {
-        {
+        let was_empty = {
             let mut q = self.lock();
+            let was_empty = q.is_empty();
             if q.len() >= self.capacity {
                 q.pop_front();
                 self.dropped.fetch_add(1, Relaxed);
             }
             q.push_back(item);
+            was_empty
+        };
+        // Only the push that makes the queue non-empty wakes the worker: until the worker has
+        // found the queue empty again it pops without waiting, so later pushes need no wake.
+        if was_empty {
+            self.notify.notify_one();
         }
-        self.notify.notify_one();
     }
 
     pub fn try_pop(&self) -> Option<T> {

@@ -1,8 +1,9 @@
 //! `triax-gateway-bench`: end-to-end throughput, latency and memory of the gateway on loopback.
 //!
-//! In one process, three Zenoh sessions on 127.0.0.1 TCP: a publisher playing `--sensors`
-//! sensor nodes with 100-sample batches, the system under test, and a subscriber. The system
-//! under test is, in turn:
+//! Three Zenoh sessions on 127.0.0.1 TCP: a publisher playing `--sensors` sensor nodes with
+//! 100-sample batches and a subscriber, both in this process, and the system under test in a
+//! process of its own, as it is deployed (its own runtime and threads, the service binary's
+//! allocator setting and logging). The system under test is, in turn:
 //!
 //! - `relay`: a plain relay, the baseline: subscribes to the raw streams and re-publishes the
 //!   same bytes on the corrected keys from the Zenoh callback, no decoding, no correction;
@@ -10,14 +11,15 @@
 //!   every sensor in a temporary store.
 //!
 //! For each: a throughput phase publishes as fast as Zenoh accepts for `--seconds` and counts
-//! the samples the subscriber receives per second; a latency phase publishes at a fixed rate
-//! (`--latency-batches-per-s`) and records, per batch, the time from just before the raw
-//! publish (stamped in the batch header) to its arrival at the subscriber: p50 and p99.
+//! the samples the subscriber receives per second; a second one offers the relay's capacity,
+//! paced; a latency phase publishes at a fixed rate (`--latency-batches-per-s`) and records, per
+//! batch, the time from just before the raw publish (stamped in the batch header) to its arrival
+//! at the subscriber: p50 and p99. The subscriber decodes in full what it receives.
 //!
-//! Then the memory check: a child process runs the gateway alone with `--rss-sensors`
-//! calibrations, with the binary's allocator settings and logging; the publisher sends three
-//! batches per sensor at a building's pace (one batch per sensor per second); once every sensor is online and the gateway has settled, the child's
-//! resident set (`VmRSS`, and the peak `VmHWM`) is read from /proc.
+//! Then the memory check: the gateway alone with `--rss-sensors` calibrations; the publisher
+//! sends a batch per sensor per second (a building's pace) for three rounds and on until every
+//! sensor is online; once the gateway has settled, its resident set (`VmRSS`, and the peak
+//! `VmHWM`) is read from /proc.
 //!
 //! Run in release: `cargo run --release -p triax-gateway --bin triax-gateway-bench`.
 
@@ -56,9 +58,11 @@ struct Args {
     /// Sensors in the memory check (0: skip it).
     #[arg(long, default_value_t = 10_000)]
     rss_sensors: usize,
-    /// Internal: run as the memory check's gateway process.
+    /// Internal: run as the system under test, in its own process.
+    #[arg(long, hide = true, value_enum)]
+    serve: Option<System>,
     #[arg(long, hide = true)]
-    rss_child: Option<String>,
+    store: Option<std::path::PathBuf>,
     #[arg(long, hide = true)]
     port: Option<u16>,
 }
@@ -145,7 +149,7 @@ struct Received {
     record_latency: std::sync::atomic::AtomicBool,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum System {
     Relay,
     Gateway,
@@ -223,39 +227,15 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     let dir = tempfile::tempdir()?;
     let store_path = dir.path().join("store");
 
-    // The system under test.
-    let mut relay_session = None;
-    let mut gateway = None;
-    let mut _relay_sub = None;
-    match system {
-        System::Relay => {
-            let s = session(Some(&endpoint), None).await?;
-            let out = s.clone();
-            let sub = s
-                .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
-                .callback(move |sample| {
-                    // The bench's own sensor ids are valid, so the chunk parses.
-                    let sensor = SensorId::new(keys::sensor_chunk(sample.key_expr().as_str()))
-                        .expect("bench sensor ids are valid");
-                    let target = Key::Corrected(building(), sensor).to_string();
-                    let _ = out
-                        .put(target, sample.payload().clone())
-                        .congestion_control(CongestionControl::Block)
-                        .wait();
-                })
-                .await
-                .map_err(|e| anyhow::anyhow!("{e}"))?;
-            _relay_sub = Some(sub);
-            relay_session = Some(s);
-        }
+    let server = match system {
+        System::Relay => Server::spawn(System::Relay, None, port)?,
         System::Gateway => {
             let n = args.sensors;
             let sp = store_path.clone();
             tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
-            let config = Config::for_tests(BUILDING, &store_path, vec![endpoint.clone()]);
-            gateway = Some(Gateway::start(config).await?);
+            Server::spawn(System::Gateway, Some(&store_path), port)?
         }
-    }
+    };
 
     let received = Arc::new(Received::default());
     let sub_session = session(None, Some(&endpoint)).await?;
@@ -373,15 +353,11 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     drop(publishers);
     let _ = pub_session.close().await;
     let _ = sub_session.close().await;
-    if let Some(g) = gateway {
-        if let Some(c) = Some(g.counters().dropped.load(Relaxed)).filter(|d| *d > 0) {
-            eprintln!("gateway dropped {c} batches (drop-oldest) during the run");
-        }
-        g.run_until(async {}).await?;
+    let dropped = server.dropped.load(Relaxed);
+    if dropped > 0 {
+        eprintln!("{system:?} dropped {dropped} batches (drop-oldest) during the run");
     }
-    if let Some(s) = relay_session {
-        let _ = s.close().await;
-    }
+    server.stop();
     Ok(PhaseResult {
         samples_per_s,
         paced_samples_per_s,
@@ -402,35 +378,136 @@ fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
         .ok()
 }
 
-/// The memory check's child: a gateway alone, until killed. Prints `ready N T` once its N
-/// calibrations are loaded, T ms after it began to start, then `online N` whenever the number of sensors it corrects changes.
-async fn rss_child(store: &str, port: u16) -> Result<()> {
-    let config = Config::for_tests(
-        BUILDING,
-        std::path::Path::new(store),
-        vec![format!("tcp/127.0.0.1:{port}")],
-    );
-    let t0 = Instant::now();
-    let gateway = Gateway::start(config).await?;
-    println!(
-        "ready {} {:.0}",
-        gateway.sensors().len(),
-        t0.elapsed().as_secs_f64() * 1e3
-    );
-    let counters = gateway.counters().clone();
-    tokio::spawn(async move {
-        let mut last = 0;
-        loop {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-            let now = counters.sensors_online.load(Relaxed);
-            if now != last {
-                println!("online {now}");
-                last = now;
-            }
+/// A system under test in its own process, as it is deployed: its own runtime and threads.
+///
+/// The child prints `ready N T` once it serves (N calibrations loaded, T ms after it began to
+/// start), then, for the gateway, `online N` and `dropped N` whenever those counts change.
+struct Server {
+    child: std::process::Child,
+    pid: u32,
+    start_ms: f64,
+    online: Arc<AtomicU64>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl Server {
+    fn spawn(system: System, store: Option<&std::path::Path>, port: u16) -> Result<Server> {
+        use std::io::BufRead;
+        let mut cmd = std::process::Command::new(std::env::current_exe()?);
+        cmd.arg("--serve")
+            .arg(match system {
+                System::Relay => "relay",
+                System::Gateway => "gateway",
+            })
+            .arg("--port")
+            .arg(port.to_string())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null());
+        if let Some(store) = store {
+            cmd.arg("--store").arg(store);
         }
-    });
-    gateway.run_until(std::future::pending::<()>()).await?;
-    Ok(())
+        let mut child = cmd.spawn().context("starting the system under test")?;
+        let pid = child.id();
+        let stdout = child.stdout.take().context("child stdout")?;
+        let mut reader = std::io::BufReader::new(stdout);
+        let mut line = String::new();
+        reader.read_line(&mut line)?;
+        let Some(start_ms) = line
+            .strip_prefix("ready ")
+            .and_then(|rest| rest.split_whitespace().nth(1))
+            .and_then(|ms| ms.parse::<f64>().ok())
+        else {
+            let _ = child.kill();
+            let _ = child.wait();
+            bail!("{system:?} did not start: {line:?}");
+        };
+        let online = Arc::new(AtomicU64::new(0));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let (o, d) = (online.clone(), dropped.clone());
+        std::thread::spawn(move || {
+            for line in reader.lines().map_while(Result::ok) {
+                let mut words = line.split_whitespace();
+                let (Some(what), Some(Ok(k))) = (words.next(), words.next().map(str::parse)) else {
+                    continue;
+                };
+                match what {
+                    "online" => o.store(k, Relaxed),
+                    "dropped" => d.store(k, Relaxed),
+                    _ => {}
+                }
+            }
+        });
+        Ok(Server {
+            child,
+            pid,
+            start_ms,
+            online,
+            dropped,
+        })
+    }
+
+    fn stop(mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The child side of [`Server`]: serves until killed.
+async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Result<()> {
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    match system {
+        System::Relay => {
+            let s = session(Some(&endpoint), None).await?;
+            let out = s.clone();
+            let _sub = s
+                .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
+                .callback(move |sample| {
+                    // The bench's own sensor ids are valid, so the chunk parses.
+                    let sensor = SensorId::new(keys::sensor_chunk(sample.key_expr().as_str()))
+                        .expect("bench sensor ids are valid");
+                    let target = Key::Corrected(building(), sensor).to_string();
+                    let _ = out
+                        .put(target, sample.payload().clone())
+                        .congestion_control(CongestionControl::Block)
+                        .wait();
+                })
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            println!("ready 0 0");
+            std::future::pending::<()>().await;
+            Ok(())
+        }
+        System::Gateway => {
+            let store = store.context("--store")?;
+            let config = Config::for_tests(BUILDING, store, vec![endpoint]);
+            let t0 = Instant::now();
+            let gateway = Gateway::start(config).await?;
+            println!(
+                "ready {} {:.0}",
+                gateway.sensors().len(),
+                t0.elapsed().as_secs_f64() * 1e3
+            );
+            let counters = gateway.counters().clone();
+            tokio::spawn(async move {
+                let (mut online, mut dropped) = (0, 0);
+                loop {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    let now = counters.sensors_online.load(Relaxed);
+                    if now != online {
+                        println!("online {now}");
+                        online = now;
+                    }
+                    let now = counters.dropped.load(Relaxed);
+                    if now != dropped {
+                        println!("dropped {now}");
+                        dropped = now;
+                    }
+                }
+            });
+            gateway.run_until(std::future::pending::<()>()).await?;
+            Ok(())
+        }
+    }
 }
 
 /// How long the memory check lets the gateway settle after the last batch: a few of the
@@ -438,44 +515,14 @@ async fn rss_child(store: &str, port: u16) -> Result<()> {
 const RSS_SETTLE: Duration = Duration::from_secs(3);
 
 async fn rss_check(n: usize) -> Result<()> {
-    use std::io::BufRead;
     let dir = tempfile::tempdir()?;
     let store_path = dir.path().join("store");
     let sp = store_path.clone();
     tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
     let port = triax_net::free_loopback_port()?;
-    let mut child = std::process::Command::new(std::env::current_exe()?)
-        .arg("--rss-child")
-        .arg(&store_path)
-        .arg("--port")
-        .arg(port.to_string())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .context("starting the gateway child")?;
-    let pid = child.id();
-    let stdout = child.stdout.take().context("child stdout")?;
-    let mut reader = std::io::BufReader::new(stdout);
-    let mut line = String::new();
-    reader.read_line(&mut line)?;
-    let Some(start_ms) = line
-        .strip_prefix("ready ")
-        .and_then(|rest| rest.split_whitespace().nth(1))
-        .and_then(|ms| ms.parse::<f64>().ok())
-    else {
-        let _ = child.kill();
-        bail!("the gateway child did not start: {line:?}");
-    };
+    let server = Server::spawn(System::Gateway, Some(&store_path), port)?;
+    let (pid, start_ms, online) = (server.pid, server.start_ms, server.online.clone());
     let loaded_rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
-    let online = Arc::new(AtomicU64::new(0));
-    let seen = online.clone();
-    std::thread::spawn(move || {
-        for line in reader.lines().map_while(Result::ok) {
-            if let Some(k) = line.strip_prefix("online ").and_then(|k| k.parse().ok()) {
-                seen.store(k, Relaxed);
-            }
-        }
-    });
 
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let pub_session = session(None, Some(&endpoint)).await?;
@@ -521,8 +568,7 @@ async fn rss_check(n: usize) -> Result<()> {
     tokio::time::sleep(RSS_SETTLE).await;
     let rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
     let hwm = proc_status_kib(pid, "VmHWM:").unwrap_or(0);
-    let _ = child.kill();
-    let _ = child.wait();
+    server.stop();
     let _ = pub_session.close().await;
     let online = online.load(Relaxed);
     println!("\n## Memory: {n} sensors, each with a calibration and 3 batches of {SAMPLES_PER_BATCH} samples");
@@ -548,8 +594,8 @@ async fn rss_check(n: usize) -> Result<()> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    if args.rss_child.is_some() {
-        // The memory check measures the service as it runs: same allocator settings, same
+    if args.serve.is_some() {
+        // The system under test runs as the service does: same allocator settings, same
         // logging (to the parent's null device).
         triax_gateway::memory::configure_allocator();
         triax_gateway::init_logging("info")?;
@@ -558,17 +604,17 @@ fn main() -> Result<()> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        if let Some(store) = &args.rss_child {
-            return rss_child(store, args.port.context("--port")?).await;
+        if let Some(system) = args.serve {
+            return serve(system, args.store.as_deref(), args.port.context("--port")?).await;
         }
         println!(
-            "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, one process",
+            "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, the system under test in its own process",
             args.sensors, args.seconds
         );
         let relay = run_system(System::Relay, &args).await?;
         let paced = Args {
             paced_samples_per_s: Some(args.paced_samples_per_s.unwrap_or(relay.samples_per_s)),
-            rss_child: None,
+            serve: None,
             ..args.clone()
         };
         let gw = run_system(System::Gateway, &paced).await?;
