@@ -191,7 +191,9 @@ impl Gateway {
         let table = Arc::new(SensorTable::new(config.clone()));
         let (store, loaded) = open_and_load(&path, &table).await.map_err(store_err)?;
         let store = Arc::new(store);
-        memory::release_free_heap();
+        tokio::task::spawn_blocking(memory::release_free_heap)
+            .await
+            .map_err(|e| GatewayError::Task(e.to_string()))?;
         tracing::info!(building = %config.building, calibrations = loaded, store = %path.display(), "calibrations loaded");
 
         let zconfig = config.zenoh.to_config()?;

@@ -90,9 +90,35 @@ fn growth(counters: &GatewayCounters) -> (u64, u64) {
 pub async fn release_after_growth(
     counters: Arc<GatewayCounters>,
     period: Duration,
-    mut shutdown: Shutdown,
+    shutdown: Shutdown,
 ) {
-    let mut released = growth(&counters);
+    release_when_settled(
+        || growth(&counters),
+        period,
+        shutdown,
+        || async {
+            tokio::task::spawn_blocking(release_free_heap).await.ok();
+            tracing::debug!(
+                resident_bytes = resident_bytes(),
+                "released free heap after growth"
+            );
+        },
+    )
+    .await;
+}
+
+/// The rule of [`release_after_growth`], over any measure of growth and any release.
+async fn release_when_settled<G, R, F>(
+    growth: impl Fn() -> G,
+    period: Duration,
+    mut shutdown: Shutdown,
+    release: R,
+) where
+    G: PartialEq + Copy,
+    R: Fn() -> F,
+    F: std::future::Future<Output = ()>,
+{
+    let mut released = growth();
     let mut previous = released;
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -101,16 +127,65 @@ pub async fn release_after_growth(
             _ = tick.tick() => {}
             _ = shutdown.recv() => break,
         }
-        let now = growth(&counters);
+        let now = growth();
         if now == previous && now != released {
-            tokio::task::spawn_blocking(release_free_heap).await.ok();
-            tracing::debug!(
-                sensors_online = now.0,
-                resident_bytes = resident_bytes(),
-                "released free heap after growth"
-            );
+            release().await;
             released = now;
         }
         previous = now;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicU64;
+
+    /// Ticks of `period`, paused time: growth at chosen ticks, releases counted.
+    #[tokio::test(start_paused = true)]
+    async fn releases_once_after_growth_settles_and_never_in_the_steady_state() {
+        let period = Duration::from_secs(1);
+        let grown = Arc::new(AtomicU64::new(0));
+        let releases = Arc::new(AtomicU64::new(0));
+        let (trigger, shutdown) = crate::shutdown::channel();
+        let (g, r) = (grown.clone(), releases.clone());
+        let task = tokio::spawn(release_when_settled(
+            move || g.load(Relaxed),
+            period,
+            shutdown,
+            move || {
+                r.fetch_add(1, Relaxed);
+                std::future::ready(())
+            },
+        ));
+        let at_tick = |k: u64| Duration::from_millis(1000 * k + 500);
+        let start = tokio::time::Instant::now();
+        let sleep_to = |k: u64| tokio::time::sleep_until(start + at_tick(k));
+
+        sleep_to(3).await;
+        assert_eq!(releases.load(Relaxed), 0, "no growth, no release");
+        // Growth on three consecutive ticks: no release while it goes on.
+        for k in 3..6 {
+            grown.fetch_add(100, Relaxed);
+            sleep_to(k + 1).await;
+        }
+        assert_eq!(releases.load(Relaxed), 0, "still growing at the last tick");
+        sleep_to(7).await;
+        assert_eq!(
+            releases.load(Relaxed),
+            1,
+            "one release once a tick saw no change"
+        );
+        sleep_to(12).await;
+        assert_eq!(
+            releases.load(Relaxed),
+            1,
+            "steady state: no further release"
+        );
+        grown.fetch_add(1, Relaxed);
+        sleep_to(15).await;
+        assert_eq!(releases.load(Relaxed), 2, "new growth, one more release");
+        trigger.fire();
+        task.await.unwrap();
     }
 }
