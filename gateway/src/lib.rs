@@ -230,11 +230,13 @@ impl Gateway {
         }
 
         let route = inboxes.clone();
+        let intake = counters.clone();
         let subscriber = session
             .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
             .callback(move |sample: Sample| {
                 let key = sample.key_expr().as_str();
                 let sensor = keys::sensor_chunk(key);
+                intake.received_batches.fetch_add(1, Relaxed);
                 route[worker::shard(sensor, route.len())].push(sample);
             })
             .await
@@ -379,8 +381,9 @@ impl Gateway {
         .await
     }
 
-    /// Serves until `shutdown` completes, then stops: no new batches, workers finish the one
-    /// in hand, the session closes, the store is flushed and closed.
+    /// Serves until `shutdown` completes, then stops: no new batches, workers correct and
+    /// publish what is queued (for at most [`worker::SHUTDOWN_DRAIN`], the rest counted as
+    /// dropped), the session closes, the store is flushed and closed.
     pub async fn run_until(mut self, shutdown: impl Future) -> Result<(), GatewayError> {
         shutdown.await;
         tracing::info!("shutting down");

@@ -42,6 +42,13 @@ pub fn render(src: &MetricsSource) -> String {
     };
     gauge(
         &mut out,
+        "triax_gateway_received_batches_total",
+        "counter",
+        "Raw payloads taken from Zenoh, before any check.",
+        c.received_batches.load(Relaxed),
+    );
+    gauge(
+        &mut out,
         "triax_gateway_malformed_payloads_total",
         "counter",
         "Payloads that did not decode.",

@@ -175,6 +175,9 @@ impl SensorTable {
 /// Gateway-wide counters.
 #[derive(Debug, Default)]
 pub struct GatewayCounters {
+    /// Raw payloads taken from Zenoh, before any check. Each is then corrected and published,
+    /// skipped and counted (`malformed`, `over_capacity`), or dropped and counted (`dropped`).
+    pub received_batches: AtomicU64,
     /// Payloads that did not decode, on any key.
     pub malformed: AtomicU64,
     /// Raw batches dropped from a full queue (drop-oldest); shared with the inboxes.

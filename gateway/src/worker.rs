@@ -79,7 +79,11 @@ struct SensorState {
     last_version: Option<u64>,
 }
 
-/// Runs one worker until shutdown.
+/// Longest a worker goes on correcting its queued batches after the shutdown fired.
+pub const SHUTDOWN_DRAIN: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// Runs one worker until shutdown, then corrects what is still queued (for at most
+/// [`SHUTDOWN_DRAIN`]).
 pub async fn run(
     index: usize,
     inbox: Arc<Inbox<Sample>>,
@@ -97,7 +101,33 @@ pub async fn run(
         };
         handle(&mut sensors, &mut scratch, &shared, sample).await;
     }
-    tracing::debug!(worker = index, sensors = sensors.len(), "worker stopped");
+    // Intake stopped before the shutdown fired, so what is queued is all there will be: every
+    // batch the gateway took from Zenoh is corrected and published, or counted as dropped. A
+    // consumer too slow to take the rest within SHUTDOWN_DRAIN does not hold the stop up.
+    let deadline = tokio::time::Instant::now() + SHUTDOWN_DRAIN;
+    let (mut drained, mut abandoned) = (0u64, 0u64);
+    while let Some(sample) = inbox.try_pop() {
+        if tokio::time::Instant::now() < deadline {
+            handle(&mut sensors, &mut scratch, &shared, sample).await;
+            drained += 1;
+        } else {
+            shared.counters.dropped.fetch_add(1, Relaxed);
+            abandoned += 1;
+        }
+    }
+    if abandoned > 0 {
+        tracing::warn!(
+            worker = index,
+            abandoned,
+            "queued batches dropped at shutdown"
+        );
+    }
+    tracing::debug!(
+        worker = index,
+        sensors = sensors.len(),
+        drained,
+        "worker stopped"
+    );
 }
 
 fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {

@@ -10,6 +10,8 @@
 //!   flagged `uncalibrated`, mode none, NaN uncertainty; counted in status and metrics.
 //! - `sensors_past_the_declared_key_budget_publish_undeclared`: with room for one declared key,
 //!   three sensors' streams all arrive.
+//! - `shutdown_publishes_every_batch_already_received`: stopping right after a burst still
+//!   corrects and publishes what was queued.
 //! - `malformed_payloads_are_counted_and_the_stream_goes_on`
 //! - `gaps_and_duplicates_are_flagged_and_counted`
 //! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
@@ -241,6 +243,64 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
     assert!(page.contains("process_resident_memory_bytes "), "{page}");
     session.close().await.unwrap();
     gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_publishes_every_batch_already_received() {
+    use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config("b9", &dir.path().join("store"));
+    let endpoint = cfg.zenoh.listen[0].clone();
+    let gateway = triax_gateway::Gateway::start(cfg).await.unwrap();
+    let counters = gateway.counters().clone();
+    let session = client(&endpoint).await;
+    // Counted as they come, so that a full subscriber queue never pushes back on the gateway.
+    let got = Arc::new(AtomicU64::new(0));
+    let g = got.clone();
+    let _sub = session
+        .declare_subscriber(key_corrected("b9", "burst"))
+        .callback(move |_| {
+            g.fetch_add(1, Relaxed);
+        })
+        .await
+        .unwrap();
+    // Block: the burst must reach the gateway whole, not be thinned in the client's queue.
+    let publisher = session
+        .declare_publisher(key_raw("b9", "burst"))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+    let n = 400u64;
+    for seq in 0..n {
+        publisher
+            .put(raw("burst", seq, vec![[0.1, -0.2, 0.98]; 100]))
+            .await
+            .unwrap();
+    }
+    wait_until("every batch taken from Zenoh", || {
+        counters.received_batches.load(Relaxed) == n
+    })
+    .await;
+    // Stop at once, with batches most likely still queued.
+    gateway.run_until(async {}).await.unwrap();
+    let published = counters.published_batches.load(Relaxed);
+    let dropped = counters.dropped.load(Relaxed);
+    assert_eq!(
+        published + dropped,
+        n,
+        "every batch received is published or counted as dropped"
+    );
+    assert_eq!(
+        dropped, 0,
+        "the queue never overflowed, so nothing was dropped"
+    );
+    wait_until("the subscriber to get every corrected batch", || {
+        got.load(Relaxed) == n
+    })
+    .await;
+    session.close().await.unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -23,6 +23,19 @@ pub fn free_port() -> u16 {
     triax_net::free_loopback_port().expect("loopback is available")
 }
 
+/// Returns as soon as `cond` holds, checked every millisecond; fails the test, naming `what`,
+/// after [`TIMEOUT`].
+pub async fn wait_until(what: &str, cond: impl Fn() -> bool) {
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while !cond() {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "timed out waiting for {what}"
+        );
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+}
+
 /// Returns once something accepts connections on `port` of 127.0.0.1: a listener there is up.
 pub async fn wait_for_listener(port: u16) {
     let deadline = tokio::time::Instant::now() + TIMEOUT;
