@@ -43,6 +43,7 @@ pub mod push;
 pub mod sensors;
 pub mod sequence;
 pub mod shutdown;
+pub mod status;
 pub mod tilt;
 pub mod worker;
 
@@ -56,9 +57,8 @@ use time::OffsetDateTime;
 use tokio::task::JoinHandle;
 use triax_calibration_store::{Store, StoreError};
 use triax_protocol::keys::{self, Stream};
-use triax_protocol::messages::GatewayStatus;
 use triax_protocol::signing::TrustedKeys;
-use triax_protocol::{to_json, Key, JSON_FORMAT_VERSION};
+use triax_protocol::{to_json, Key};
 use zenoh::sample::Sample;
 
 pub use catchup::{CatchUpError, CatchUpReport};
@@ -242,7 +242,7 @@ impl Gateway {
             .await
             .map_err(zenoh_err("subscribe to raw streams"))?;
 
-        let status_ctx = StatusContext {
+        let status_ctx = status::StatusContext {
             config: config.clone(),
             table: table.clone(),
             counters: counters.clone(),
@@ -259,9 +259,15 @@ impl Gateway {
                     q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
                     _ = sd.recv() => break,
                 };
-                let body = to_json(&status_ctx.status());
-                let key = Key::Status(status_ctx.config.building.clone()).to_string();
-                if let Err(e) = query.reply(key, body).await {
+                let replied = match status::StatusQuery::parse(query.parameters().iter()) {
+                    Ok(q) => {
+                        let body = to_json(&status_ctx.status(&q));
+                        let key = Key::Status(status_ctx.config.building.clone()).to_string();
+                        query.reply(key, body).await
+                    }
+                    Err(problem) => query.reply_err(problem).await,
+                };
+                if let Err(e) = replied {
                     tracing::warn!(cause = %e, "status reply failed");
                 }
             }
@@ -414,30 +420,5 @@ impl Gateway {
         }
         tracing::info!("stopped");
         Ok(())
-    }
-}
-
-struct StatusContext {
-    config: Arc<Config>,
-    table: Arc<SensorTable>,
-    counters: Arc<GatewayCounters>,
-    started_at: OffsetDateTime,
-}
-
-impl StatusContext {
-    fn status(&self) -> GatewayStatus {
-        let c = &self.counters;
-        GatewayStatus {
-            format_version: JSON_FORMAT_VERSION,
-            building: self.config.building.clone(),
-            gateway: self.config.gateway_name.clone(),
-            started_at: self.started_at,
-            reported_at: OffsetDateTime::now_utc(),
-            malformed: c.malformed.load(Relaxed),
-            dropped: c.dropped.load(Relaxed),
-            pushes_accepted: c.pushes_accepted.load(Relaxed),
-            pushes_refused: c.pushes_refused.load(Relaxed),
-            sensors: self.table.snapshot().iter().map(|e| e.status()).collect(),
-        }
     }
 }

@@ -178,12 +178,19 @@ pub struct GatewayStatus {
     pub dropped: u64,
     pub pushes_accepted: u64,
     pub pushes_refused: u64,
+    /// Sensors the gateway knows; `sensors` is the page the query asked for.
+    #[serde(default)]
+    pub total_sensors: u64,
+    /// Where the next page starts (the `offset` of the next query); absent on the last page.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub next_offset: Option<u64>,
+    /// Sorted by id.
     pub sensors: Vec<SensorStatus>,
 }
 
 impl JsonMessage for GatewayStatus {
     const WHAT: &'static str = "gateway status";
-    // About 400 bytes a sensor: room for 10 000 sensors.
+    // About 300 bytes a sensor; a gateway sends at most 5000 a reply, and pages the rest.
     const MAX_BYTES: usize = 8 << 20;
     fn format_version(&self) -> u32 {
         self.format_version
@@ -332,6 +339,8 @@ mod tests {
             dropped: 0,
             pushes_accepted: 1,
             pushes_refused: 1,
+            total_sensors: 7,
+            next_offset: Some(1),
             sensors: vec![SensorStatus {
                 sensor_id: s.clone(),
                 last_seen: Some(t()),

@@ -12,6 +12,7 @@
 //!   three sensors' streams all arrive.
 //! - `shutdown_publishes_every_batch_already_received`: stopping right after a burst still
 //!   corrects and publishes what was queued.
+//! - `status_is_paged_and_bad_parameters_are_refused_by_name`
 //! - `malformed_payloads_are_counted_and_the_stream_goes_on`
 //! - `gaps_and_duplicates_are_flagged_and_counted`
 //! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
@@ -301,6 +302,54 @@ async fn shutdown_publishes_every_batch_already_received() {
     })
     .await;
     session.close().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn status_is_paged_and_bad_parameters_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &["p-a", "p-b", "p-c"].map(|id| sample::record(id, 1)),
+    );
+    let gw = start(config("b10", &store)).await;
+    let session = client(&gw.endpoint).await;
+    let ask = |parameters: &'static str| {
+        let session = session.clone();
+        async move {
+            let selector = format!(
+                "{}?{parameters}",
+                Key::Status(BuildingId::new("b10").unwrap())
+            );
+            let replies = session.get(selector).timeout(TIMEOUT).await.unwrap();
+            let reply = tokio::time::timeout(TIMEOUT, replies.recv_async())
+                .await
+                .expect("answered in time")
+                .expect("a reply");
+            match reply.result() {
+                Ok(sample) => Ok(from_json::<GatewayStatus>(&sample.payload().to_bytes()).unwrap()),
+                Err(e) => Err(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
+            }
+        }
+    };
+    let ids = |s: &GatewayStatus| -> Vec<String> {
+        s.sensors.iter().map(|s| s.sensor_id.to_string()).collect()
+    };
+    let first = ask("limit=2").await.unwrap();
+    assert_eq!(ids(&first), ["p-a", "p-b"]);
+    assert_eq!((first.total_sensors, first.next_offset), (3, Some(2)));
+    let last = ask("offset=2;limit=2").await.unwrap();
+    assert_eq!(ids(&last), ["p-c"]);
+    assert_eq!(last.next_offset, None);
+    let one = ask("sensor=p-b").await.unwrap();
+    assert_eq!(ids(&one), ["p-b"]);
+    let refused = ask("limit=lots").await.unwrap_err();
+    assert!(
+        refused.contains("limit") && refused.contains("lots"),
+        "{refused}"
+    );
+    session.close().await.unwrap();
+    gw.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

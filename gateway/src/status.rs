@@ -1,0 +1,198 @@
+//! The status queryable's answer: gateway counters and, a page at a time, the sensors.
+//!
+//! A gateway may track up to `max_sensors` (100 000 by default) sensors, about 300 bytes of JSON
+//! each, while a status reply must stay under the JSON limit of 8 MiB. So a reply lists at most
+//! [`STATUS_PAGE_MAX`] sensors, sorted by id, and says where the next page starts. The
+//! selector's parameters choose what to list:
+//!
+//! - `sensor=<id>`: that sensor only;
+//! - `offset=<n>`: the page starting at the n-th sensor (default 0);
+//! - `limit=<n>`: at most n sensors (default and cap [`STATUS_PAGE_MAX`]; 0 lists none, for
+//!   the counters alone).
+//!
+//! Anything else is refused with a reply error that names the parameter.
+
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::Arc;
+
+use time::OffsetDateTime;
+use triax_protocol::messages::GatewayStatus;
+use triax_protocol::{SensorId, JSON_FORMAT_VERSION};
+
+use crate::{Config, GatewayCounters, SensorTable};
+
+/// Most sensors in one status reply: about 1.5 MiB of JSON.
+pub const STATUS_PAGE_MAX: usize = 5000;
+
+/// What a status query asks for.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StatusQuery {
+    pub sensor: Option<SensorId>,
+    pub offset: usize,
+    pub limit: usize,
+}
+
+impl Default for StatusQuery {
+    fn default() -> Self {
+        StatusQuery {
+            sensor: None,
+            offset: 0,
+            limit: STATUS_PAGE_MAX,
+        }
+    }
+}
+
+impl StatusQuery {
+    /// Reads the selector's parameters; the error names the parameter and what is wrong.
+    pub fn parse<'a>(
+        parameters: impl IntoIterator<Item = (&'a str, &'a str)>,
+    ) -> Result<StatusQuery, String> {
+        let mut q = StatusQuery::default();
+        let number = |name: &str, value: &str| {
+            value
+                .parse::<usize>()
+                .map_err(|_| format!("status query: {name}: {value:?} is not a whole number"))
+        };
+        for (name, value) in parameters {
+            match name {
+                "sensor" => {
+                    q.sensor = Some(
+                        SensorId::new(value).map_err(|e| format!("status query: sensor: {e}"))?,
+                    )
+                }
+                "offset" => q.offset = number(name, value)?,
+                "limit" => q.limit = number(name, value)?.min(STATUS_PAGE_MAX),
+                other => {
+                    return Err(format!(
+                        "status query: unknown parameter {other:?} (known: sensor, offset, limit)"
+                    ))
+                }
+            }
+        }
+        Ok(q)
+    }
+}
+
+/// What the status queryable reads.
+pub struct StatusContext {
+    pub config: Arc<Config>,
+    pub table: Arc<SensorTable>,
+    pub counters: Arc<GatewayCounters>,
+    pub started_at: OffsetDateTime,
+}
+
+impl StatusContext {
+    pub fn status(&self, query: &StatusQuery) -> GatewayStatus {
+        let c = &self.counters;
+        let all = self.table.snapshot();
+        let total = all.len();
+        let (sensors, next_offset) = match &query.sensor {
+            Some(id) => (
+                all.iter()
+                    .filter(|e| &e.id == id)
+                    .map(|e| e.status())
+                    .collect(),
+                None,
+            ),
+            None => {
+                let end = query.offset.saturating_add(query.limit).min(total);
+                let page = all.get(query.offset..end).unwrap_or_default();
+                let next = (end < total && query.limit > 0).then_some(end as u64);
+                (page.iter().map(|e| e.status()).collect(), next)
+            }
+        };
+        GatewayStatus {
+            format_version: JSON_FORMAT_VERSION,
+            building: self.config.building.clone(),
+            gateway: self.config.gateway_name.clone(),
+            started_at: self.started_at,
+            reported_at: OffsetDateTime::now_utc(),
+            malformed: c.malformed.load(Relaxed),
+            dropped: c.dropped.load(Relaxed),
+            pushes_accepted: c.pushes_accepted.load(Relaxed),
+            pushes_refused: c.pushes_refused.load(Relaxed),
+            total_sensors: total as u64,
+            next_offset,
+            sensors,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn context(n: usize) -> StatusContext {
+        let config = Arc::new(Config::for_tests(
+            "st",
+            std::path::Path::new("/nonexistent"),
+            vec![],
+        ));
+        let table = Arc::new(SensorTable::new(config.clone()));
+        for i in 0..n {
+            table.entry(&SensorId::new(format!("s{i:03}")).unwrap());
+        }
+        StatusContext {
+            config,
+            table,
+            counters: Arc::default(),
+            started_at: OffsetDateTime::UNIX_EPOCH,
+        }
+    }
+
+    fn ids(s: &GatewayStatus) -> Vec<&str> {
+        s.sensors.iter().map(|s| s.sensor_id.as_str()).collect()
+    }
+
+    #[test]
+    fn pages_walk_every_sensor_once_in_id_order() {
+        let ctx = context(7);
+        let mut q = StatusQuery::parse([("limit", "3")]).unwrap();
+        let mut seen = Vec::new();
+        loop {
+            let s = ctx.status(&q);
+            assert_eq!(s.total_sensors, 7);
+            seen.extend(ids(&s).into_iter().map(String::from));
+            match s.next_offset {
+                Some(next) => q.offset = next as usize,
+                None => break,
+            }
+        }
+        let expected: Vec<String> = (0..7).map(|i| format!("s{i:03}")).collect();
+        assert_eq!(seen, expected);
+    }
+
+    #[test]
+    fn one_sensor_none_and_past_the_end() {
+        let ctx = context(4);
+        let s = ctx.status(&StatusQuery::parse([("sensor", "s002")]).unwrap());
+        assert_eq!(
+            (ids(&s), s.next_offset, s.total_sensors),
+            (vec!["s002"], None, 4)
+        );
+        let s = ctx.status(&StatusQuery::parse([("sensor", "nope")]).unwrap());
+        assert!(s.sensors.is_empty());
+        let s = ctx.status(&StatusQuery::parse([("limit", "0")]).unwrap());
+        assert!(
+            s.sensors.is_empty() && s.next_offset.is_none(),
+            "counters only"
+        );
+        let s = ctx.status(&StatusQuery::parse([("offset", "9")]).unwrap());
+        assert!(s.sensors.is_empty() && s.next_offset.is_none());
+        let s = ctx.status(&StatusQuery::default());
+        assert_eq!(ids(&s).len(), 4);
+        assert_eq!(s.next_offset, None);
+    }
+
+    #[test]
+    fn limits_are_capped_and_bad_parameters_named() {
+        let q = StatusQuery::parse([("limit", "999999")]).unwrap();
+        assert_eq!(q.limit, STATUS_PAGE_MAX);
+        let e = StatusQuery::parse([("limit", "ten")]).unwrap_err();
+        assert!(e.contains("limit") && e.contains("\"ten\""), "{e}");
+        let e = StatusQuery::parse([("page", "2")]).unwrap_err();
+        assert!(e.contains("\"page\""), "{e}");
+        let e = StatusQuery::parse([("sensor", "a/b")]).unwrap_err();
+        assert!(e.contains("sensor"), "{e}");
+    }
+}
