@@ -3,7 +3,7 @@
 //! batch and, for inclinometers, the tilt stream.
 //!
 //! A sensor always lands on the same worker, so its batches are corrected in order and its
-//! state (sequence tracker, filter memory, publishers) needs no lock. Events name their sensor
+//! state (sequence tracker, filter memory, output keys) needs no lock. Events name their sensor
 //! in a field rather than in a span: a span per sensor would cost every sensor a registry
 //! entry for the rare event.
 
@@ -50,7 +50,12 @@ impl Shared {
             })
             .is_ok();
         if declare {
-            self.session.declare_keyexpr(text).await
+            let declared = self.session.declare_keyexpr(text).await;
+            if declared.is_err() {
+                // Give the slot back: the sensor is retried on its next batch.
+                self.counters.declared_keys.fetch_sub(1, Relaxed);
+            }
+            declared
         } else {
             KeyExpr::try_from(text)
         }
