@@ -3,7 +3,7 @@
 //!
 //! Two paths lead here and share [`Updater::apply`]: pushes, which the lab sends as Zenoh
 //! queries on `triax/<building>/calibration/push/<sensor>` (answered by the queryable that
-//! [`serve`] declares, with a copy of each acknowledgement put on
+//! `serve` declares, with a copy of each acknowledgement put on
 //! `triax/<building>/calibration/ack/<sensor>`), and catch-up from the lab's registry
 //! ([`crate::catchup`]). A record is applied by either path only if, in this order:
 //!
