@@ -35,10 +35,10 @@
 //! silently unchecked one.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::Deserialize;
-pub use triax_net::{ZenohMode, ZenohSettings};
+pub use triax_net::{ConfigError, ZenohMode, ZenohSettings};
 use triax_protocol::{BuildingId, SensorId};
 
 use crate::decision::{Direction, Limit};
@@ -94,7 +94,10 @@ impl Limits {
         ] {
             if let Some(v) = v {
                 if !(v.is_finite() && v > 0.0) {
-                    return Err(invalid(format!("{at}.{name}"), "must be finite and > 0"));
+                    return Err(ConfigError::invalid(
+                        format!("{at}.{name}"),
+                        "must be finite and > 0",
+                    ));
                 }
             }
         }
@@ -180,47 +183,11 @@ impl Config {
     }
 
     pub fn from_file(path: &Path) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_owned(),
-            source,
-        })?;
-        Config::from_toml(&text).map_err(|e| match e {
-            ConfigError::Parse { message, .. } => ConfigError::Parse {
-                path: path.to_owned(),
-                message,
-            },
-            other => other,
-        })
+        triax_net::read_toml::<FileConfig>(path)?.into_config()
     }
 
     pub fn from_toml(text: &str) -> Result<Config, ConfigError> {
-        let file: FileConfig = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: PathBuf::from("<text>"),
-            message: e.to_string(),
-        })?;
-        file.into_config()
-    }
-}
-
-/// Why a configuration was refused.
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
-    Read {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("config file {path}: {message}")]
-    Parse { path: PathBuf, message: String },
-    #[error("config field `{field}`: {reason}")]
-    Invalid { field: String, reason: String },
-}
-
-fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.into(),
-        reason: reason.into(),
+        triax_net::parse_toml::<FileConfig>(text, Path::new("<text>"))?.into_config()
     }
 }
 
@@ -278,7 +245,10 @@ impl FileConfig {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err(invalid(name, format!("{v} must be finite and > 0")))
+                Err(ConfigError::invalid(
+                    name,
+                    format!("{v} must be finite and > 0"),
+                ))
             }
         };
         // An hour of 1 kHz samples per sensor is already more memory than alerting deserves.
@@ -286,29 +256,38 @@ impl FileConfig {
             && settings.window_s > 0.0
             && settings.window_s <= 3600.0)
         {
-            return Err(invalid("window_s", "must be in (0, 3600] seconds"));
+            return Err(ConfigError::invalid(
+                "window_s",
+                "must be in (0, 3600] seconds",
+            ));
         }
         positive("coverage_factor", settings.coverage_factor)?;
         positive("stale_after_s", settings.stale_after_s)?;
         if !(settings.repeat_interval_s.is_finite() && settings.repeat_interval_s >= 0.0) {
-            return Err(invalid("repeat_interval_s", "must be finite and ≥ 0"));
+            return Err(ConfigError::invalid(
+                "repeat_interval_s",
+                "must be finite and ≥ 0",
+            ));
         }
         if !(0.0..=1.0).contains(&settings.noise_share) {
-            return Err(invalid("noise_share", "must be within 0..=1"));
+            return Err(ConfigError::invalid("noise_share", "must be within 0..=1"));
         }
         if settings.tilt_baseline_samples == 0 {
-            return Err(invalid("tilt_baseline_samples", "must be ≥ 1"));
+            return Err(ConfigError::invalid("tilt_baseline_samples", "must be ≥ 1"));
         }
         if !(settings.frequency_min_rms_mps2.is_finite() && settings.frequency_min_rms_mps2 >= 0.0)
         {
-            return Err(invalid("frequency_min_rms_mps2", "must be finite and ≥ 0"));
+            return Err(ConfigError::invalid(
+                "frequency_min_rms_mps2",
+                "must be finite and ≥ 0",
+            ));
         }
         self.defaults.validate("defaults")?;
 
         let mut buildings = BTreeMap::new();
         for (name, fb) in self.buildings {
-            let id =
-                BuildingId::new(name.as_str()).map_err(|e| invalid("buildings", e.to_string()))?;
+            let id = BuildingId::new(name.as_str())
+                .map_err(|e| ConfigError::invalid("buildings", e.to_string()))?;
             let limits = Limits {
                 pga_mps2: fb.pga_mps2,
                 rms_mps2: fb.rms_mps2,
@@ -320,22 +299,20 @@ impl FileConfig {
             let mut sensors = BTreeMap::new();
             for (sensor, sl) in fb.sensors {
                 let at = format!("buildings.{name}.sensors.{sensor}");
-                let sid =
-                    SensorId::new(sensor.as_str()).map_err(|e| invalid(&at, e.to_string()))?;
+                let sid = SensorId::new(sensor.as_str())
+                    .map_err(|e| ConfigError::invalid(&at, e.to_string()))?;
                 sl.validate(&at)?;
                 sensors.insert(sid, sl);
             }
             buildings.insert(id, Building { limits, sensors });
         }
         if buildings.is_empty() && !self.watch_all_buildings {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "buildings",
                 "no building to watch: list one under [buildings.<id>] or set watch_all_buildings",
             ));
         }
-        self.zenoh
-            .validate()
-            .map_err(|e| invalid(format!("zenoh.{}", e.field), e.reason))?;
+        self.zenoh.validate()?;
         Ok(Config {
             settings,
             zenoh: self.zenoh,

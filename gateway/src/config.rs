@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::Deserialize;
-pub use triax_net::{ZenohArgs, ZenohMode, ZenohSettings};
+pub use triax_net::{ConfigError, ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
 
@@ -172,28 +172,6 @@ impl Config {
     }
 }
 
-/// Why a configuration was refused.
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
-    Read {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("config file {path}: {message}")]
-    Parse { path: PathBuf, message: String },
-    #[error("config field `{field}`: {reason}")]
-    Invalid { field: String, reason: String },
-}
-
-fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.into(),
-        reason: reason.into(),
-    }
-}
-
 /// The TOML file, every field optional.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -250,50 +228,44 @@ pub struct FileSensor {
 
 impl FileConfig {
     pub fn read(path: &Path) -> Result<FileConfig, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_owned(),
-            source,
-        })?;
-        Self::parse(&text, path)
+        triax_net::read_toml(path)
     }
 
     pub fn parse(text: &str, path: &Path) -> Result<FileConfig, ConfigError> {
-        toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.to_owned(),
-            message: e.to_string().trim_end().to_owned(),
-        })
+        triax_net::parse_toml(text, path)
     }
 
     /// Checks every field and fills in defaults.
     pub fn into_config(self) -> Result<Config, ConfigError> {
         let building = self.building.unwrap_or_else(|| "hq".into());
-        let building = BuildingId::new(building).map_err(|e| invalid("building", e.to_string()))?;
+        let building = BuildingId::new(building)
+            .map_err(|e| ConfigError::invalid("building", e.to_string()))?;
         let gateway_name = self
             .gateway_name
             .unwrap_or_else(|| format!("triax-gateway-{building}"));
         if gateway_name.trim().is_empty() {
-            return Err(invalid("gateway_name", "must not be empty"));
+            return Err(ConfigError::invalid("gateway_name", "must not be empty"));
         }
         let workers = match self.workers {
             None | Some(0) => std::thread::available_parallelism().map_or(1, |n| n.get()),
-            Some(n) if n > 256 => return Err(invalid("workers", format!("{n} is above 256"))),
+            Some(n) if n > 256 => {
+                return Err(ConfigError::invalid("workers", format!("{n} is above 256")))
+            }
             Some(n) => n,
         };
         let max_sensors = self.max_sensors.unwrap_or(DEFAULT_MAX_SENSORS);
         if max_sensors == 0 {
-            return Err(invalid("max_sensors", "must be at least 1"));
+            return Err(ConfigError::invalid("max_sensors", "must be at least 1"));
         }
         let queue_capacity_batches = self.queue_capacity_batches.unwrap_or(1024);
         if !(1..=1_000_000).contains(&queue_capacity_batches) {
-            return Err(invalid(
+            return Err(ConfigError::invalid(
                 "queue_capacity_batches",
                 format!("{queue_capacity_batches} is outside 1..=1000000"),
             ));
         }
         let zenoh = self.zenoh;
-        zenoh
-            .validate()
-            .map_err(|e| invalid(format!("zenoh.{}", e.field), e.reason))?;
+        zenoh.validate()?;
         let calibration = calibration_settings(self.calibration)?;
         let metrics_listen = if self.metrics.enabled.unwrap_or(true) {
             let text = self
@@ -301,7 +273,7 @@ impl FileConfig {
                 .listen
                 .unwrap_or_else(|| DEFAULT_METRICS_LISTEN.into());
             Some(text.parse::<SocketAddr>().map_err(|e| {
-                invalid(
+                ConfigError::invalid(
                     "metrics.listen",
                     format!("{text:?} is not an address like \"127.0.0.1:9750\": {e}"),
                 )
@@ -313,7 +285,7 @@ impl FileConfig {
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
             let sensor_id = SensorId::new(id.as_str())
-                .map_err(|e| invalid(format!("sensors.{id}"), e.to_string()))?;
+                .map_err(|e| ConfigError::invalid(format!("sensors.{id}"), e.to_string()))?;
             let settings = sensor_settings(&format!("sensors.{id}"), s, &defaults)?;
             sensors.insert(sensor_id, settings);
         }
@@ -339,8 +311,9 @@ impl FileConfig {
 fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, ConfigError> {
     let mut trusted_lab_keys = Vec::new();
     for (i, text) in c.trusted_lab_keys.unwrap_or_default().iter().enumerate() {
-        let key = public_key_from_hex(text)
-            .map_err(|e| invalid(format!("calibration.trusted_lab_keys[{i}]"), e.to_string()))?;
+        let key = public_key_from_hex(text).map_err(|e| {
+            ConfigError::invalid(format!("calibration.trusted_lab_keys[{i}]"), e.to_string())
+        })?;
         trusted_lab_keys.push(key);
     }
     for (i, path) in c
@@ -350,10 +323,11 @@ fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, Confi
         .enumerate()
     {
         let field = || format!("calibration.trusted_lab_key_files[{i}]");
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| invalid(field(), format!("cannot read {}: {e}", path.display())))?;
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            ConfigError::invalid(field(), format!("cannot read {}: {e}", path.display()))
+        })?;
         let key = public_key_from_hex(&text)
-            .map_err(|e| invalid(field(), format!("{}: {e}", path.display())))?;
+            .map_err(|e| ConfigError::invalid(field(), format!("{}: {e}", path.display())))?;
         trusted_lab_keys.push(key);
     }
     // The same key listed twice (inline and in a file) is harmless; keep one.
@@ -368,7 +342,7 @@ fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, Confi
         if v.is_finite() && (0.001..=86_400.0).contains(&v) {
             Ok(v)
         } else {
-            Err(invalid(
+            Err(ConfigError::invalid(
                 format!("calibration.{name}"),
                 format!("{v} is not a number of seconds in 0.001..=86400"),
             ))
@@ -402,7 +376,7 @@ fn sensor_settings(
         if v.is_finite() && v > 0.0 {
             Ok(v)
         } else {
-            Err(invalid(
+            Err(ConfigError::invalid(
                 format!("{at}.{name}"),
                 format!("{v} is not a positive finite number"),
             ))
@@ -421,7 +395,7 @@ fn sensor_settings(
         )?,
     };
     if out.tilt_interval_s < 0.01 {
-        return Err(invalid(
+        return Err(ConfigError::invalid(
             format!("{at}.tilt_interval_s"),
             format!(
                 "{} s is below 0.01 s: tilt is a slow stream",

@@ -5,8 +5,11 @@
 //! The JSON5 file, when given, is the base; the other settings override it. A setting left unset
 //! keeps the file's value, or, without a file, Zenoh's default (multicast scouting on), except
 //! the mode, which defaults to `peer`: a building needs no router.
+//!
+//! Also what the services share to read their own configuration file: [`read_toml`] and
+//! [`ConfigError`], whose `zenoh.<field>` errors come from [`ZenohSettingsError`].
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
@@ -92,6 +95,59 @@ impl ZenohArgs {
         self.apply_to(&mut s);
         s
     }
+}
+
+/// Why a program's configuration was refused, naming the file or the field: what every Triax
+/// service reports for its TOML file, flags and environment.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("config file {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("config field `{field}`: {reason}")]
+    Invalid { field: String, reason: String },
+}
+
+impl ConfigError {
+    /// A field whose value cannot work, and why.
+    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ConfigError {
+        ConfigError::Invalid {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
+impl From<ZenohSettingsError> for ConfigError {
+    fn from(e: ZenohSettingsError) -> ConfigError {
+        ConfigError::invalid(format!("zenoh.{}", e.field), e.reason)
+    }
+}
+
+/// Reads the TOML file at `path` into `T`.
+pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        path: path.to_owned(),
+        source,
+    })?;
+    parse_toml(&text, path)
+}
+
+/// Parses `text`, the content of the file `path`, into `T`; the error names the file, and the
+/// parser's message the line, the column and the field.
+pub fn parse_toml<T: serde::de::DeserializeOwned>(
+    text: &str,
+    path: &Path,
+) -> Result<T, ConfigError> {
+    toml::from_str(text).map_err(|e| ConfigError::Parse {
+        path: path.to_owned(),
+        message: e.to_string().trim_end().to_owned(),
+    })
 }
 
 /// A setting that cannot work, named by its field in the `[zenoh]` table.
