@@ -446,7 +446,14 @@ impl Server {
         })
     }
 
-    fn stop(mut self) {
+    fn stop(self) {
+        drop(self);
+    }
+}
+
+impl Drop for Server {
+    /// Also on an early return with an error: no system under test outlives the bench.
+    fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
