@@ -99,10 +99,15 @@ impl SensorTable {
         }
     }
 
+    /// The sensor's entry, if the table has it.
+    pub fn get(&self, id: &SensorId) -> Option<Arc<SensorEntry>> {
+        self.read().get(id).cloned()
+    }
+
     /// The sensor's entry, created (uncalibrated) on first sight.
     pub fn entry(&self, id: &SensorId) -> Arc<SensorEntry> {
-        if let Some(e) = self.read().get(id) {
-            return e.clone();
+        if let Some(e) = self.get(id) {
+            return e;
         }
         let mut map = self.sensors.write().unwrap_or_else(|p| p.into_inner());
         map.entry(id.clone())
@@ -121,8 +126,8 @@ impl SensorTable {
     /// fewer than `max_sensors`; none for a new id past that bound. Calibrated sensors always
     /// have their entry (made by [`install`](Self::install)).
     pub fn seen(&self, id: &SensorId) -> Option<Arc<SensorEntry>> {
-        if let Some(e) = self.read().get(id) {
-            return Some(e.clone());
+        if let Some(e) = self.get(id) {
+            return Some(e);
         }
         (self.len() < self.config.max_sensors).then(|| self.entry(id))
     }

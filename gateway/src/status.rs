@@ -84,21 +84,20 @@ pub struct StatusContext {
 impl StatusContext {
     pub fn status(&self, query: &StatusQuery) -> GatewayStatus {
         let c = &self.counters;
-        let all = self.table.snapshot();
-        let total = all.len();
-        let (sensors, next_offset) = match &query.sensor {
+        let (total, sensors, next_offset) = match &query.sensor {
+            // One lookup: no need to list and sort every sensor.
             Some(id) => (
-                all.iter()
-                    .filter(|e| &e.id == id)
-                    .map(|e| e.status())
-                    .collect(),
+                self.table.len(),
+                self.table.get(id).iter().map(|e| e.status()).collect(),
                 None,
             ),
             None => {
+                let all = self.table.snapshot();
+                let total = all.len();
                 let end = query.offset.saturating_add(query.limit).min(total);
                 let page = all.get(query.offset..end).unwrap_or_default();
                 let next = (end < total && query.limit > 0).then_some(end as u64);
-                (page.iter().map(|e| e.status()).collect(), next)
+                (total, page.iter().map(|e| e.status()).collect(), next)
             }
         };
         GatewayStatus {

@@ -357,7 +357,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     if dropped > 0 {
         eprintln!("{system:?} dropped {dropped} batches (drop-oldest) during the run");
     }
-    server.stop();
+    drop(server);
     Ok(PhaseResult {
         samples_per_s,
         paced_samples_per_s,
@@ -444,10 +444,6 @@ impl Server {
             online,
             dropped,
         })
-    }
-
-    fn stop(self) {
-        drop(self);
     }
 }
 
@@ -575,7 +571,7 @@ async fn rss_check(n: usize) -> Result<()> {
     tokio::time::sleep(RSS_SETTLE).await;
     let rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
     let hwm = proc_status_kib(pid, "VmHWM:").unwrap_or(0);
-    server.stop();
+    drop(server);
     let _ = pub_session.close().await;
     let online = online.load(Relaxed);
     println!("\n## Memory: {n} sensors, each with a calibration and 3 batches of {SAMPLES_PER_BATCH} samples");
