@@ -274,6 +274,12 @@ fn check_len(n_samples: usize, expected: usize, len: usize) -> Result<(), Decode
     Ok(())
 }
 
+/// One raw sample from its [`RAW_SAMPLE_BYTES`] bytes.
+#[inline(always)]
+fn raw_sample(record: &[u8]) -> [f32; 3] {
+    [f32_at(record, 0), f32_at(record, 4), f32_at(record, 8)]
+}
+
 #[inline(always)]
 fn f32_at(bytes: &[u8], offset: usize) -> f32 {
     f32::from_le_bytes([
@@ -398,15 +404,25 @@ impl<'a> RawBatchView<'a> {
     #[inline]
     pub fn sample(&self, i: usize) -> [f32; 3] {
         let o = i * RAW_SAMPLE_BYTES;
-        [
-            f32_at(self.samples, o),
-            f32_at(self.samples, o + 4),
-            f32_at(self.samples, o + 8),
-        ]
+        raw_sample(&self.samples[o..o + RAW_SAMPLE_BYTES])
     }
 
-    pub fn samples(&self) -> impl Iterator<Item = [f32; 3]> + '_ {
-        (0..self.len()).map(|i| self.sample(i))
+    /// The samples in order.
+    pub fn samples(&self) -> impl ExactSizeIterator<Item = [f32; 3]> + '_ {
+        self.samples.chunks_exact(RAW_SAMPLE_BYTES).map(raw_sample)
+    }
+
+    /// Replaces the contents of `out` with the samples widened to f64.
+    ///
+    /// For the gateway's sample path: one call per batch with the loop compiled here, where
+    /// whole-record chunks leave no bounds to check, instead of a call across crates per sample.
+    pub fn samples_f64_into(&self, out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        out.extend(
+            self.samples
+                .chunks_exact(RAW_SAMPLE_BYTES)
+                .map(|record| raw_sample(record).map(f64::from)),
+        );
     }
 }
 
@@ -476,19 +492,16 @@ impl CorrectedBatch {
         if !(coverage_factor.is_finite() && coverage_factor > 0.0) {
             return Err(DecodeError::BadCoverageFactor(coverage_factor));
         }
+        let records = r.take(n * CORRECTED_SAMPLE_BYTES, "samples")?;
         let mut samples = Vec::with_capacity(n);
-        for _ in 0..n {
-            let mut v = [0f32; 6];
-            for x in &mut v {
-                *x = r.f32("sample")?;
-            }
-            let flags = r.u16("sample flags")?;
+        for rec in records.chunks_exact(CORRECTED_SAMPLE_BYTES) {
+            let flags = u16::from_le_bytes([rec[24], rec[25]]);
             if flags & !flags::ALL != 0 {
                 return Err(DecodeError::ReservedFlags(flags));
             }
             samples.push(CorrectedSample {
-                accel_mps2: [v[0], v[1], v[2]],
-                uncertainty_mps2: [v[3], v[4], v[5]],
+                accel_mps2: [f32_at(rec, 0), f32_at(rec, 4), f32_at(rec, 8)],
+                uncertainty_mps2: [f32_at(rec, 12), f32_at(rec, 16), f32_at(rec, 20)],
                 flags,
             });
         }
