@@ -147,7 +147,7 @@ pub type Lanes = [f32; 4];
 /// which runs on every sample of every batch: four f32 lanes take one SSE instruction where
 /// three f64 axes take three, and the detector only compares an RMS with a threshold.
 ///
-/// Why f32 is enough: the input is taken relative to the first sample ([`Self::origin`]),
+/// Why f32 is enough: the input is taken relative to the first sample (`origin`),
 /// which a high pass cannot tell from the true input (its gain at DC is zero, and that start
 /// is its steady state), so the state holds the signal's variation and not gravity's 1 g, and
 /// the round-off stays some 10⁻⁷ of that variation. The sections are the same transposed
