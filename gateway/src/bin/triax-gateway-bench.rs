@@ -10,11 +10,26 @@
 //! - `gateway`: the Triax gateway from the library, with a calibration (full covariance) for
 //!   every sensor in a temporary store.
 //!
-//! For each: a throughput phase publishes as fast as Zenoh accepts for `--seconds` and counts
-//! the samples the subscriber receives per second; a second one offers the relay's capacity,
-//! paced; a latency phase publishes at a fixed rate (`--latency-batches-per-s`) and records, per
-//! batch, the time from just before the raw publish (stamped in the batch header) to its arrival
-//! at the subscriber: p50 and p99. The subscriber decodes in full what it receives.
+//! For each:
+//!
+//! - unpaced: publish as fast as Zenoh accepts for `--seconds` and count the samples the
+//!   subscriber receives per second. The relay pushes back (it publishes from the receive
+//!   callback), so the publisher slows to its pace; the gateway sheds load (drop-oldest), so
+//!   the publisher goes faster than the gateway carries and the CPU they share is partly spent
+//!   on batches that are then dropped;
+//! - zero loss: throughput as RFC 2544 defines it for a device, the highest offered load
+//!   carried without loss, by bisection over paced trials of `--trial-seconds`. This is the
+//!   figure the gateway/relay target is read against: it compares what each sustains, not how
+//!   each behaves past its limit;
+//! - paced (gateway only): the relay's unpaced capacity offered, and what arrives;
+//! - CPU: a fixed load below both capacities (`--cpu-samples-per-s`), and the CPU time each
+//!   process spends per batch (from /proc): the cost of the gateway over the relay, per batch,
+//!   with little of the scheduling noise of a saturated two-core machine;
+//! - latency: publish at a fixed rate (`--latency-batches-per-s`) and record, per batch, the
+//!   time from just before the raw publish (stamped in the batch header) to its arrival at the
+//!   subscriber: p50 and p99.
+//!
+//! The subscriber decodes in full what it receives.
 //!
 //! Then the memory check: the gateway alone with `--rss-sensors` calibrations; the publisher
 //! sends a batch per sensor per second (a building's pace) for three rounds and on until every
@@ -55,6 +70,13 @@ struct Args {
     /// measured capacity, for the gateway).
     #[arg(long)]
     paced_samples_per_s: Option<f64>,
+    /// Length of each trial of the zero-loss throughput search.
+    #[arg(long, default_value_t = 2.0)]
+    trial_seconds: f64,
+    /// Offered load (samples/s) of the CPU phase, the same for both systems: below either's
+    /// capacity, so both deliver all of it and what differs is the CPU they spend on it.
+    #[arg(long, default_value_t = 5_000_000.0)]
+    cpu_samples_per_s: f64,
     /// Sensors in the memory check (0: skip it).
     #[arg(long, default_value_t = 10_000)]
     rss_sensors: usize,
@@ -163,6 +185,40 @@ struct PhaseResult {
     p50_us: f64,
     p99_us: f64,
     n_latency: usize,
+    cpu: CpuPerBatch,
+    /// Throughput as RFC 2544 defines it: the highest load carried without loss.
+    zero_loss_samples_per_s: f64,
+}
+
+/// CPU time per delivered batch at the CPU phase's fixed load, µs.
+#[derive(Debug, Clone, Copy)]
+struct CpuPerBatch {
+    /// The system under test's process.
+    server_us: f64,
+    /// This process: the publisher and the subscriber.
+    bench_us: f64,
+    /// Fraction of the offered batches delivered (1 when the load is below capacity).
+    delivered: f64,
+}
+
+/// CPU time a process has used so far, user and system, all threads, from /proc/<pid>/stat
+/// (in USER_HZ ticks, 100 per second on Linux).
+fn cpu_seconds(pid: u32) -> Result<f64> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+    // The command name is in parentheses and may hold spaces: count fields after it, from
+    // field 3 (state); utime and stime are fields 14 and 15.
+    let rest = text
+        .rfind(')')
+        .map(|i| &text[i + 1..])
+        .context("/proc stat without a command name")?;
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| -> Result<f64> {
+        Ok(fields
+            .get(i)
+            .context("/proc stat too short")?
+            .parse::<u64>()? as f64)
+    };
+    Ok((ticks(14 - 3)? + ticks(15 - 3)?) / 100.0)
 }
 
 fn percentile(sorted: &[i64], p: f64) -> f64 {
@@ -173,8 +229,18 @@ fn percentile(sorted: &[i64], p: f64) -> f64 {
     sorted[i] as f64 / 1e3
 }
 
+/// What one throughput phase came to.
+#[derive(Debug, Clone, Copy)]
+struct Trial {
+    /// Arrivals inside the phase, per second.
+    received_per_s: f64,
+    sent_per_s: f64,
+    /// Fraction of what was sent that never arrived, once queues drained.
+    loss: f64,
+}
+
 /// One throughput phase. Unpaced: as fast as Zenoh takes it. Paced: `rate` samples/s, sent in
-/// 1 ms slices. Returns (received, offered) samples per second.
+/// 1 ms slices.
 async fn throughput(
     received: &Received,
     publishers: &[zenoh::pubsub::Publisher<'_>],
@@ -183,7 +249,7 @@ async fn throughput(
     seq: &mut [u64],
     phase: Duration,
     rate: Option<f64>,
-) -> Result<(f64, f64)> {
+) -> Result<Trial> {
     let start_count = received.samples.load(Relaxed);
     let t0 = Instant::now();
     let mut sent = 0u64;
@@ -218,7 +284,42 @@ async fn throughput(
         }
         last = now;
     }
-    Ok((got as f64 / elapsed, sent as f64 / elapsed))
+    let arrived = last - start_count;
+    Ok(Trial {
+        received_per_s: got as f64 / elapsed,
+        sent_per_s: sent as f64 / elapsed,
+        loss: 1.0 - arrived as f64 / sent.max(1) as f64,
+    })
+}
+
+/// Most loss a zero-loss trial may show: the accounting allows for nothing else.
+const ZERO_LOSS_MAX: f64 = 1e-3;
+
+/// The highest offered load (samples/s) the system carries without loss, as RFC 2544 defines a
+/// device's throughput: a bisection between `low` and `high` over paced trials, where a trial
+/// passes when the publisher sent at least 99 % of the target and at most [`ZERO_LOSS_MAX`] of
+/// it was lost.
+#[allow(clippy::too_many_arguments)]
+async fn zero_loss_rate(
+    received: &Received,
+    publishers: &[zenoh::pubsub::Publisher<'_>],
+    ids: &[SensorId],
+    samples: &[[f32; 3]],
+    seq: &mut [u64],
+    trial: Duration,
+    mut low: f64,
+    mut high: f64,
+) -> Result<f64> {
+    for _ in 0..7 {
+        let rate = (low + high) / 2.0;
+        let t = throughput(received, publishers, ids, samples, seq, trial, Some(rate)).await?;
+        if t.sent_per_s >= 0.99 * rate && t.loss <= ZERO_LOSS_MAX {
+            low = rate;
+        } else {
+            high = rate;
+        }
+    }
+    Ok(low)
 }
 
 async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
@@ -296,7 +397,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
 
     let ids: Vec<SensorId> = (0..args.sensors).map(sensor_id).collect();
     let phase = Duration::from_secs_f64(args.seconds);
-    let (samples_per_s, sent_samples_per_s) = throughput(
+    let unpaced = throughput(
         &received,
         &publishers,
         &ids,
@@ -304,6 +405,20 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         &mut seq,
         phase,
         None,
+    )
+    .await?;
+    let (samples_per_s, sent_samples_per_s) = (unpaced.received_per_s, unpaced.sent_per_s);
+    // Bisect between half of what arrived unpaced and all that was sent: a relay that pushes
+    // back sends no more than it carries, a gateway that sheds load sends more.
+    let zero_loss_samples_per_s = zero_loss_rate(
+        &received,
+        &publishers,
+        &ids,
+        &samples,
+        &mut seq,
+        Duration::from_secs_f64(args.trial_seconds),
+        0.5 * samples_per_s,
+        sent_samples_per_s * 1.05,
     )
     .await?;
     let paced_samples_per_s = match args.paced_samples_per_s {
@@ -318,9 +433,32 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
                 Some(rate),
             )
             .await?
-            .0,
+            .received_per_s,
         ),
         None => None,
+    };
+
+    // CPU per batch at a fixed load that both systems carry in full.
+    let (server_cpu0, bench_cpu0) = (cpu_seconds(server.pid)?, cpu_seconds(std::process::id())?);
+    let Trial {
+        received_per_s: delivered_per_s,
+        sent_per_s: offered_per_s,
+        ..
+    } = throughput(
+        &received,
+        &publishers,
+        &ids,
+        &samples,
+        &mut seq,
+        phase,
+        Some(args.cpu_samples_per_s),
+    )
+    .await?;
+    let batches = delivered_per_s * phase.as_secs_f64() / SAMPLES_PER_BATCH as f64;
+    let cpu = CpuPerBatch {
+        server_us: (cpu_seconds(server.pid)? - server_cpu0) / batches * 1e6,
+        bench_us: (cpu_seconds(std::process::id())? - bench_cpu0) / batches * 1e6,
+        delivered: delivered_per_s / offered_per_s,
     };
 
     // Latency at a fixed rate.
@@ -365,6 +503,8 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         p50_us: percentile(&lat, 0.5),
         p99_us: percentile(&lat, 0.99),
         n_latency: lat.len(),
+        cpu,
+        zero_loss_samples_per_s,
     })
 }
 
@@ -639,6 +779,36 @@ fn main() -> Result<()> {
             gw.p50_us - relay.p50_us,
             gw.p99_us - relay.p99_us,
             args.latency_batches_per_s
+        );
+        println!(
+            "\nthroughput without loss (RFC 2544: the highest offered load carried with at most {:.1} % lost): relay {:.0}, gateway {:.0} samples/s, ratio {:.2}",
+            ZERO_LOSS_MAX * 100.0,
+            relay.zero_loss_samples_per_s,
+            gw.zero_loss_samples_per_s,
+            gw.zero_loss_samples_per_s / relay.zero_loss_samples_per_s
+        );
+        println!(
+            "\n### CPU per delivered batch at {:.0} samples/s offered to both\n",
+            args.cpu_samples_per_s
+        );
+        println!("| system | delivered | system under test (µs/batch) | publisher + subscriber (µs/batch) | total (µs/batch) |");
+        println!("|---|---|---|---|---|");
+        for (name, r) in [("relay (baseline)", &relay), ("gateway", &gw)] {
+            let c = r.cpu;
+            println!(
+                "| {name} | {:.3} | {:.2} | {:.2} | {:.2} |",
+                c.delivered,
+                c.server_us,
+                c.bench_us,
+                c.server_us + c.bench_us
+            );
+        }
+        let total = |c: CpuPerBatch| c.server_us + c.bench_us;
+        println!(
+            "\ngateway − relay: {:+.2} µs of CPU per batch in the system under test, {:+.2} in publisher + subscriber; on a machine they share, capacity ratio ≈ relay total / gateway total = {:.2}",
+            gw.cpu.server_us - relay.cpu.server_us,
+            gw.cpu.bench_us - relay.cpu.bench_us,
+            total(relay.cpu) / total(gw.cpu)
         );
         if args.rss_sensors > 0 {
             rss_check(args.rss_sensors).await?;
