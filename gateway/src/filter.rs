@@ -3,7 +3,9 @@
 //!
 //! Designs are Butterworth by the bilinear transform with pre-warping, in transposed direct
 //! form II, which keeps two state values per axis and is well behaved in f64 at the low corner
-//! frequencies used here (0.1 Hz at 100 Hz sampling).
+//! frequencies used here (0.1 Hz at 100 Hz sampling). The exception is the detector's high pass,
+//! [`HighPass4x32`], in f32 lanes: its corner is near the band's top, where f32 is well behaved,
+//! and it runs on every sample of every calibrated sensor.
 //!
 //! A filter starts in the steady state of its first input ([`Biquad3::prime`]) rather than at
 //! zero, so a sensor that joins with 9.81 m/s² on one axis does not ring for seconds.
