@@ -239,87 +239,92 @@ struct Trial {
     loss: f64,
 }
 
-/// One throughput phase. Unpaced: as fast as Zenoh takes it. Paced: `rate` samples/s, sent in
-/// 1 ms slices.
-async fn throughput(
-    received: &Received,
-    publishers: &[zenoh::pubsub::Publisher<'_>],
-    ids: &[SensorId],
-    samples: &[[f32; 3]],
-    seq: &mut [u64],
-    phase: Duration,
-    rate: Option<f64>,
-) -> Result<Trial> {
-    let start_count = received.samples.load(Relaxed);
-    let t0 = Instant::now();
-    let mut sent = 0u64;
-    let mut k = 0usize;
-    while t0.elapsed() < phase {
-        if let Some(rate) = rate {
-            let due = (t0.elapsed().as_secs_f64() * rate) as u64;
-            if sent >= due {
-                tokio::time::sleep(Duration::from_millis(1)).await;
-                continue;
-            }
-        }
-        let i = k % publishers.len();
-        publishers[i]
-            .put(raw_batch(&ids[i], seq[i], samples))
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        seq[i] += 1;
-        k += 1;
-        sent += SAMPLES_PER_BATCH as u64;
-    }
-    let elapsed = t0.elapsed().as_secs_f64();
-    // Count only arrivals inside the window.
-    let got = received.samples.load(Relaxed) - start_count;
-    // Let queues drain before the next phase: until arrivals stop for 300 ms.
-    let mut last = received.samples.load(Relaxed);
-    loop {
-        tokio::time::sleep(Duration::from_millis(300)).await;
-        let now = received.samples.load(Relaxed);
-        if now == last {
-            break;
-        }
-        last = now;
-    }
-    let arrived = last - start_count;
-    Ok(Trial {
-        received_per_s: got as f64 / elapsed,
-        sent_per_s: sent as f64 / elapsed,
-        loss: 1.0 - arrived as f64 / sent.max(1) as f64,
-    })
-}
-
 /// Most loss a zero-loss trial may show: the accounting allows for nothing else.
 const ZERO_LOSS_MAX: f64 = 1e-3;
 
-/// The highest offered load (samples/s) the system carries without loss, as RFC 2544 defines a
-/// device's throughput: a bisection between `low` and `high` over paced trials, where a trial
-/// passes when the publisher sent at least 99 % of the target and at most [`ZERO_LOSS_MAX`] of
-/// it was lost.
-#[allow(clippy::too_many_arguments)]
-async fn zero_loss_rate(
-    received: &Received,
-    publishers: &[zenoh::pubsub::Publisher<'_>],
-    ids: &[SensorId],
-    samples: &[[f32; 3]],
-    seq: &mut [u64],
-    trial: Duration,
-    mut low: f64,
-    mut high: f64,
-) -> Result<f64> {
-    for _ in 0..7 {
-        let rate = (low + high) / 2.0;
-        let t = throughput(received, publishers, ids, samples, seq, trial, Some(rate)).await?;
-        if t.sent_per_s >= 0.99 * rate && t.loss <= ZERO_LOSS_MAX {
-            low = rate;
-        } else {
-            high = rate;
-        }
+/// The simulated sensor nodes: one publisher per sensor, taking turns, each with its own
+/// sequence numbers.
+struct Fleet<'a> {
+    received: &'a Received,
+    publishers: Vec<zenoh::pubsub::Publisher<'a>>,
+    ids: Vec<SensorId>,
+    samples: Vec<[f32; 3]>,
+    seq: Vec<u64>,
+    next: usize,
+}
+
+impl Fleet<'_> {
+    /// Publishes the next sensor's next batch.
+    async fn put_next(&mut self) -> Result<()> {
+        let i = self.next % self.publishers.len();
+        self.publishers[i]
+            .put(raw_batch(&self.ids[i], self.seq[i], &self.samples))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        self.seq[i] += 1;
+        self.next += 1;
+        Ok(())
     }
-    Ok(low)
+
+    /// One throughput phase. Unpaced: as fast as Zenoh takes it. Paced: `rate` samples/s, sent
+    /// in 1 ms slices.
+    async fn throughput(&mut self, phase: Duration, rate: Option<f64>) -> Result<Trial> {
+        let start_count = self.received.samples.load(Relaxed);
+        let t0 = Instant::now();
+        let mut sent = 0u64;
+        while t0.elapsed() < phase {
+            if let Some(rate) = rate {
+                let due = (t0.elapsed().as_secs_f64() * rate) as u64;
+                if sent >= due {
+                    tokio::time::sleep(Duration::from_millis(1)).await;
+                    continue;
+                }
+            }
+            self.put_next().await?;
+            sent += SAMPLES_PER_BATCH as u64;
+        }
+        let elapsed = t0.elapsed().as_secs_f64();
+        // Count only arrivals inside the window.
+        let got = self.received.samples.load(Relaxed) - start_count;
+        // Let queues drain before the next phase: until arrivals stop for 300 ms.
+        let mut last = self.received.samples.load(Relaxed);
+        loop {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            let now = self.received.samples.load(Relaxed);
+            if now == last {
+                break;
+            }
+            last = now;
+        }
+        let arrived = last - start_count;
+        Ok(Trial {
+            received_per_s: got as f64 / elapsed,
+            sent_per_s: sent as f64 / elapsed,
+            loss: 1.0 - arrived as f64 / sent.max(1) as f64,
+        })
+    }
+
+    /// The highest offered load (samples/s) the system carries without loss, as RFC 2544
+    /// defines a device's throughput: a bisection between `low` and `high` over paced trials,
+    /// where a trial passes when the publisher sent at least 99 % of the target and at most
+    /// [`ZERO_LOSS_MAX`] of it was lost.
+    async fn zero_loss_rate(
+        &mut self,
+        trial: Duration,
+        mut low: f64,
+        mut high: f64,
+    ) -> Result<f64> {
+        for _ in 0..7 {
+            let rate = (low + high) / 2.0;
+            let t = self.throughput(trial, Some(rate)).await?;
+            if t.sent_per_s >= 0.99 * rate && t.loss <= ZERO_LOSS_MAX {
+                low = rate;
+            } else {
+                high = rate;
+            }
+        }
+        Ok(low)
+    }
 }
 
 async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
@@ -377,88 +382,54 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         publishers.push(p);
     }
+    let mut fleet = Fleet {
+        received: &received,
+        publishers,
+        ids: (0..args.sensors).map(sensor_id).collect(),
+        samples: outputs(),
+        seq: vec![0; args.sensors],
+        next: 0,
+    };
     // Wait until the raw and corrected paths are both matched.
     let deadline = Instant::now() + Duration::from_secs(10);
-    let samples = outputs();
-    let mut seq = vec![0u64; args.sensors];
     while received.samples.load(Relaxed) == 0 {
         if Instant::now() > deadline {
             bail!("{system:?}: nothing came through in 10 s");
         }
-        for (i, p) in publishers.iter().enumerate() {
-            p.put(raw_batch(&sensor_id(i), seq[i], &samples))
-                .await
-                .map_err(|e| anyhow::anyhow!("{e}"))?;
-            seq[i] += 1;
+        for _ in 0..args.sensors {
+            fleet.put_next().await?;
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     tokio::time::sleep(Duration::from_millis(200)).await;
 
-    let ids: Vec<SensorId> = (0..args.sensors).map(sensor_id).collect();
     let phase = Duration::from_secs_f64(args.seconds);
-    let unpaced = throughput(
-        &received,
-        &publishers,
-        &ids,
-        &samples,
-        &mut seq,
-        phase,
-        None,
-    )
-    .await?;
+    let unpaced = fleet.throughput(phase, None).await?;
     let (samples_per_s, sent_samples_per_s) = (unpaced.received_per_s, unpaced.sent_per_s);
     // Bisect between half of what arrived unpaced and all that was sent: a relay that pushes
     // back sends no more than it carries, a gateway that sheds load sends more.
-    let zero_loss_samples_per_s = zero_loss_rate(
-        &received,
-        &publishers,
-        &ids,
-        &samples,
-        &mut seq,
-        Duration::from_secs_f64(args.trial_seconds),
-        0.5 * samples_per_s,
-        sent_samples_per_s * 1.05,
-    )
-    .await?;
+    let zero_loss_samples_per_s = fleet
+        .zero_loss_rate(
+            Duration::from_secs_f64(args.trial_seconds),
+            0.5 * samples_per_s,
+            sent_samples_per_s * 1.05,
+        )
+        .await?;
     let paced_samples_per_s = match args.paced_samples_per_s {
-        Some(rate) => Some(
-            throughput(
-                &received,
-                &publishers,
-                &ids,
-                &samples,
-                &mut seq,
-                phase,
-                Some(rate),
-            )
-            .await?
-            .received_per_s,
-        ),
+        Some(rate) => Some(fleet.throughput(phase, Some(rate)).await?.received_per_s),
         None => None,
     };
 
     // CPU per batch at a fixed load that both systems carry in full.
     let (server_cpu0, bench_cpu0) = (cpu_seconds(server.pid)?, cpu_seconds(std::process::id())?);
-    let Trial {
-        received_per_s: delivered_per_s,
-        sent_per_s: offered_per_s,
-        ..
-    } = throughput(
-        &received,
-        &publishers,
-        &ids,
-        &samples,
-        &mut seq,
-        phase,
-        Some(args.cpu_samples_per_s),
-    )
-    .await?;
-    let batches = delivered_per_s * phase.as_secs_f64() / SAMPLES_PER_BATCH as f64;
+    let fixed = fleet
+        .throughput(phase, Some(args.cpu_samples_per_s))
+        .await?;
+    let batches = fixed.received_per_s * phase.as_secs_f64() / SAMPLES_PER_BATCH as f64;
     let cpu = CpuPerBatch {
         server_us: (cpu_seconds(server.pid)? - server_cpu0) / batches * 1e6,
         bench_us: (cpu_seconds(std::process::id())? - bench_cpu0) / batches * 1e6,
-        delivered: delivered_per_s / offered_per_s,
+        delivered: fixed.received_per_s / fixed.sent_per_s,
     };
 
     // Latency at a fixed rate.
@@ -467,16 +438,9 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     let mut tick = tokio::time::interval(period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let t0 = Instant::now();
-    let mut k = 0usize;
     while t0.elapsed() < phase {
         tick.tick().await;
-        let i = k % args.sensors;
-        publishers[i]
-            .put(raw_batch(&ids[i], seq[i], &samples))
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        seq[i] += 1;
-        k += 1;
+        fleet.put_next().await?;
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
     received.record_latency.store(false, Relaxed);
@@ -488,7 +452,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     );
     lat.sort_unstable();
 
-    drop(publishers);
+    drop(fleet);
     let _ = pub_session.close().await;
     let _ = sub_session.close().await;
     let dropped = server.dropped.load(Relaxed);
