@@ -416,6 +416,8 @@ impl<'a> RawBatchView<'a> {
     ///
     /// For the gateway's sample path: one call per batch with the loop compiled here, where
     /// whole-record chunks leave no bounds to check, instead of a call across crates per sample.
+    /// Not written over [`Self::samples`]: that version measured 40 % slower on the whole batch
+    /// path (its mapping function was not inlined into the loop).
     pub fn samples_f64_into(&self, out: &mut Vec<[f64; 3]>) {
         out.clear();
         out.extend(
