@@ -33,6 +33,25 @@ pub const DEFAULT_CATCHUP_INTERVAL_S: f64 = 60.0;
 /// Default time a catch-up request waits for the registry's replies.
 pub const DEFAULT_CATCHUP_TIMEOUT_S: f64 = 5.0;
 
+/// What the gateway does when raw batches come faster than it corrects and publishes them:
+/// when it is overloaded, or when a consumer is slow (publishing waits, under Zenoh's blocking
+/// congestion control, until the consumer's queue has room).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Overload {
+    /// Queue raw batches per worker, at most `queue_capacity_batches`, and drop the oldest
+    /// when full, counted: fresh data before complete data, for live monitoring. Zenoh's
+    /// receive threads never wait for the correction or for a consumer.
+    #[default]
+    DropOldest,
+    /// Correct and publish on Zenoh's receive thread, with no queue: when the gateway or a
+    /// consumer cannot keep up, Zenoh's flow control slows the sensor nodes, whose own
+    /// congestion control then holds or drops their batches. The gateway drops nothing. No
+    /// hand-over between threads, so the least CPU and latency per batch and the highest
+    /// throughput (BENCHMARKS.md); a slow consumer slows every stream of the gateway.
+    Backpressure,
+}
+
 /// How a sensor's stream is corrected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
@@ -118,18 +137,22 @@ pub struct Config {
     pub workers: usize,
     /// Raw batches waiting per worker before the oldest is dropped.
     pub queue_capacity_batches: usize,
+    /// Drop-oldest queues, or correction on Zenoh's receive threads with backpressure.
+    pub overload: Overload,
     /// Most sensors the gateway tracks; batches from further, uncalibrated ids are counted and
     /// skipped, so a misbehaving network cannot grow the gateway's memory without bound.
     pub max_sensors: usize,
-    /// Most output keys (corrected and tilt) declared to Zenoh; the keys of further sensors are
-    /// published undeclared.
+    /// Most keys declared to Zenoh: a sensor's raw key (its input) and its output keys
+    /// (corrected, tilt), taken in the order sensors come online; further keys are used
+    /// undeclared.
     ///
-    /// Why a bound: Zenoh 1.10 keeps about 2 KiB of routing state per declared key, and each
-    /// declaration scans every key already declared, so ten thousand declared keys cost 20 MiB
-    /// and several seconds of start-up during which batches are dropped. An undeclared key
-    /// costs nothing to hold but its route is worked out again on every put, a few
-    /// microseconds: nothing at a sensor's one batch a second, a third of the throughput for
-    /// a handful of sensors streaming flat out. The first sensors online get declared keys.
+    /// Why declare: Zenoh keeps the routes of a declared key, while the route of an undeclared
+    /// one is worked out again for every batch that uses it, a few microseconds each way,
+    /// unless the sending node declared the key itself. Why a bound: Zenoh 1.10 keeps about
+    /// 2 KiB of routing state per declared key, and each declaration scans every key already
+    /// declared, so ten thousand declared keys cost 20 MiB and several seconds of start-up
+    /// during which batches are dropped. Undeclared keys cost nothing at a sensor's one batch
+    /// a second, and a third of the throughput for a handful of sensors streaming flat out.
     pub declared_keys_max: usize,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
@@ -181,6 +204,7 @@ pub struct FileConfig {
     pub store_path: Option<PathBuf>,
     pub workers: Option<usize>,
     pub queue_capacity_batches: Option<usize>,
+    pub overload: Option<Overload>,
     pub max_sensors: Option<usize>,
     pub declared_keys_max: Option<usize>,
     #[serde(default)]
@@ -297,6 +321,7 @@ impl FileConfig {
                 .unwrap_or_else(|| PathBuf::from("triax-store")),
             workers,
             queue_capacity_batches,
+            overload: self.overload.unwrap_or_default(),
             max_sensors,
             declared_keys_max: self.declared_keys_max.unwrap_or(DEFAULT_DECLARED_KEYS_MAX),
             zenoh,
@@ -429,6 +454,10 @@ pub struct ConfigArgs {
     /// Correction workers (0: one per core).
     #[arg(long, env = "TRIAX_WORKERS")]
     pub workers: Option<usize>,
+    /// When batches come faster than they are published: drop the oldest (queued, counted) or
+    /// push back on the sensor nodes.
+    #[arg(long, value_enum, env = "TRIAX_OVERLOAD")]
+    pub overload: Option<Overload>,
     /// Default correction mode of sensors not listed in the file.
     #[arg(long, value_enum, env = "TRIAX_MODE")]
     pub mode: Option<CorrectionMode>,
@@ -473,6 +502,9 @@ impl ConfigArgs {
         if let Some(w) = self.workers {
             f.workers = Some(w);
         }
+        if let Some(o) = self.overload {
+            f.overload = Some(o);
+        }
         if let Some(m) = self.mode {
             f.defaults.mode = Some(m);
         }
@@ -503,6 +535,9 @@ mod tests {
         assert_eq!(c.zenoh.mode, None);
         assert_eq!(c.metrics_listen, Some("127.0.0.1:9750".parse().unwrap()));
         assert_eq!(c.sensor("anything").mode, CorrectionMode::Dynamic);
+        assert_eq!(c.overload, Overload::DropOldest);
+        let c = parse("overload = \"backpressure\"").unwrap();
+        assert_eq!(c.overload, Overload::Backpressure);
     }
 
     #[test]
@@ -544,6 +579,11 @@ mod tests {
         assert!(e.to_string().contains("`zenoh.listen[0]`"), "{e}");
         let e = parse("[defaults]\nmode = \"fast\"").unwrap_err();
         assert!(e.to_string().contains("unknown variant `fast`"), "{e}");
+        let e = parse("overload = \"drop-newest\"").unwrap_err();
+        assert!(
+            e.to_string().contains("unknown variant `drop-newest`"),
+            "{e}"
+        );
         let e = parse("bulding = \"x\"").unwrap_err();
         assert!(e.to_string().contains("unknown field `bulding`"), "{e}");
     }

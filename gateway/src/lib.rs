@@ -12,7 +12,7 @@
 //! ```text
 //! triax/<b>/raw/*  ─► Zenoh callback ─► Inbox (bounded, drop-oldest) ─► worker (per sensor
 //!   shard): sequence check, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
-//!                                                                  triax/<b>/tilt/<s>
+//!   (or, under backpressure, the callback runs the shard itself)   triax/<b>/tilt/<s>
 //! triax/<b>/status ◄─ queryable (GatewayStatus JSON)      http://<metrics>/metrics (Prometheus)
 //! triax/<b>/calibration/push/* ◄─ queryable: verify, store, swap, ack ─► calibration/ack/<s>
 //! triax/<b>/calibration/registry ─► query at start and periodically (catch-up)
@@ -64,7 +64,7 @@ use zenoh::sample::Sample;
 
 pub use catchup::{CatchUpError, CatchUpReport};
 pub use config::{
-    CalibrationSettings, Config, ConfigArgs, ConfigError, CorrectionMode, SensorSettings,
+    CalibrationSettings, Config, ConfigArgs, ConfigError, CorrectionMode, Overload, SensorSettings,
 };
 pub use sensors::{GatewayCounters, SensorTable};
 
@@ -203,8 +203,13 @@ impl Gateway {
             .map_err(zenoh_err("open session"))?;
         let counters = Arc::new(GatewayCounters::default());
         let (trigger, shutdown) = shutdown::channel();
+        // Under backpressure nothing is queued: the receive callback runs the shards itself.
+        let n_inboxes = match config.overload {
+            Overload::DropOldest => config.workers,
+            Overload::Backpressure => 0,
+        };
         let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
-            (0..config.workers)
+            (0..n_inboxes)
                 .map(|_| {
                     Arc::new(Inbox::new(
                         config.queue_capacity_batches,
@@ -230,18 +235,41 @@ impl Gateway {
             )));
         }
 
-        let route = inboxes.clone();
         let intake = counters.clone();
-        let subscriber = session
-            .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
-            .callback(move |sample: Sample| {
-                let key = sample.key_expr().as_str();
-                let sensor = keys::sensor_chunk(key);
-                intake.received_batches.fetch_add(1, Relaxed);
-                route[worker::shard(sensor, route.len())].push(sample);
-            })
-            .await
-            .map_err(zenoh_err("subscribe to raw streams"))?;
+        let raw_streams = keys::all_sensors(&config.building, Stream::Raw);
+        let subscriber = match config.overload {
+            Overload::DropOldest => {
+                let route = inboxes.clone();
+                session
+                    .declare_subscriber(raw_streams)
+                    .callback(move |sample: Sample| {
+                        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+                        intake.received_batches.fetch_add(1, Relaxed);
+                        route[worker::shard(sensor, route.len())].push(sample);
+                    })
+                    .await
+            }
+            Overload::Backpressure => {
+                let shards: Vec<std::sync::Mutex<worker::Shard>> =
+                    (0..config.workers).map(|_| Default::default()).collect();
+                let shared = shared.clone();
+                session
+                    .declare_subscriber(raw_streams)
+                    .callback(move |sample: Sample| {
+                        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+                        intake.received_batches.fetch_add(1, Relaxed);
+                        let shard = &shards[worker::shard(sensor, shards.len())];
+                        // A panic while handling (a bug) leaves at most one sensor's filter
+                        // memory mid-batch: the shard still serves its other sensors.
+                        shard
+                            .lock()
+                            .unwrap_or_else(|p| p.into_inner())
+                            .handle(&shared, sample);
+                    })
+                    .await
+            }
+        }
+        .map_err(zenoh_err("subscribe to raw streams"))?;
 
         let status_ctx = status::StatusContext {
             config: config.clone(),
@@ -328,6 +356,7 @@ impl Gateway {
             gateway = %config.gateway_name,
             zid = %session.zid(),
             workers = config.workers,
+            overload = ?config.overload,
             "gateway running"
         );
         Ok(Gateway {

@@ -107,7 +107,7 @@ pub fn render(src: &MetricsSource) -> String {
         &mut out,
         "triax_gateway_declared_keys",
         "gauge",
-        "Output keys declared to Zenoh; further sensors publish on undeclared keys.",
+        "Keys declared to Zenoh (raw and output); further sensors' keys are used undeclared.",
         c.declared_keys.load(Relaxed) as u64,
     );
     if let Some(bytes) = crate::memory::resident_bytes() {

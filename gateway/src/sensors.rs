@@ -197,7 +197,7 @@ pub struct GatewayCounters {
     /// Sensors whose stream a worker has taken on since start (each holds its correction state
     /// and its publisher keys).
     pub sensors_online: AtomicU64,
-    /// Output keys declared to Zenoh (at most `declared_keys_max`).
+    /// Keys declared to Zenoh, raw and output (at most `declared_keys_max`).
     pub declared_keys: AtomicUsize,
 }
 

@@ -1,9 +1,11 @@
-//! Correction workers: each owns a share of the sensors (by a hash of the id), pops their raw
-//! batches from its [`Inbox`], corrects them with [`SensorKernel`] and publishes the corrected
-//! batch and, for inclinometers, the tilt stream.
+//! Correction shards: each owns a share of the sensors (by a hash of the id), corrects their
+//! raw batches with [`SensorKernel`] and publishes the corrected batch and, for inclinometers,
+//! the tilt stream. Under [`Overload::DropOldest`](crate::config::Overload) a shard is a worker
+//! task that pops its batches from its [`Inbox`]; under `Backpressure` Zenoh's receive thread
+//! runs it directly, behind a mutex.
 //!
-//! A sensor always lands on the same worker, so its batches are corrected in order and its
-//! state (sequence tracker, filter memory, output keys) needs no lock. Events name their sensor
+//! A sensor always lands on the same shard, so its batches are corrected in order and its
+//! state (sequence tracker, filter memory, output keys) is touched by one thread at a time. Events name their sensor
 //! in a field rather than in a span: a span per sensor would cost every sensor a registry
 //! entry for the rare event.
 
@@ -17,6 +19,7 @@ use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VER
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
+use zenoh::Wait;
 
 use crate::inbox::Inbox;
 use crate::kernel::{Scratch, SensorKernel};
@@ -38,10 +41,11 @@ pub struct Shared {
 }
 
 impl Shared {
-    /// The key to publish `key` on: declared to Zenoh while fewer than `declared_keys_max`
-    /// are, undeclared after (see [`crate::Config::declared_keys_max`]).
-    async fn output_key(&self, key: Key) -> zenoh::Result<KeyExpr<'static>> {
-        let text = key.to_string();
+    /// Declares `key` to Zenoh if fewer than `declared_keys_max` keys are, so that Zenoh keeps
+    /// its routes rather than working them out for every batch (see
+    /// [`crate::Config::declared_keys_max`]); `None` once the budget is spent. The declaration
+    /// lasts as long as the returned key is held.
+    fn declare(&self, key: &Key) -> zenoh::Result<Option<KeyExpr<'static>>> {
         let declare = self
             .counters
             .declared_keys
@@ -49,15 +53,22 @@ impl Shared {
                 (n < self.declared_keys_max).then_some(n + 1)
             })
             .is_ok();
-        if declare {
-            let declared = self.session.declare_keyexpr(text).await;
-            if declared.is_err() {
-                // Give the slot back: the sensor is retried on its next batch.
-                self.counters.declared_keys.fetch_sub(1, Relaxed);
-            }
-            declared
-        } else {
-            KeyExpr::try_from(text)
+        if !declare {
+            return Ok(None);
+        }
+        let declared = zenoh::Wait::wait(self.session.declare_keyexpr(key.to_string()));
+        if declared.is_err() {
+            // Give the slot back: the sensor is retried on its next batch.
+            self.counters.declared_keys.fetch_sub(1, Relaxed);
+        }
+        declared.map(Some)
+    }
+
+    /// The key to publish `key` on: declared while the budget lasts, undeclared after.
+    fn output_key(&self, key: Key) -> zenoh::Result<KeyExpr<'static>> {
+        match self.declare(&key)? {
+            Some(declared) => Ok(declared),
+            None => KeyExpr::try_from(key.to_string()),
         }
     }
 }
@@ -74,6 +85,12 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
 
 struct SensorState {
     entry: Arc<SensorEntry>,
+    /// The sensor's raw key, declared on the gateway's own session while the budget lasts.
+    /// Never read: holding it keeps a routing entry for the key, so Zenoh looks up the route of
+    /// each incoming batch instead of matching the key against every subscription again, which
+    /// it does for a key sent in full (as a node's publisher does unless it declared the key
+    /// itself). That matching was a quarter of the gateway's CPU per batch (BENCHMARKS.md).
+    _input_route: Option<KeyExpr<'static>>,
     corrected_key: KeyExpr<'static>,
     /// Only for inclinometers.
     tilt_key: Option<KeyExpr<'static>>,
@@ -87,6 +104,20 @@ struct SensorState {
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
 pub const SHUTDOWN_DRAIN: std::time::Duration = std::time::Duration::from_secs(2);
 
+/// The sensors of one shard, and the working memory their batches share.
+#[derive(Default)]
+pub struct Shard {
+    sensors: HashMap<Box<str>, Box<SensorState>>,
+    scratch: Scratch,
+}
+
+impl Shard {
+    /// Corrects and publishes one raw batch; a bad one is counted and skipped.
+    pub fn handle(&mut self, shared: &Shared, sample: Sample) {
+        handle(&mut self.sensors, &mut self.scratch, shared, sample)
+    }
+}
+
 /// Runs one worker until shutdown, then corrects what is still queued (for at most
 /// [`SHUTDOWN_DRAIN`]).
 pub async fn run(
@@ -95,8 +126,7 @@ pub async fn run(
     shared: Arc<Shared>,
     mut shutdown: Shutdown,
 ) {
-    let mut sensors: HashMap<Box<str>, Box<SensorState>> = HashMap::new();
-    let mut scratch = Scratch::default();
+    let mut shard = Shard::default();
     tracing::debug!(worker = index, "worker started");
     loop {
         let sample = tokio::select! {
@@ -104,7 +134,7 @@ pub async fn run(
             _ = shutdown.recv() => break,
             s = inbox.pop() => s,
         };
-        handle(&mut sensors, &mut scratch, &shared, sample).await;
+        shard.handle(&shared, sample);
     }
     // Intake stopped before the shutdown fired, so what is queued is all there will be: every
     // batch the gateway took from Zenoh is corrected and published, or counted as dropped. A
@@ -113,7 +143,7 @@ pub async fn run(
     let (mut drained, mut abandoned) = (0u64, 0u64);
     while let Some(sample) = inbox.try_pop() {
         if tokio::time::Instant::now() < deadline {
-            handle(&mut sensors, &mut scratch, &shared, sample).await;
+            shard.handle(&shared, sample);
             drained += 1;
         } else {
             shared.counters.dropped.fetch_add(1, Relaxed);
@@ -129,7 +159,7 @@ pub async fn run(
     }
     tracing::debug!(
         worker = index,
-        sensors = sensors.len(),
+        sensors = shard.sensors.len(),
         drained,
         "worker stopped"
     );
@@ -155,7 +185,7 @@ fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
     }
 }
 
-async fn handle(
+fn handle(
     sensors: &mut HashMap<Box<str>, Box<SensorState>>,
     scratch: &mut Scratch,
     shared: &Shared,
@@ -185,14 +215,14 @@ async fn handle(
             }
             return;
         };
-        match SensorState::new(shared, entry).await {
+        match SensorState::new(shared, entry) {
             Ok(s) => {
                 sensors.insert(sensor.into(), Box::new(s));
                 shared.counters.sensors_online.fetch_add(1, Relaxed);
             }
             Err(e) => {
                 shared.counters.publish_errors.fetch_add(1, Relaxed);
-                tracing::error!(sensor, cause = %e, "cannot declare the sensor's publishers");
+                tracing::error!(sensor, cause = %e, "cannot declare the sensor's keys");
                 return;
             }
         }
@@ -200,13 +230,14 @@ async fn handle(
     // Inserted just above when missing.
     let state = sensors.get_mut(sensor).expect("sensor state exists");
     let (corrected, tilt_json) = state.correct(&view, scratch);
-    // Block rather than drop inside Zenoh: when a consumer is slow the worker waits, its inbox
-    // fills, and the inbox drops the oldest batch and counts it.
+    // Block rather than drop inside Zenoh: when a consumer is slow the shard waits; then a
+    // worker's inbox fills and drops the oldest batch, counted, or, under backpressure, Zenoh's
+    // receive thread waits and the sensor nodes are slowed.
     if let Err(e) = shared
         .session
         .put(&state.corrected_key, corrected)
         .congestion_control(CongestionControl::Block)
-        .await
+        .wait()
     {
         shared.counters.publish_errors.fetch_add(1, Relaxed);
         tracing::warn!(sensor, cause = %e, "corrected batch not published");
@@ -214,7 +245,7 @@ async fn handle(
         shared.counters.published_batches.fetch_add(1, Relaxed);
     }
     if let (Some(json), Some(key)) = (tilt_json, &state.tilt_key) {
-        match shared.session.put(key, json).await {
+        match shared.session.put(key, json).wait() {
             Ok(()) => {
                 shared.counters.tilt_samples.fetch_add(1, Relaxed);
             }
@@ -224,14 +255,13 @@ async fn handle(
 }
 
 impl SensorState {
-    async fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
+    fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
         let id = &entry.id;
         let b = shared.building.clone();
-        let corrected_key = shared
-            .output_key(Key::Corrected(b.clone(), id.clone()))
-            .await?;
+        let input_route = shared.declare(&Key::Raw(b.clone(), id.clone()))?;
+        let corrected_key = shared.output_key(Key::Corrected(b.clone(), id.clone()))?;
         let tilt_key = if entry.settings.tilt {
-            Some(shared.output_key(Key::Tilt(b, id.clone())).await?)
+            Some(shared.output_key(Key::Tilt(b, id.clone()))?)
         } else {
             None
         };
@@ -245,6 +275,7 @@ impl SensorState {
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             entry,
+            _input_route: input_route,
             corrected_key,
             tilt_key,
             sequence: SequenceTracker::default(),

@@ -5,10 +5,18 @@
 //! process of its own, as it is deployed (its own runtime and threads, the service binary's
 //! allocator setting and logging). The system under test is, in turn:
 //!
-//! - `relay`: a plain relay, the baseline: subscribes to the raw streams and re-publishes the
-//!   same bytes on the corrected keys from the Zenoh callback, no decoding, no correction;
+//! - `relay`: a plain relay, the baseline the gateway's target is set against: subscribes to
+//!   the raw streams and re-publishes the same bytes on the corrected keys from the Zenoh
+//!   callback, no decoding, no correction;
+//! - `keyed-relay`: the same relay, but it declares each sensor's raw and corrected keys on
+//!   first sight, as the gateway does, so that Zenoh keeps their routes. It shows what moving
+//!   the bytes costs when Zenoh's routing is cached on both sides: the gateway against it is
+//!   the cost of the correction and nothing else;
 //! - `gateway`: the Triax gateway from the library, with a calibration (full covariance) for
-//!   every sensor in a temporary store.
+//!   every sensor in a temporary store, with the default overload policy (drop-oldest
+//!   queues between Zenoh's receive thread and the correction workers);
+//! - `gateway-backpressure`: the same with `overload = "backpressure"`: corrected on Zenoh's
+//!   receive thread, no queue.
 //!
 //! For each:
 //!
@@ -46,7 +54,7 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use triax_calibration_store::Store;
 use triax_gateway::worker::now_ns;
-use triax_gateway::{Config, Gateway};
+use triax_gateway::{Config, Gateway, Overload};
 use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::record::{sample, CalibrationRecord};
@@ -174,7 +182,20 @@ struct Received {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum System {
     Relay,
+    KeyedRelay,
     Gateway,
+    GatewayBackpressure,
+}
+
+impl System {
+    fn name(self) -> &'static str {
+        match self {
+            System::Relay => "relay",
+            System::KeyedRelay => "keyed-relay",
+            System::Gateway => "gateway",
+            System::GatewayBackpressure => "gateway-backpressure",
+        }
+    }
 }
 
 struct PhaseResult {
@@ -199,6 +220,29 @@ struct CpuPerBatch {
     bench_us: f64,
     /// Fraction of the offered batches delivered (1 when the load is below capacity).
     delivered: f64,
+    /// Context switches of the system under test's threads per batch: each is a thread
+    /// that slept and was woken.
+    server_switches: f64,
+}
+
+/// Context switches, voluntary and not, summed over every thread of a process, from
+/// /proc/<pid>/task/*/status. Threads that ended meanwhile are not counted.
+fn context_switches(pid: u32) -> Result<u64> {
+    let mut total = 0;
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
+        let Ok(text) = std::fs::read_to_string(task?.path().join("status")) else {
+            continue;
+        };
+        for line in text.lines() {
+            if let Some(rest) = line
+                .strip_prefix("voluntary_ctxt_switches:")
+                .or_else(|| line.strip_prefix("nonvoluntary_ctxt_switches:"))
+            {
+                total += rest.trim().parse::<u64>()?;
+            }
+        }
+    }
+    Ok(total)
 }
 
 /// CPU time a process has used so far, user and system, all threads, from /proc/<pid>/stat
@@ -334,12 +378,12 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     let store_path = dir.path().join("store");
 
     let server = match system {
-        System::Relay => Server::spawn(System::Relay, None, port)?,
-        System::Gateway => {
+        System::Relay | System::KeyedRelay => Server::spawn(system, None, port)?,
+        System::Gateway | System::GatewayBackpressure => {
             let n = args.sensors;
             let sp = store_path.clone();
             tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
-            Server::spawn(System::Gateway, Some(&store_path), port)?
+            Server::spawn(system, Some(&store_path), port)?
         }
     };
 
@@ -354,10 +398,10 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
             // The consumer decodes in full what it receives, in both systems: it shares the
             // CPU with the system under test, so it must cost the same in both runs.
             let header = match system {
-                System::Relay => RawBatch::decode(&bytes)
+                System::Relay | System::KeyedRelay => RawBatch::decode(&bytes)
                     .ok()
                     .map(|b| (b.header, b.samples.len())),
-                System::Gateway => CorrectedBatch::decode(&bytes)
+                System::Gateway | System::GatewayBackpressure => CorrectedBatch::decode(&bytes)
                     .ok()
                     .map(|b| (b.header, b.samples.len())),
             };
@@ -422,6 +466,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
 
     // CPU per batch at a fixed load that both systems carry in full.
     let (server_cpu0, bench_cpu0) = (cpu_seconds(server.pid)?, cpu_seconds(std::process::id())?);
+    let switches0 = context_switches(server.pid)?;
     let fixed = fleet
         .throughput(phase, Some(args.cpu_samples_per_s))
         .await?;
@@ -430,6 +475,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         server_us: (cpu_seconds(server.pid)? - server_cpu0) / batches * 1e6,
         bench_us: (cpu_seconds(std::process::id())? - bench_cpu0) / batches * 1e6,
         delivered: fixed.received_per_s / fixed.sent_per_s,
+        server_switches: (context_switches(server.pid)? - switches0) as f64 / batches,
     };
 
     // Latency at a fixed rate.
@@ -499,10 +545,7 @@ impl Server {
         use std::io::BufRead;
         let mut cmd = std::process::Command::new(std::env::current_exe()?);
         cmd.arg("--serve")
-            .arg(match system {
-                System::Relay => "relay",
-                System::Gateway => "gateway",
-            })
+            .arg(system.name())
             .arg("--port")
             .arg(port.to_string())
             .stdout(std::process::Stdio::piped())
@@ -563,16 +606,44 @@ impl Drop for Server {
 async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Result<()> {
     let endpoint = format!("tcp/127.0.0.1:{port}");
     match system {
-        System::Relay => {
+        System::Relay | System::KeyedRelay => {
             let s = session(Some(&endpoint), None).await?;
             let out = s.clone();
+            // Keyed: per sensor, its declared raw key (held for the routing entry) and its
+            // declared output key.
+            type Declared = (
+                zenoh::key_expr::KeyExpr<'static>,
+                zenoh::key_expr::KeyExpr<'static>,
+            );
+            let declared: Mutex<std::collections::HashMap<SensorId, Declared>> = Mutex::default();
             let _sub = s
                 .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
                 .callback(move |sample| {
                     // The bench's own sensor ids are valid, so the chunk parses.
                     let sensor = SensorId::new(keys::sensor_chunk(sample.key_expr().as_str()))
                         .expect("bench sensor ids are valid");
-                    let target = Key::Corrected(building(), sensor).to_string();
+                    let target: zenoh::key_expr::KeyExpr<'static> = if system == System::Relay {
+                        // Valid: built from valid ids.
+                        Key::Corrected(building(), sensor)
+                            .to_string()
+                            .try_into()
+                            .expect("valid key")
+                    } else {
+                        let mut map = declared.lock().unwrap_or_else(|p| p.into_inner());
+                        let entry = map.entry(sensor.clone()).or_insert_with(|| {
+                            let declare = |k: Key| {
+                                // Declaring a valid key on an open session does not fail.
+                                out.declare_keyexpr(k.to_string())
+                                    .wait()
+                                    .expect("declare a valid key")
+                            };
+                            (
+                                declare(Key::Raw(building(), sensor.clone())),
+                                declare(Key::Corrected(building(), sensor)),
+                            )
+                        });
+                        entry.1.clone()
+                    };
                     let _ = out
                         .put(target, sample.payload().clone())
                         .congestion_control(CongestionControl::Block)
@@ -584,9 +655,12 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
             std::future::pending::<()>().await;
             Ok(())
         }
-        System::Gateway => {
+        System::Gateway | System::GatewayBackpressure => {
             let store = store.context("--store")?;
-            let config = Config::for_tests(BUILDING, store, vec![endpoint]);
+            let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
+            if system == System::GatewayBackpressure {
+                config.overload = Overload::Backpressure;
+            }
             let t0 = Instant::now();
             let gateway = Gateway::start(config).await?;
             println!(
@@ -719,61 +793,71 @@ fn main() -> Result<()> {
             args.sensors, args.seconds
         );
         let relay = run_system(System::Relay, &args).await?;
+        let keyed = run_system(System::KeyedRelay, &args).await?;
         let paced = Args {
             paced_samples_per_s: Some(args.paced_samples_per_s.unwrap_or(relay.samples_per_s)),
             serve: None,
             ..args.clone()
         };
         let gw = run_system(System::Gateway, &paced).await?;
-        println!("| system | received samples/s, unpaced | offered | latency p50 (µs) | p99 (µs) | batches timed |");
-        println!("|---|---|---|---|---|---|");
-        for (name, r) in [("relay (baseline)", &relay), ("gateway", &gw)] {
-            println!(
-                "| {name} | {:.0} | {:.0} | {:.0} | {:.0} | {} |",
-                r.samples_per_s, r.sent_samples_per_s, r.p50_us, r.p99_us, r.n_latency
-            );
-        }
-        let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
+        let bp = run_system(System::GatewayBackpressure, &paced).await?;
         println!(
-            "\ngateway/relay throughput, unpaced: {:.2}; gateway delivered {:.0} of {:.0} samples/s offered at the relay's capacity ({:.2}); added latency: p50 {:+.0} µs, p99 {:+.0} µs (at {} batches/s)",
-            gw.samples_per_s / relay.samples_per_s,
-            gw.paced_samples_per_s.unwrap_or(f64::NAN),
-            paced_rate,
-            gw.paced_samples_per_s.unwrap_or(f64::NAN) / paced_rate,
-            gw.p50_us - relay.p50_us,
-            gw.p99_us - relay.p99_us,
-            args.latency_batches_per_s
-        );
-        println!(
-            "\nthroughput without loss (RFC 2544: the highest offered load carried with at most {:.1} % lost): relay {:.0}, gateway {:.0} samples/s, ratio {:.2}",
-            ZERO_LOSS_MAX * 100.0,
-            relay.zero_loss_samples_per_s,
-            gw.zero_loss_samples_per_s,
-            gw.zero_loss_samples_per_s / relay.zero_loss_samples_per_s
-        );
-        println!(
-            "\n### CPU per delivered batch at {:.0} samples/s offered to both\n",
+            "| system | unpaced: received samples/s | offered | without loss (RFC 2544) | CPU µs/batch at {:.0} samples/s: system / publisher + subscriber | context switches per batch | latency p50 / p99 (µs) |",
             args.cpu_samples_per_s
         );
-        println!("| system | delivered | system under test (µs/batch) | publisher + subscriber (µs/batch) | total (µs/batch) |");
-        println!("|---|---|---|---|---|");
-        for (name, r) in [("relay (baseline)", &relay), ("gateway", &gw)] {
+        println!("|---|---|---|---|---|---|---|");
+        let systems = [
+            (System::Relay, &relay),
+            (System::KeyedRelay, &keyed),
+            (System::Gateway, &gw),
+            (System::GatewayBackpressure, &bp),
+        ];
+        for (system, r) in systems {
             let c = r.cpu;
             println!(
-                "| {name} | {:.3} | {:.2} | {:.2} | {:.2} |",
-                c.delivered,
+                "| {} | {:.0} | {:.0} | {:.0} | {:.2} / {:.2} (delivered {:.3}) | {:.2} | {:.0} / {:.0} ({} batches) |",
+                system.name(),
+                r.samples_per_s,
+                r.sent_samples_per_s,
+                r.zero_loss_samples_per_s,
                 c.server_us,
                 c.bench_us,
-                c.server_us + c.bench_us
+                c.delivered,
+                c.server_switches,
+                r.p50_us,
+                r.p99_us,
+                r.n_latency
             );
         }
-        let total = |c: CpuPerBatch| c.server_us + c.bench_us;
         println!(
-            "\ngateway − relay: {:+.2} µs of CPU per batch in the system under test, {:+.2} in publisher + subscriber; on a machine they share, capacity ratio ≈ relay total / gateway total = {:.2}",
-            gw.cpu.server_us - relay.cpu.server_us,
-            gw.cpu.bench_us - relay.cpu.bench_us,
-            total(relay.cpu) / total(gw.cpu)
+            "\n(without loss: at most {:.1} % lost over {} s trials)",
+            ZERO_LOSS_MAX * 100.0,
+            args.trial_seconds
         );
+        let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
+        let total = |c: CpuPerBatch| c.server_us + c.bench_us;
+        for (system, g) in [(System::Gateway, &gw), (System::GatewayBackpressure, &bp)] {
+            let name = system.name();
+            let delivered = g.paced_samples_per_s.unwrap_or(f64::NAN);
+            println!(
+                "\n{name}: at the relay's unpaced capacity, {delivered:.0} of {paced_rate:.0} samples/s offered delivered ({:.2}); added latency over the relay p50 {:+.0} µs, p99 {:+.0} µs (at {} batches/s)",
+                delivered / paced_rate,
+                g.p50_us - relay.p50_us,
+                g.p99_us - relay.p99_us,
+                args.latency_batches_per_s
+            );
+            for (base_system, base) in [(System::Relay, &relay), (System::KeyedRelay, &keyed)] {
+                println!(
+                    "- {name} / {}: unpaced {:.2}, without loss {:.2}, CPU {:+.2} µs/batch in the system under test and {:+.2} in publisher + subscriber, capacity ratio from CPU (total / total) {:.2}",
+                    base_system.name(),
+                    g.samples_per_s / base.samples_per_s,
+                    g.zero_loss_samples_per_s / base.zero_loss_samples_per_s,
+                    g.cpu.server_us - base.cpu.server_us,
+                    g.cpu.bench_us - base.cpu.bench_us,
+                    total(base.cpu) / total(g.cpu)
+                );
+            }
+        }
         if args.rss_sensors > 0 {
             rss_check(args.rss_sensors).await?;
         }
