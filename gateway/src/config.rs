@@ -48,7 +48,10 @@ pub enum Overload {
     /// consumer cannot keep up, Zenoh's flow control slows the sensor nodes, whose own
     /// congestion control then holds or drops their batches. The gateway drops nothing. No
     /// hand-over between threads, so the least CPU and latency per batch and the highest
-    /// throughput (BENCHMARKS.md); a slow consumer slows every stream of the gateway.
+    /// throughput (BENCHMARKS.md); a slow consumer slows every stream of the gateway. The
+    /// correction runs on the receive thread of the link a batch came in on, so a gateway fed
+    /// through one router link corrects on one core (a building's load is a few percent of
+    /// one).
     Backpressure,
 }
 
