@@ -1,11 +1,12 @@
 //! A bounded queue between the Zenoh receive callback and a correction worker that drops the
 //! oldest entry when full, and counts what it dropped.
 //!
-//! Zenoh calls the subscriber callback on its own receive threads, which must never block: a
-//! stalled callback would stall every stream on the link. So the callback only pushes here, and
-//! when a worker falls behind (a slow consumer, a burst) the stalest batch goes first: live
-//! monitoring values fresh data over complete data, and the gap shows downstream as a
-//! `sequence_gap` flag plus the `dropped` counter.
+//! Zenoh calls the subscriber callback on its own receive threads, and a stalled callback stalls
+//! every stream on the link. Under the drop-oldest policy (the default) the callback only pushes
+//! here, and when a worker falls behind (a slow consumer, a burst) the stalest batch goes
+//! first: live monitoring values fresh data over complete data, and the gap shows downstream as
+//! a `sequence_gap` flag plus the `dropped` counter. (Under backpressure there is no inbox: the
+//! stall is the point, see [`crate::config::Overload`].)
 //!
 //! A std mutex and not a tokio one: it is held only for a push or a pop, never across an await.
 

@@ -419,7 +419,8 @@ impl Gateway {
 
     /// Serves until `shutdown` completes, then stops: no new batches, workers correct and
     /// publish what is queued (for at most [`worker::SHUTDOWN_DRAIN`], the rest counted as
-    /// dropped), the session closes, the store is flushed and closed.
+    /// dropped; under backpressure nothing is queued), the session closes, the store is
+    /// flushed and closed.
     pub async fn run_until(mut self, shutdown: impl Future) -> Result<(), GatewayError> {
         shutdown.await;
         tracing::info!("shutting down");

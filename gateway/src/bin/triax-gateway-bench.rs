@@ -226,7 +226,7 @@ struct CpuPerBatch {
 }
 
 /// Context switches, voluntary and not, summed over every thread of a process, from
-/// /proc/<pid>/task/*/status. Threads that ended meanwhile are not counted.
+/// `/proc/<pid>/task/*/status`. Threads that ended meanwhile are not counted.
 fn context_switches(pid: u32) -> Result<u64> {
     let mut total = 0;
     for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
@@ -245,7 +245,7 @@ fn context_switches(pid: u32) -> Result<u64> {
     Ok(total)
 }
 
-/// CPU time a process has used so far, user and system, all threads, from /proc/<pid>/stat
+/// CPU time a process has used so far, user and system, all threads, from `/proc/<pid>/stat`
 /// (in USER_HZ ticks, 100 per second on Linux).
 fn cpu_seconds(pid: u32) -> Result<f64> {
     let text = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
