@@ -268,19 +268,27 @@ impl SetCorrector {
     /// `a = S⁻¹·v + q` and its per-axis standard uncertainty, with full covariance propagation.
     #[inline(always)]
     pub fn correct(&self, v: [f64; 3]) -> Corrected {
-        let scaled = self.scale(v);
-        let mut accel_mps2 = [0.0; 3];
-        let mut uncertainty_mps2 = [0.0; 3];
-        for k in 0..3 {
-            accel_mps2[k] = scaled[k] + self.offset_mps2[k];
-            let var = eval(&self.param_cov[k], scaled, 1.0) + self.const_cov[k][k];
-            // Round-off can take a zero variance a hair below zero.
-            uncertainty_mps2[k] = var.max(0.0).sqrt();
-        }
+        let (accel_mps2, variance) = self.correct_variance(v);
         Corrected {
             accel_mps2,
-            uncertainty_mps2,
+            // Round-off can take a zero variance a hair below zero.
+            uncertainty_mps2: variance.map(|var| var.max(0.0).sqrt()),
         }
+    }
+
+    /// `a = S⁻¹·v + q` and its per-axis variance (m²/s⁴), with full covariance propagation:
+    /// [`correct`](Self::correct) without the square roots, for a caller that adds variances
+    /// before taking one. Round-off can leave a zero variance a hair below zero.
+    #[inline(always)]
+    pub fn correct_variance(&self, v: [f64; 3]) -> ([f64; 3], [f64; 3]) {
+        let scaled = self.scale(v);
+        let mut accel_mps2 = [0.0; 3];
+        let mut variance = [0.0; 3];
+        for k in 0..3 {
+            accel_mps2[k] = scaled[k] + self.offset_mps2[k];
+            variance[k] = eval(&self.param_cov[k], scaled, 1.0) + self.const_cov[k][k];
+        }
+        (accel_mps2, variance)
     }
 
     /// Variance of `S⁻¹·v` per axis from the parameters alone (no offset, no noise, no stated

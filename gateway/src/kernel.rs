@@ -497,14 +497,15 @@ fn split_all(static_set: &SetCorrector, dynamic_set: &SetCorrector, s: &mut Scra
     for i in 0..s.v.len() {
         let (v, low) = (s.v[i], s.low[i]);
         let high = [v[0] - low[0], v[1] - low[1], v[2] - low[2]];
-        let rl = static_set.correct(low);
+        let (al, var_l) = static_set.correct_variance(low);
         let ah = dynamic_set.scale(high);
         let vh = dynamic_set.scale_param_variance(high);
         let mut f = 0;
         for k in 0..3 {
-            s.a[i][k] = rl.accel_mps2[k] + ah[k];
-            s.u[i][k] = (rl.uncertainty_mps2[k] * rl.uncertainty_mps2[k] + vh[k] + extra[k]).sqrt();
-            if rl.accel_mps2[k].abs() > amp_s || ah[k].abs() > amp_d {
+            s.a[i][k] = al[k] + ah[k];
+            // Round-off can take a zero variance a hair below zero.
+            s.u[i][k] = (var_l[k].max(0.0) + vh[k] + extra[k]).sqrt();
+            if al[k].abs() > amp_s || ah[k].abs() > amp_d {
                 f |= flags::OUTSIDE_AMPLITUDE;
             }
         }
