@@ -106,6 +106,35 @@ fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError 
     }
 }
 
+/// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
+enum Intake {
+    /// Drop-oldest: the inbox of the sensor's worker.
+    Queues(Arc<Vec<Arc<Inbox<Sample>>>>),
+    /// Backpressure: the sensor's shard, run right here on the receive thread.
+    Shards(Vec<std::sync::Mutex<worker::Shard>>, Arc<worker::Shared>),
+}
+
+impl Intake {
+    fn take(&self, sample: Sample) {
+        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+        match self {
+            Intake::Queues(inboxes) => {
+                let i = worker::shard(sensor, inboxes.len());
+                inboxes[i].push(sample);
+            }
+            Intake::Shards(shards, shared) => {
+                let i = worker::shard(sensor, shards.len());
+                // A panic while handling (a bug) leaves at most one sensor's filter memory
+                // mid-batch: the shard still serves its other sensors.
+                shards[i]
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .handle(shared, sample);
+            }
+        }
+    }
+}
+
 /// A running gateway.
 pub struct Gateway {
     config: Arc<Config>,
@@ -235,41 +264,22 @@ impl Gateway {
             )));
         }
 
-        let intake = counters.clone();
-        let raw_streams = keys::all_sensors(&config.building, Stream::Raw);
-        let subscriber = match config.overload {
-            Overload::DropOldest => {
-                let route = inboxes.clone();
-                session
-                    .declare_subscriber(raw_streams)
-                    .callback(move |sample: Sample| {
-                        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
-                        intake.received_batches.fetch_add(1, Relaxed);
-                        route[worker::shard(sensor, route.len())].push(sample);
-                    })
-                    .await
-            }
-            Overload::Backpressure => {
-                let shards: Vec<std::sync::Mutex<worker::Shard>> =
-                    (0..config.workers).map(|_| Default::default()).collect();
-                let shared = shared.clone();
-                session
-                    .declare_subscriber(raw_streams)
-                    .callback(move |sample: Sample| {
-                        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
-                        intake.received_batches.fetch_add(1, Relaxed);
-                        let shard = &shards[worker::shard(sensor, shards.len())];
-                        // A panic while handling (a bug) leaves at most one sensor's filter
-                        // memory mid-batch: the shard still serves its other sensors.
-                        shard
-                            .lock()
-                            .unwrap_or_else(|p| p.into_inner())
-                            .handle(&shared, sample);
-                    })
-                    .await
-            }
-        }
-        .map_err(zenoh_err("subscribe to raw streams"))?;
+        let intake = match config.overload {
+            Overload::DropOldest => Intake::Queues(inboxes.clone()),
+            Overload::Backpressure => Intake::Shards(
+                (0..config.workers).map(|_| Default::default()).collect(),
+                shared.clone(),
+            ),
+        };
+        let received = counters.clone();
+        let subscriber = session
+            .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
+            .callback(move |sample: Sample| {
+                received.received_batches.fetch_add(1, Relaxed);
+                intake.take(sample);
+            })
+            .await
+            .map_err(zenoh_err("subscribe to raw streams"))?;
 
         let status_ctx = status::StatusContext {
             config: config.clone(),
