@@ -10,9 +10,9 @@
 //! Data flow:
 //!
 //! ```text
-//! triax/<b>/raw/*  ─► Zenoh callback ─► Inbox (bounded, drop-oldest) ─► worker (per sensor
-//!   shard): sequence check, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
-//!   (or, under backpressure, the callback runs the shard itself)   triax/<b>/tilt/<s>
+//! triax/<b>/raw/* ─► Zenoh callback ─► Inbox (bounded, drop-oldest) ─► worker thread (per
+//!   sensor shard): sequence, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
+//!   (under backpressure the callback runs the shard itself)       triax/<b>/tilt/<s>
 //! triax/<b>/status ◄─ queryable (GatewayStatus JSON)      http://<metrics>/metrics (Prometheus)
 //! triax/<b>/calibration/push/* ◄─ queryable: verify, store, swap, ack ─► calibration/ack/<s>
 //! triax/<b>/calibration/registry ─► query at start and periodically (catch-up)
@@ -146,6 +146,9 @@ pub struct Gateway {
     trigger: ShutdownTrigger,
     subscriber: Option<zenoh::pubsub::Subscriber<()>>,
     tasks: Vec<JoinHandle<()>>,
+    /// Drop-oldest only: the workers' inboxes and threads.
+    inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    workers: Vec<std::thread::JoinHandle<()>>,
     metrics_addr: Option<SocketAddr>,
     started_at: OffsetDateTime,
 }
@@ -254,15 +257,16 @@ impl Gateway {
             counters: counters.clone(),
             declared_keys_max: config.declared_keys_max,
         });
-        let mut tasks = Vec::new();
+        let mut workers = Vec::new();
         for (i, inbox) in inboxes.iter().enumerate() {
-            tasks.push(tokio::spawn(worker::run(
-                i,
-                inbox.clone(),
-                shared.clone(),
-                shutdown.clone(),
-            )));
+            let (inbox, shared) = (inbox.clone(), shared.clone());
+            let worker = std::thread::Builder::new()
+                .name(format!("triax-worker-{i}"))
+                .spawn(move || worker::run(i, inbox, shared))
+                .map_err(|e| GatewayError::Task(format!("starting worker thread {i}: {e}")))?;
+            workers.push(worker);
         }
+        let mut tasks = Vec::new();
 
         let intake = match config.overload {
             Overload::DropOldest => Intake::Queues(inboxes.clone()),
@@ -379,6 +383,8 @@ impl Gateway {
             trigger,
             subscriber: Some(subscriber),
             tasks,
+            inboxes,
+            workers,
             metrics_addr,
             started_at,
         })
@@ -434,13 +440,31 @@ impl Gateway {
     pub async fn run_until(mut self, shutdown: impl Future) -> Result<(), GatewayError> {
         shutdown.await;
         tracing::info!("shutting down");
-        // Stop intake first, so nothing lands in an inbox no worker drains.
+        // Stop intake first; a batch still in Zenoh's hands after that finds its inbox closed
+        // and is counted as dropped.
         drop(self.subscriber.take());
+        let drain_until = std::time::Instant::now() + worker::SHUTDOWN_DRAIN;
+        for inbox in self.inboxes.iter() {
+            inbox.close(drain_until);
+        }
         self.trigger.fire();
         for t in self.tasks.drain(..) {
             if let Err(e) = t.await {
                 tracing::error!(cause = %e, "gateway task ended abnormally");
             }
+        }
+        let workers = std::mem::take(&mut self.workers);
+        let joined = tokio::task::spawn_blocking(move || {
+            workers
+                .into_iter()
+                .map(|w| w.join())
+                .filter(Result::is_err)
+                .count()
+        })
+        .await
+        .map_err(|e| GatewayError::Task(e.to_string()))?;
+        if joined > 0 {
+            tracing::error!(workers = joined, "worker threads ended abnormally");
         }
         if let Err(e) = self.session.close().await {
             tracing::warn!(cause = %e, "zenoh session did not close cleanly");

@@ -1,13 +1,13 @@
 //! Correction shards: each owns a share of the sensors (by a hash of the id), corrects their
 //! raw batches with [`SensorKernel`] and publishes the corrected batch and, for inclinometers,
-//! the tilt stream. Under [`Overload::DropOldest`](crate::config::Overload) a shard is a worker
-//! task that pops its batches from its [`Inbox`]; under `Backpressure` Zenoh's receive thread
-//! runs it directly, behind a mutex.
+//! the tilt stream. Under [`Overload::DropOldest`](crate::config::Overload) a shard belongs to
+//! a worker thread that pops its batches from its [`Inbox`]; under `Backpressure` Zenoh's
+//! receive thread runs it directly, behind a mutex.
 //!
 //! A sensor always lands on the same shard, so its batches are corrected in order and its
-//! state (sequence tracker, filter memory, output keys) is touched by one thread at a time. Events name their sensor
-//! in a field rather than in a span: a span per sensor would cost every sensor a registry
-//! entry for the rare event.
+//! state (sequence tracker, filter memory, output keys) is touched by one thread at a time.
+//! Events name their sensor in a field rather than in a span: a span per sensor would cost
+//! every sensor a registry entry for the rare event.
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
@@ -21,11 +21,10 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
-use crate::inbox::Inbox;
+use crate::inbox::{Inbox, Next};
 use crate::kernel::{Scratch, SensorKernel};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
-use crate::shutdown::Shutdown;
 use crate::tilt::tilt;
 use triax_protocol::record::SetKind;
 use triax_protocol::{keys, BuildingId};
@@ -56,7 +55,7 @@ impl Shared {
         if !declare {
             return Ok(None);
         }
-        let declared = zenoh::Wait::wait(self.session.declare_keyexpr(key.to_string()));
+        let declared = self.session.declare_keyexpr(key.to_string()).wait();
         if declared.is_err() {
             // Give the slot back: the sensor is retried on its next batch.
             self.counters.declared_keys.fetch_sub(1, Relaxed);
@@ -118,36 +117,25 @@ impl Shard {
     }
 }
 
-/// Runs one worker until shutdown, then corrects what is still queued (for at most
-/// [`SHUTDOWN_DRAIN`]).
-pub async fn run(
-    index: usize,
-    inbox: Arc<Inbox<Sample>>,
-    shared: Arc<Shared>,
-    mut shutdown: Shutdown,
-) {
+/// Runs one worker, on a thread of its own, until its inbox closes; then corrects what is
+/// still queued, for at most the drain time given to [`Inbox::close`] ([`SHUTDOWN_DRAIN`]),
+/// and counts the rest as dropped.
+///
+/// A thread and not an async task: publishing blocks while a consumer is slow (Zenoh's
+/// blocking congestion control), and a task blocked so would hold a thread of the runtime
+/// that serves status, metrics and calibration pushes.
+pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shared: Arc<Shared>) {
     let mut shard = Shard::default();
     tracing::debug!(worker = index, "worker started");
+    let mut abandoned = 0u64;
     loop {
-        let sample = tokio::select! {
-            biased;
-            _ = shutdown.recv() => break,
-            s = inbox.pop() => s,
-        };
-        shard.handle(&shared, sample);
-    }
-    // Intake stopped before the shutdown fired, so what is queued is all there will be: every
-    // batch the gateway took from Zenoh is corrected and published, or counted as dropped. A
-    // consumer too slow to take the rest within SHUTDOWN_DRAIN does not hold the stop up.
-    let deadline = tokio::time::Instant::now() + SHUTDOWN_DRAIN;
-    let (mut drained, mut abandoned) = (0u64, 0u64);
-    while let Some(sample) = inbox.try_pop() {
-        if tokio::time::Instant::now() < deadline {
-            shard.handle(&shared, sample);
-            drained += 1;
-        } else {
-            shared.counters.dropped.fetch_add(1, Relaxed);
-            abandoned += 1;
+        match inbox.pop() {
+            Next::Item(sample) => shard.handle(&shared, sample),
+            Next::Late(_) => {
+                shared.counters.dropped.fetch_add(1, Relaxed);
+                abandoned += 1;
+            }
+            Next::Closed => break,
         }
     }
     if abandoned > 0 {
@@ -160,7 +148,6 @@ pub async fn run(
     tracing::debug!(
         worker = index,
         sensors = shard.sensors.len(),
-        drained,
         "worker stopped"
     );
 }

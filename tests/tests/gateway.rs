@@ -12,9 +12,6 @@
 //!   three sensors' streams all arrive.
 //! - `shutdown_publishes_every_batch_already_received`: stopping right after a burst still
 //!   corrects and publishes what was queued.
-//! - `backpressure_slows_the_nodes_instead_of_dropping`: a consumer stalls for a second under
-//!   each overload policy: drop-oldest drops (counted), backpressure delivers every batch in
-//!   order and drops none.
 //! - `status_is_paged_and_bad_parameters_are_refused_by_name`
 //! - `malformed_payloads_are_counted_and_the_stream_goes_on`
 //! - `gaps_and_duplicates_are_flagged_and_counted`
@@ -30,20 +27,12 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use triax_gateway::{CorrectionMode, Overload, SensorSettings};
-use triax_protocol::batch::{flags, CorrectedBatch, Mode};
+use triax_gateway::{CorrectionMode, SensorSettings};
+use triax_protocol::batch::{flags, Mode};
 use triax_protocol::messages::{GatewayStatus, TiltSample};
 use triax_protocol::record::{sample, CalibrationRecord};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use util::*;
-
-fn key_raw(b: &str, s: &str) -> String {
-    Key::Raw(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
-}
-
-fn key_corrected(b: &str, s: &str) -> String {
-    Key::Corrected(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
-}
 
 async fn status(session: &zenoh::Session, b: &str) -> GatewayStatus {
     let replies = session
@@ -305,79 +294,6 @@ async fn shutdown_publishes_every_batch_already_received() {
     })
     .await;
     session.close().await.unwrap();
-}
-
-/// One run of a consumer that stalls for `STALL` at its first batch while a node sends `n`
-/// batches of 1000 samples, far more than Zenoh's queues and the sockets hold. Returns the
-/// sequence numbers the consumer got, in order, and the gateway's drop count.
-async fn stalled_consumer(overload: Overload, building: &str, n: u64) -> (Vec<u64>, u64) {
-    use std::sync::atomic::Ordering::Relaxed;
-    use std::sync::{Arc, Mutex};
-    const STALL: std::time::Duration = std::time::Duration::from_secs(1);
-    let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("store");
-    seed_store(&store, &[sample::record("stall", 1)]);
-    let mut cfg = config(building, &store);
-    cfg.overload = overload;
-    cfg.workers = 1;
-    cfg.queue_capacity_batches = 1;
-    let endpoint = cfg.zenoh.listen[0].clone();
-    let gateway = triax_gateway::Gateway::start(cfg).await.unwrap();
-    let counters = gateway.counters().clone();
-    let session = client(&endpoint).await;
-    let got = Arc::new(Mutex::new(Vec::new()));
-    let g = got.clone();
-    let open_at = std::sync::OnceLock::new();
-    let _sub = session
-        .declare_subscriber(key_corrected(building, "stall"))
-        .callback(move |sample| {
-            let open_at = *open_at.get_or_init(|| std::time::Instant::now() + STALL);
-            if let Some(wait) = open_at.checked_duration_since(std::time::Instant::now()) {
-                std::thread::sleep(wait);
-            }
-            let batch = CorrectedBatch::decode(&sample.payload().to_bytes()).unwrap();
-            g.lock().unwrap().push(batch.header.sequence);
-        })
-        .await
-        .unwrap();
-    let publisher = session
-        .declare_publisher(key_raw(building, "stall"))
-        .congestion_control(zenoh::qos::CongestionControl::Block)
-        .await
-        .unwrap();
-    wait_matching(&publisher).await;
-    for seq in 0..n {
-        publisher
-            .put(raw("stall", seq, vec![[0.1, -0.2, 0.98]; 1000]))
-            .await
-            .unwrap();
-    }
-    // Everything sent is either delivered or counted as dropped.
-    wait_until("every batch delivered or counted as dropped", || {
-        got.lock().unwrap().len() as u64 + counters.dropped.load(Relaxed) == n
-    })
-    .await;
-    gateway.run_until(async {}).await.unwrap();
-    session.close().await.unwrap();
-    let sequences = got.lock().unwrap().clone();
-    (sequences, counters.dropped.load(Relaxed))
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn backpressure_slows_the_nodes_instead_of_dropping() {
-    let n = 600;
-    // The same stall under drop-oldest, with a one-batch queue: batches are dropped, so the
-    // stall does overload the gateway.
-    let (sequences, dropped) = stalled_consumer(Overload::DropOldest, "b11", n).await;
-    assert!(dropped > 0, "{} delivered, none dropped", sequences.len());
-    assert!(sequences.windows(2).all(|w| w[0] < w[1]), "in order");
-    let (sequences, dropped) = stalled_consumer(Overload::Backpressure, "b12", n).await;
-    assert_eq!(dropped, 0);
-    assert_eq!(
-        sequences,
-        (0..n).collect::<Vec<_>>(),
-        "every batch, in order"
-    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -13,10 +13,20 @@ use triax_gateway::{Config, Gateway};
 use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
 use triax_protocol::record::CalibrationRecord;
-use triax_protocol::SensorId;
+use triax_protocol::{BuildingId, Key, SensorId};
 
 /// Longest any step of a test waits for the network.
 pub const TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Key of a sensor's raw stream.
+pub fn key_raw(b: &str, s: &str) -> String {
+    Key::Raw(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
+}
+
+/// Key of a sensor's corrected stream.
+pub fn key_corrected(b: &str, s: &str) -> String {
+    Key::Corrected(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
+}
 
 /// A loopback TCP port nobody listens on right now (see [`triax_net::free_loopback_port`]).
 pub fn free_port() -> u16 {
