@@ -259,12 +259,7 @@ async fn shutdown_publishes_every_batch_already_received() {
         .await
         .unwrap();
     // Block: the burst must reach the gateway whole, not be thinned in the client's queue.
-    let publisher = session
-        .declare_publisher(key_raw("b9", "burst"))
-        .congestion_control(zenoh::qos::CongestionControl::Block)
-        .await
-        .unwrap();
-    wait_matching(&publisher).await;
+    let publisher = blocking_publisher(&session, key_raw("b9", "burst")).await;
     let n = 400u64;
     for seq in 0..n {
         publisher

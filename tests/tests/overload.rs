@@ -61,12 +61,7 @@ async fn stalled_consumer(overload: Overload, building: &str, n: u64) -> (Vec<u6
         })
         .await
         .unwrap();
-    let publisher = session
-        .declare_publisher(key_raw(building, "stall"))
-        .congestion_control(zenoh::qos::CongestionControl::Block)
-        .await
-        .unwrap();
-    wait_matching(&publisher).await;
+    let publisher = blocking_publisher(&session, key_raw(building, "stall")).await;
     for seq in 0..n {
         publisher
             .put(raw("stall", seq, vec![[0.1, -0.2, 0.98]; 1000]))
@@ -138,13 +133,7 @@ async fn status_answers_while_a_stalled_consumer_blocks_every_worker() {
     let session = client(&endpoint).await;
     let mut publishers = Vec::new();
     for id in ids {
-        let p = session
-            .declare_publisher(key_raw("o3", id))
-            .congestion_control(zenoh::qos::CongestionControl::Block)
-            .await
-            .unwrap();
-        wait_matching(&p).await;
-        publishers.push(p);
+        publishers.push(blocking_publisher(&session, key_raw("o3", id)).await);
     }
     // Far more than Zenoh's queues and the sockets hold.
     let per_sensor = 300;

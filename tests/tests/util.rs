@@ -28,6 +28,21 @@ pub fn key_corrected(b: &str, s: &str) -> String {
     Key::Corrected(BuildingId::new(b).unwrap(), SensorId::new(s).unwrap()).to_string()
 }
 
+/// A node's publisher that blocks rather than drops when the link is full, so that a burst
+/// reaches the gateway whole, once the gateway's subscription matches it.
+pub async fn blocking_publisher(
+    session: &zenoh::Session,
+    key: String,
+) -> zenoh::pubsub::Publisher<'static> {
+    let publisher = session
+        .declare_publisher(key)
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
+    wait_matching(&publisher).await;
+    publisher
+}
+
 /// A loopback TCP port nobody listens on right now (see [`triax_net::free_loopback_port`]).
 pub fn free_port() -> u16 {
     triax_net::free_loopback_port().expect("loopback is available")
