@@ -135,6 +135,14 @@ impl Intake {
     }
 }
 
+/// Closes every worker's inbox: its worker stops once it has taken what is queued, until
+/// `drain_until`.
+fn close_all(inboxes: &[Arc<Inbox<Sample>>], drain_until: std::time::Instant) {
+    for inbox in inboxes {
+        inbox.close(drain_until);
+    }
+}
+
 /// A running gateway.
 pub struct Gateway {
     config: Arc<Config>,
@@ -257,15 +265,6 @@ impl Gateway {
             counters: counters.clone(),
             declared_keys_max: config.declared_keys_max,
         });
-        let mut workers = Vec::new();
-        for (i, inbox) in inboxes.iter().enumerate() {
-            let (inbox, shared) = (inbox.clone(), shared.clone());
-            let worker = std::thread::Builder::new()
-                .name(format!("triax-worker-{i}"))
-                .spawn(move || worker::run(i, inbox, shared))
-                .map_err(|e| GatewayError::Task(format!("starting worker thread {i}: {e}")))?;
-            workers.push(worker);
-        }
         let mut tasks = Vec::new();
 
         let intake = match config.overload {
@@ -365,6 +364,24 @@ impl Gateway {
             )));
             tracing::info!(addr = %bound, "metrics at http://{bound}/metrics");
         }
+        // Last, so that a start that fails leaves no thread behind. Batches taken meanwhile
+        // wait in the inboxes.
+        let mut workers = Vec::new();
+        for (i, inbox) in inboxes.iter().enumerate() {
+            let (inbox, shared) = (inbox.clone(), shared.clone());
+            let spawned = std::thread::Builder::new()
+                .name(format!("triax-worker-{i}"))
+                .spawn(move || worker::run(i, inbox, shared));
+            match spawned {
+                Ok(worker) => workers.push(worker),
+                Err(e) => {
+                    close_all(&inboxes, std::time::Instant::now());
+                    return Err(GatewayError::Task(format!(
+                        "starting worker thread {i}: {e}"
+                    )));
+                }
+            }
+        }
         tracing::info!(
             building = %config.building,
             gateway = %config.gateway_name,
@@ -443,10 +460,10 @@ impl Gateway {
         // Stop intake first; a batch still in Zenoh's hands after that finds its inbox closed
         // and is counted as dropped.
         drop(self.subscriber.take());
-        let drain_until = std::time::Instant::now() + worker::SHUTDOWN_DRAIN;
-        for inbox in self.inboxes.iter() {
-            inbox.close(drain_until);
-        }
+        close_all(
+            &self.inboxes,
+            std::time::Instant::now() + worker::SHUTDOWN_DRAIN,
+        );
         self.trigger.fire();
         for t in self.tasks.drain(..) {
             if let Err(e) = t.await {
@@ -485,5 +502,13 @@ impl Gateway {
         }
         tracing::info!("stopped");
         Ok(())
+    }
+}
+
+impl Drop for Gateway {
+    /// A gateway dropped without [`Gateway::run_until`] still lets its worker threads end
+    /// (what they hold queued is counted as dropped). After `run_until` they have ended.
+    fn drop(&mut self) {
+        close_all(&self.inboxes, std::time::Instant::now());
     }
 }

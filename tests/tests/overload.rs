@@ -6,6 +6,8 @@
 //!   order and drops none.
 //! - `status_answers_while_a_stalled_consumer_blocks_every_worker`: both workers wait on a
 //!   stalled consumer; status queries are still answered.
+//! - `a_dropped_gateway_leaves_no_worker_thread`: dropped without a shutdown, its worker
+//!   threads still end.
 //!
 //! A binary of its own, its tests one at a time: Zenoh runs every session's receive callbacks
 //! on one pool of two threads per process, and a stalled consumer's callback holds one of them,
@@ -183,4 +185,29 @@ async fn status_answers_while_a_stalled_consumer_blocks_every_worker() {
     gateway.run_until(async {}).await.unwrap();
     session.close().await.unwrap();
     consumer.close().await.unwrap();
+}
+
+/// Threads of this process whose name starts with `prefix`.
+fn threads_named(prefix: &str) -> usize {
+    std::fs::read_dir("/proc/self/task")
+        .unwrap()
+        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("comm")).ok())
+        .filter(|name| name.starts_with(prefix))
+        .count()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dropped_gateway_leaves_no_worker_thread() {
+    let _alone = ONE_AT_A_TIME.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config("o4", &dir.path().join("store"));
+    cfg.workers = 2;
+    let gateway = Gateway::start(cfg).await.unwrap();
+    // A thread takes its name once it runs.
+    wait_until("two worker threads", || threads_named("triax-worker") == 2).await;
+    drop(gateway);
+    wait_until("the worker threads to end", || {
+        threads_named("triax-worker") == 0
+    })
+    .await;
 }
