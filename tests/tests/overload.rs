@@ -149,7 +149,7 @@ async fn status_answers_while_a_stalled_consumer_blocks_every_worker() {
     // Both workers are waiting once publishing has stopped short of what they were given.
     let mut last = u64::MAX;
     loop {
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
         let now = counters.published_batches.load(Relaxed);
         if now == last {
             break;
