@@ -274,10 +274,15 @@ fn check_len(n_samples: usize, expected: usize, len: usize) -> Result<(), Decode
     Ok(())
 }
 
-/// One raw sample from its [`RAW_SAMPLE_BYTES`] bytes.
+/// Three consecutive f32 (a raw sample, a corrected acceleration or its uncertainty) from
+/// `offset`.
 #[inline(always)]
-fn raw_sample(record: &[u8]) -> [f32; 3] {
-    [f32_at(record, 0), f32_at(record, 4), f32_at(record, 8)]
+fn f32x3_at(bytes: &[u8], offset: usize) -> [f32; 3] {
+    [
+        f32_at(bytes, offset),
+        f32_at(bytes, offset + 4),
+        f32_at(bytes, offset + 8),
+    ]
 }
 
 #[inline(always)]
@@ -404,12 +409,14 @@ impl<'a> RawBatchView<'a> {
     #[inline]
     pub fn sample(&self, i: usize) -> [f32; 3] {
         let o = i * RAW_SAMPLE_BYTES;
-        raw_sample(&self.samples[o..o + RAW_SAMPLE_BYTES])
+        f32x3_at(&self.samples[o..o + RAW_SAMPLE_BYTES], 0)
     }
 
     /// The samples in order.
     pub fn samples(&self) -> impl ExactSizeIterator<Item = [f32; 3]> + '_ {
-        self.samples.chunks_exact(RAW_SAMPLE_BYTES).map(raw_sample)
+        self.samples
+            .chunks_exact(RAW_SAMPLE_BYTES)
+            .map(|record| f32x3_at(record, 0))
     }
 
     /// Replaces the contents of `out` with the samples widened to f64.
@@ -423,7 +430,7 @@ impl<'a> RawBatchView<'a> {
         out.extend(
             self.samples
                 .chunks_exact(RAW_SAMPLE_BYTES)
-                .map(|record| raw_sample(record).map(f64::from)),
+                .map(|record| f32x3_at(record, 0).map(f64::from)),
         );
     }
 }
@@ -502,8 +509,8 @@ impl CorrectedBatch {
                 return Err(DecodeError::ReservedFlags(flags));
             }
             samples.push(CorrectedSample {
-                accel_mps2: [f32_at(rec, 0), f32_at(rec, 4), f32_at(rec, 8)],
-                uncertainty_mps2: [f32_at(rec, 12), f32_at(rec, 16), f32_at(rec, 20)],
+                accel_mps2: f32x3_at(rec, 0),
+                uncertainty_mps2: f32x3_at(rec, 12),
                 flags,
             });
         }
