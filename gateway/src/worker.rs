@@ -110,13 +110,6 @@ pub struct Shard {
     scratch: Scratch,
 }
 
-impl Shard {
-    /// Corrects and publishes one raw batch; a bad one is counted and skipped.
-    pub fn handle(&mut self, shared: &Shared, sample: Sample) {
-        handle(&mut self.sensors, &mut self.scratch, shared, sample)
-    }
-}
-
 /// Runs one worker, on a thread of its own, until its inbox closes; then corrects what is
 /// still queued, for at most the drain time given to [`Inbox::close`] ([`SHUTDOWN_DRAIN`]),
 /// and counts the rest as dropped.
@@ -172,71 +165,70 @@ fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
     }
 }
 
-fn handle(
-    sensors: &mut HashMap<Box<str>, Box<SensorState>>,
-    scratch: &mut Scratch,
-    shared: &Shared,
-    sample: Sample,
-) {
-    let key = sample.key_expr().as_str();
-    let sensor = keys::sensor_chunk(key);
-    let payload = sample.payload().to_bytes();
-    let view = match RawBatchView::parse(&payload) {
-        Ok(v) => v,
-        Err(e) => return reject(shared, sensor, &e),
-    };
-    if view.header.sensor_id.as_str() != sensor {
-        let cause = format!("payload names sensor {}", view.header.sensor_id);
-        return reject(shared, sensor, &cause);
-    }
-    if !sensors.contains_key(sensor) {
-        let Some(entry) = shared.table.seen(&view.header.sensor_id) else {
-            let n = shared.counters.over_capacity.fetch_add(1, Relaxed) + 1;
-            if n == 1 || n % 1000 == 0 {
-                tracing::warn!(
-                    sensor,
-                    skipped = n,
-                    max_sensors = shared.table.max_sensors(),
-                    "sensor table full: batch from a new sensor skipped"
-                );
-            }
-            return;
+impl Shard {
+    /// Corrects and publishes one raw batch; a bad one is counted and skipped.
+    pub fn handle(&mut self, shared: &Shared, sample: Sample) {
+        let Shard { sensors, scratch } = self;
+        let key = sample.key_expr().as_str();
+        let sensor = keys::sensor_chunk(key);
+        let payload = sample.payload().to_bytes();
+        let view = match RawBatchView::parse(&payload) {
+            Ok(v) => v,
+            Err(e) => return reject(shared, sensor, &e),
         };
-        match SensorState::new(shared, entry) {
-            Ok(s) => {
-                sensors.insert(sensor.into(), Box::new(s));
-                shared.counters.sensors_online.fetch_add(1, Relaxed);
-            }
-            Err(e) => {
-                shared.counters.publish_errors.fetch_add(1, Relaxed);
-                tracing::error!(sensor, cause = %e, "cannot declare the sensor's keys");
+        if view.header.sensor_id.as_str() != sensor {
+            let cause = format!("payload names sensor {}", view.header.sensor_id);
+            return reject(shared, sensor, &cause);
+        }
+        if !sensors.contains_key(sensor) {
+            let Some(entry) = shared.table.seen(&view.header.sensor_id) else {
+                let n = shared.counters.over_capacity.fetch_add(1, Relaxed) + 1;
+                if n == 1 || n % 1000 == 0 {
+                    tracing::warn!(
+                        sensor,
+                        skipped = n,
+                        max_sensors = shared.table.max_sensors(),
+                        "sensor table full: batch from a new sensor skipped"
+                    );
+                }
                 return;
+            };
+            match SensorState::new(shared, entry) {
+                Ok(s) => {
+                    sensors.insert(sensor.into(), Box::new(s));
+                    shared.counters.sensors_online.fetch_add(1, Relaxed);
+                }
+                Err(e) => {
+                    shared.counters.publish_errors.fetch_add(1, Relaxed);
+                    tracing::error!(sensor, cause = %e, "cannot declare the sensor's keys");
+                    return;
+                }
             }
         }
-    }
-    // Inserted just above when missing.
-    let state = sensors.get_mut(sensor).expect("sensor state exists");
-    let (corrected, tilt_json) = state.correct(&view, scratch);
-    // Block rather than drop inside Zenoh: when a consumer is slow the shard waits; then a
-    // worker's inbox fills and drops the oldest batch, counted, or, under backpressure, Zenoh's
-    // receive thread waits and the sensor nodes are slowed.
-    if let Err(e) = shared
-        .session
-        .put(&state.corrected_key, corrected)
-        .congestion_control(CongestionControl::Block)
-        .wait()
-    {
-        shared.counters.publish_errors.fetch_add(1, Relaxed);
-        tracing::warn!(sensor, cause = %e, "corrected batch not published");
-    } else {
-        shared.counters.published_batches.fetch_add(1, Relaxed);
-    }
-    if let (Some(json), Some(key)) = (tilt_json, &state.tilt_key) {
-        match shared.session.put(key, json).wait() {
-            Ok(()) => {
-                shared.counters.tilt_samples.fetch_add(1, Relaxed);
+        // Inserted just above when missing.
+        let state = sensors.get_mut(sensor).expect("sensor state exists");
+        let (corrected, tilt_json) = state.correct(&view, scratch);
+        // Block rather than drop inside Zenoh: when a consumer is slow the shard waits; then a
+        // worker's inbox fills and drops the oldest batch, counted, or, under backpressure, Zenoh's
+        // receive thread waits and the sensor nodes are slowed.
+        if let Err(e) = shared
+            .session
+            .put(&state.corrected_key, corrected)
+            .congestion_control(CongestionControl::Block)
+            .wait()
+        {
+            shared.counters.publish_errors.fetch_add(1, Relaxed);
+            tracing::warn!(sensor, cause = %e, "corrected batch not published");
+        } else {
+            shared.counters.published_batches.fetch_add(1, Relaxed);
+        }
+        if let (Some(json), Some(key)) = (tilt_json, &state.tilt_key) {
+            match shared.session.put(key, json).wait() {
+                Ok(()) => {
+                    shared.counters.tilt_samples.fetch_add(1, Relaxed);
+                }
+                Err(e) => tracing::warn!(sensor, cause = %e, "tilt sample not published"),
             }
-            Err(e) => tracing::warn!(sensor, cause = %e, "tilt sample not published"),
         }
     }
 }
