@@ -83,10 +83,6 @@ impl<T> Inbox<T> {
         }
     }
 
-    pub fn try_pop(&self) -> Option<T> {
-        self.lock().queue.pop_front()
-    }
-
     /// Waits for the next entry, or for the inbox to close.
     pub fn pop(&self) -> Next<T> {
         let mut s = self.lock();
@@ -139,7 +135,7 @@ mod tests {
         }
         assert_eq!(dropped.load(Relaxed), 2);
         assert_eq!(q.len(), 3);
-        assert_eq!(q.try_pop(), Some(2));
+        assert_eq!(q.pop(), Next::Item(2));
     }
 
     #[test]
