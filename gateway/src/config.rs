@@ -21,6 +21,9 @@ use triax_protocol::{BuildingId, Mode, SensorId};
 /// Default bound on the sensors one gateway tracks.
 pub const DEFAULT_MAX_SENSORS: usize = 100_000;
 
+/// Default of [`Config::unknown_sensor_expiry`], seconds.
+pub const DEFAULT_UNKNOWN_SENSOR_EXPIRY_S: f64 = 300.0;
+
 /// Default of [`Config::declared_keys_max`].
 pub const DEFAULT_DECLARED_KEYS_MAX: usize = 1024;
 
@@ -145,6 +148,9 @@ pub struct Config {
     /// Most sensors the gateway tracks; batches from further, uncalibrated ids are counted and
     /// skipped, so a misbehaving network cannot grow the gateway's memory without bound.
     pub max_sensors: usize,
+    /// How long an uncalibrated sensor may stay silent before the gateway forgets it (its
+    /// counters and correction state); calibrated sensors are never forgotten.
+    pub unknown_sensor_expiry: Duration,
     /// Most keys declared to Zenoh: a sensor's raw key (its input) and its output keys
     /// (corrected, tilt), taken in the order sensors come online; further keys are used
     /// undeclared.
@@ -209,6 +215,7 @@ pub struct FileConfig {
     pub queue_capacity_batches: Option<usize>,
     pub overload: Option<Overload>,
     pub max_sensors: Option<usize>,
+    pub unknown_sensor_expiry_s: Option<f64>,
     pub declared_keys_max: Option<usize>,
     #[serde(default)]
     pub zenoh: ZenohSettings,
@@ -284,6 +291,12 @@ impl FileConfig {
         if max_sensors == 0 {
             return Err(ConfigError::invalid("max_sensors", "must be at least 1"));
         }
+        let unknown_sensor_expiry = duration_in(
+            "unknown_sensor_expiry_s",
+            self.unknown_sensor_expiry_s
+                .unwrap_or(DEFAULT_UNKNOWN_SENSOR_EXPIRY_S),
+            1.0..=1e7,
+        )?;
         let queue_capacity_batches = self.queue_capacity_batches.unwrap_or(1024);
         if !(1..=1_000_000).contains(&queue_capacity_batches) {
             return Err(ConfigError::invalid(
@@ -326,6 +339,7 @@ impl FileConfig {
             queue_capacity_batches,
             overload: self.overload.unwrap_or_default(),
             max_sensors,
+            unknown_sensor_expiry,
             declared_keys_max: self.declared_keys_max.unwrap_or(DEFAULT_DECLARED_KEYS_MAX),
             zenoh,
             calibration,
@@ -392,6 +406,26 @@ fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, Confi
         catchup_interval,
         catchup_timeout,
     })
+}
+
+/// `v` seconds as a duration, refused with `field` unless finite and within `range`.
+fn duration_in(
+    field: &str,
+    v: f64,
+    range: std::ops::RangeInclusive<f64>,
+) -> Result<Duration, ConfigError> {
+    if v.is_finite() && range.contains(&v) {
+        Ok(Duration::from_secs_f64(v))
+    } else {
+        Err(ConfigError::invalid(
+            field,
+            format!(
+                "{v} is not a number of seconds in {}..={}",
+                range.start(),
+                range.end()
+            ),
+        ))
+    }
 }
 
 fn sensor_settings(

@@ -43,6 +43,11 @@ impl Coefficients {
     pub fn low_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Coefficients {
         Self::design(cutoff_hz, sample_rate_hz, FRAC_1_SQRT_2, false)
     }
+
+    /// Second-order Butterworth high pass.
+    pub fn high_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Coefficients {
+        Self::design(cutoff_hz, sample_rate_hz, FRAC_1_SQRT_2, true)
+    }
 }
 
 /// Whether a corner frequency can be realised at a sample rate: strictly inside (0, 0.45·fs),

@@ -47,8 +47,18 @@
 //! leaking (a 5 Hz sway through the 12.5 Hz high pass is attenuated 40-fold). The high pass,
 //! which every calibrated sensor runs on every sample, works in f32 with the three axes in the
 //! lanes of one SIMD register ([`HighPass4x32`]): a threshold test needs no more, and it costs
-//! about a third of what three f64 axes did. The detector is skipped when the corner cannot be
-//! realised (above 0.45 × the sample rate: the band reaches Nyquist, nothing can be outside it).
+//! about a third of what three f64 axes did. The upper check is skipped when its corner cannot
+//! be realised (above 0.45 × the sample rate: the band reaches Nyquist, nothing can be above it).
+//!
+//! The lower check concerns varying content below the band, not the constant part: gravity and
+//! the offsets (0 Hz) are inside every calibrated domain, since the static bench measures them
+//! and the rotary table's recordings hold gravity's components too. So the outputs first go
+//! through a second-order high pass at [`CONSTANT_BELOW_HZ`] (or a tenth of the lower corner,
+//! if that is lower), which takes out gravity and anything slower than about 100 s, and then
+//! through the fourth-order low pass at `frequency_min_hz / 1.25`. When that corner cannot be
+//! realised (a band starting at or above 0.45 × 1.25 × the sample rate, e.g. 60–5000 Hz sampled
+//! at 100 Hz), every varying component the stream can carry lies below the band, and the
+//! check takes all of it (the high pass alone).
 //! In split mode the band checked is the static set's minimum to the dynamic set's maximum.
 //! After a sequence gap or a node restart the detector starts afresh (the jump across the
 //! missing stretch is not signal), and duplicate batches bypass it.
@@ -63,6 +73,10 @@ use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients, HighPass4x3
 
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
+
+/// Content slower than this is the constant part of the signal (gravity, offsets, drift over
+/// minutes), which every calibrated domain includes: the lower band check ignores it.
+pub const CONSTANT_BELOW_HZ: f64 = 0.01;
 
 /// Coverage factor stamped on uncalibrated batches, whose uncertainties are NaN anyway; the wire
 /// format wants a positive number.
@@ -96,8 +110,34 @@ struct Design {
 #[derive(Debug, Clone)]
 struct Detector {
     high: Option<HighPass4x32>,
-    low: Option<Box<Butterworth4>>,
+    low: Option<Box<LowBand>>,
     threshold_mps2: [f64; 3],
+}
+
+/// The varying content below the band: the constant part removed, then the low pass (none when
+/// its corner cannot be realised: then all varying content is below the band).
+#[derive(Debug, Clone)]
+struct LowBand {
+    constant: Biquad3,
+    low: Option<Butterworth4>,
+}
+
+impl LowBand {
+    #[inline(always)]
+    fn step(&mut self, v: [f64; 3]) -> [f64; 3] {
+        let y = self.constant.step(v);
+        match self.low.as_mut() {
+            Some(l) => l.step(y),
+            None => y,
+        }
+    }
+
+    fn reset(&mut self) {
+        self.constant.reset();
+        if let Some(l) = self.low.as_mut() {
+            l.reset();
+        }
+    }
 }
 
 /// Low-passed outputs and flags since the last tilt estimate.
@@ -583,8 +623,15 @@ fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<De
     let low_hz = low_set.domain().frequency_min_hz / FREQUENCY_MARGIN;
     let high =
         realisable(high_hz, sample_rate_hz).then(|| HighPass4x32::new(high_hz, sample_rate_hz));
-    let low = (low_set.domain().frequency_min_hz > 0.0 && realisable(low_hz, sample_rate_hz))
-        .then(|| Box::new(Butterworth4::low_pass(low_hz, sample_rate_hz)));
+    let constant_hz = CONSTANT_BELOW_HZ.min(low_hz / 10.0);
+    let low = (low_set.domain().frequency_min_hz > 0.0 && realisable(constant_hz, sample_rate_hz))
+        .then(|| {
+            Box::new(LowBand {
+                constant: Biquad3::new(Coefficients::high_pass(constant_hz, sample_rate_hz)),
+                low: realisable(low_hz, sample_rate_hz)
+                    .then(|| Butterworth4::low_pass(low_hz, sample_rate_hz)),
+            })
+        });
     if high.is_none() && low.is_none() {
         return None;
     }
@@ -904,6 +951,45 @@ mod tests {
                 flags::names(f)
             );
         }
+    }
+
+    #[test]
+    fn content_below_the_band_is_flagged_and_gravity_is_not() {
+        // Dynamic band `min..5000` Hz, sampled at 100 Hz (`batch` is 100 Hz).
+        let run_band = |min_hz: f64, f_hz: f64, amp: f64| -> u16 {
+            let mut r = sample::record("k", 1);
+            r.dynamic.domain.frequency_min_hz = min_hz;
+            r.dynamic.domain.frequency_max_hz = 5000.0;
+            let c = Corrector::from_record(&r).unwrap();
+            let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+            let mut last = 0;
+            for seq in 0..20 {
+                let samples = (0..50)
+                    .map(|i| {
+                        let t = (seq as f64 * 50.0 + i as f64) / 100.0;
+                        outputs_for(&r, [amp * (2.0 * PI * f_hz * t).sin(), 0.0, 9.81])
+                    })
+                    .collect();
+                last = run(&mut k, Some(&c), &batch(seq, samples)).batch_flags;
+            }
+            last & flags::OUTSIDE_FREQUENCY
+        };
+        // Every lower edge the stream cannot realise, and one it can: a 2 Hz sway lies below.
+        for min_hz in [60.0, 70.0, 1000.0, 20.0] {
+            assert_ne!(run_band(min_hz, 2.0, 0.5), 0, "2 Hz sway below {min_hz} Hz");
+        }
+        // Gravity alone, with a lower edge: the constant part is inside every domain.
+        for min_hz in [0.5, 20.0, 60.0] {
+            assert_eq!(
+                run_band(min_hz, 2.0, 0.0),
+                0,
+                "gravity, band from {min_hz} Hz"
+            );
+        }
+        // In band.
+        assert_eq!(run_band(0.5, 2.0, 0.5), 0, "2 Hz sway in 0.5–5000 Hz");
+        // A slow sway below a 0.5 Hz edge.
+        assert_ne!(run_band(0.5, 0.1, 0.5), 0, "0.1 Hz sway below 0.5 Hz");
     }
 
     #[test]

@@ -115,6 +115,7 @@ enum Intake {
 }
 
 impl Intake {
+    /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
     fn take(&self, sample: Sample) {
         let sensor = keys::sensor_chunk(sample.key_expr().as_str());
         match self {
@@ -135,11 +136,47 @@ impl Intake {
     }
 }
 
+/// Counts a raw payload whose key is not a concrete raw key of this building (a wildcard put
+/// reaches every building's subscription) and skips it; logs the first of each reason and then
+/// every thousandth.
+fn refuse_key(counters: &GatewayCounters, reason: keys::RawKeyRefusal, key: &str) {
+    let n = counters.refuse_key(reason);
+    if n == 1 || n % 1000 == 0 {
+        tracing::warn!(
+            key,
+            reason = reason.as_str(),
+            refused = n,
+            "raw payload on a key that is not one of this building's sensors skipped"
+        );
+    }
+}
+
 /// Closes every worker's inbox: its worker stops once it has taken what is queued, until
 /// `drain_until`.
 fn close_all(inboxes: &[Arc<Inbox<Sample>>], drain_until: std::time::Instant) {
     for inbox in inboxes {
         inbox.close(drain_until);
+    }
+}
+
+/// Forgets uncalibrated sensors silent for `unknown_sensor_expiry_s`, checking ten times per
+/// expiry period (at least every 10 s and at most every 100 ms).
+async fn expire_unknown_sensors(table: Arc<SensorTable>, mut shutdown: shutdown::Shutdown) {
+    let period = (table.unknown_sensor_expiry() / 10).clamp(
+        std::time::Duration::from_millis(100),
+        std::time::Duration::from_secs(10),
+    );
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = shutdown.recv() => return,
+        }
+        let n = table.expire_idle(worker::now_ns());
+        if n > 0 {
+            tracing::info!(forgotten = n, "silent uncalibrated sensors forgotten");
+        }
     }
 }
 
@@ -275,11 +312,16 @@ impl Gateway {
             ),
         };
         let received = counters.clone();
+        let building = config.building.clone();
         let subscriber = session
             .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
             .callback(move |sample: Sample| {
                 received.received_batches.fetch_add(1, Relaxed);
-                intake.take(sample);
+                let key = sample.key_expr().as_str();
+                match keys::raw_sensor_of(key, &building) {
+                    Ok(_) => intake.take(sample),
+                    Err(reason) => refuse_key(&received, reason, key),
+                }
             })
             .await
             .map_err(zenoh_err("subscribe to raw streams"))?;
@@ -336,6 +378,10 @@ impl Gateway {
             shutdown.clone(),
         ));
 
+        tasks.push(tokio::spawn(expire_unknown_sensors(
+            table.clone(),
+            shutdown.clone(),
+        )));
         tasks.push(tokio::spawn(memory::release_after_growth(
             counters.clone(),
             memory::GROWTH_SETTLE_PERIOD,

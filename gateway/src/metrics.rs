@@ -13,7 +13,9 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
-use crate::sensors::{GatewayCounters, SensorTable};
+use triax_protocol::keys::RawKeyRefusal;
+
+use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::shutdown::Shutdown;
 
 /// Longest request head read.
@@ -29,113 +31,166 @@ pub struct MetricsSource {
     pub queued: Arc<dyn Fn() -> usize + Send + Sync>,
 }
 
+/// Writes one metric family: its help, its type and one line per labelled value (`labels` is
+/// the text between the braces, empty for none).
+fn family(
+    out: &mut String,
+    name: &str,
+    kind: &str,
+    help: &str,
+    values: impl IntoIterator<Item = (String, u64)>,
+) {
+    // Writing to a String cannot fail.
+    let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} {kind}");
+    for (labels, v) in values {
+        let _ = match labels.is_empty() {
+            true => writeln!(out, "{name} {v}"),
+            false => writeln!(out, "{name}{{{labels}}} {v}"),
+        };
+    }
+}
+
+/// One unlabelled value.
+fn single(v: u64) -> [(String, u64); 1] {
+    [(String::new(), v)]
+}
+
 /// Renders the metrics page.
 pub fn render(src: &MetricsSource) -> String {
     let mut out = String::with_capacity(4096);
+    render_flow(&mut out, src);
+    render_intake(&mut out, src);
+    render_sensors(&mut out, &src.table.snapshot());
+    out
+}
+
+/// Batches through the gateway, and its resources.
+fn render_flow(out: &mut String, src: &MetricsSource) {
     let c = &src.counters;
-    let gauge = |out: &mut String, name: &str, kind: &str, help: &str, v: u64| {
-        // Writing to a String cannot fail.
-        let _ = writeln!(
-            out,
-            "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {v}"
-        );
-    };
-    gauge(
-        &mut out,
-        "triax_gateway_received_batches_total",
-        "counter",
-        "Raw payloads taken from Zenoh, before any check.",
-        c.received_batches.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_malformed_payloads_total",
-        "counter",
-        "Payloads that did not decode.",
-        c.malformed.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_dropped_batches_total",
-        "counter",
-        "Raw batches dropped from a full queue (drop-oldest).",
-        c.dropped.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_published_batches_total",
-        "counter",
-        "Corrected batches published.",
-        c.published_batches.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_publish_errors_total",
-        "counter",
-        "Corrected batches Zenoh refused to publish.",
-        c.publish_errors.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_over_capacity_batches_total",
-        "counter",
-        "Raw batches skipped because they came from a new sensor past max_sensors.",
-        c.over_capacity.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_tilt_samples_total",
-        "counter",
-        "Tilt samples published.",
-        c.tilt_samples.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_queued_batches",
-        "gauge",
-        "Raw batches waiting for a worker.",
-        (src.queued)() as u64,
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_sensors_online",
-        "gauge",
-        "Sensors whose stream is being corrected (seen since start).",
-        c.sensors_online.load(Relaxed),
-    );
-    gauge(
-        &mut out,
-        "triax_gateway_declared_keys",
-        "gauge",
-        "Keys declared to Zenoh (raw and output); further sensors' keys are used undeclared.",
-        c.declared_keys.load(Relaxed) as u64,
-    );
+    let counters: [(&str, &str, u64); 6] = [
+        (
+            "triax_gateway_received_batches_total",
+            "Raw payloads taken from Zenoh, before any check.",
+            c.received_batches.load(Relaxed),
+        ),
+        (
+            "triax_gateway_malformed_payloads_total",
+            "Payloads that did not decode.",
+            c.malformed.load(Relaxed),
+        ),
+        (
+            "triax_gateway_dropped_batches_total",
+            "Raw batches dropped from a full queue (drop-oldest).",
+            c.dropped.load(Relaxed),
+        ),
+        (
+            "triax_gateway_published_batches_total",
+            "Corrected batches published.",
+            c.published_batches.load(Relaxed),
+        ),
+        (
+            "triax_gateway_publish_errors_total",
+            "Corrected batches Zenoh refused to publish.",
+            c.publish_errors.load(Relaxed),
+        ),
+        (
+            "triax_gateway_tilt_samples_total",
+            "Tilt samples published.",
+            c.tilt_samples.load(Relaxed),
+        ),
+    ];
+    for (name, help, v) in counters {
+        family(out, name, "counter", help, single(v));
+    }
+    let gauges: [(&str, &str, u64); 3] = [
+        (
+            "triax_gateway_queued_batches",
+            "Raw batches waiting for a worker.",
+            (src.queued)() as u64,
+        ),
+        (
+            "triax_gateway_sensors_online",
+            "Sensors whose stream is being corrected (seen since start).",
+            c.sensors_online.load(Relaxed),
+        ),
+        (
+            "triax_gateway_declared_keys",
+            "Keys declared to Zenoh (raw and output); further sensors' keys are used undeclared.",
+            c.declared_keys.load(Relaxed) as u64,
+        ),
+    ];
+    for (name, help, v) in gauges {
+        family(out, name, "gauge", help, single(v));
+    }
     if let Some(bytes) = crate::memory::resident_bytes() {
-        gauge(
-            &mut out,
+        family(
+            out,
             "process_resident_memory_bytes",
             "gauge",
             "Resident memory of the gateway process.",
-            bytes,
+            single(bytes),
         );
     }
-    let sensors = src.table.snapshot();
-    gauge(
-        &mut out,
+}
+
+/// What the gateway refused to take on, and how it admits and forgets sensors.
+fn render_intake(out: &mut String, src: &MetricsSource) {
+    let c = &src.counters;
+    family(
+        out,
+        "triax_gateway_refused_keys_total",
+        "counter",
+        "Raw payloads on a key that is not a concrete raw key of this building, by reason.",
+        RawKeyRefusal::ALL.map(|r| (format!("reason=\"{}\"", r.as_str()), c.refused_keys(r))),
+    );
+    let a = &src.table.admission;
+    let counters: [(&str, &str, u64); 4] = [
+        (
+            "triax_gateway_over_capacity_batches_total",
+            "Raw batches skipped: a new sensor while max_sensors are calibrated or established.",
+            c.over_capacity.load(Relaxed),
+        ),
+        (
+            "triax_gateway_admitted_sensors_total",
+            "New uncalibrated sensor ids admitted (on probation).",
+            a.admitted.load(Relaxed),
+        ),
+        (
+            "triax_gateway_displaced_sensors_total",
+            "Sensors on probation forgotten to admit a new id while the table was full.",
+            a.displaced.load(Relaxed),
+        ),
+        (
+            "triax_gateway_expired_sensors_total",
+            "Uncalibrated sensors forgotten after unknown_sensor_expiry_s of silence.",
+            a.expired.load(Relaxed),
+        ),
+    ];
+    for (name, help, v) in counters {
+        family(out, name, "counter", help, single(v));
+    }
+}
+
+/// Per-sensor counters, and the sensor population.
+fn render_sensors(out: &mut String, sensors: &[Arc<SensorEntry>]) {
+    family(
+        out,
         "triax_gateway_sensors",
         "gauge",
         "Sensors known.",
-        sensors.len() as u64,
+        single(sensors.len() as u64),
     );
-    gauge(
-        &mut out,
+    family(
+        out,
         "triax_gateway_uncalibrated_sensors",
         "gauge",
         "Sensors with no calibration in force.",
-        sensors
-            .iter()
-            .filter(|s| s.calibration_version().is_none())
-            .count() as u64,
+        single(
+            sensors
+                .iter()
+                .filter(|s| s.calibration_version().is_none())
+                .count() as u64,
+        ),
     );
     type Field = fn(&crate::sensors::SensorCounters) -> u64;
     let per_sensor: [(&str, &str, Field); 9] = [
@@ -152,7 +207,7 @@ pub fn render(src: &MetricsSource) -> String {
         ),
         (
             "missing_batches_total",
-            "Sequence numbers lost in gaps.",
+            "Batches lost in gaps (as many as both the numbering and the clock allow).",
             |c| c.missing_batches.load(Relaxed),
         ),
         (
@@ -181,30 +236,25 @@ pub fn render(src: &MetricsSource) -> String {
             |c| c.uncalibrated_samples.load(Relaxed),
         ),
     ];
+    let labels = |s: &SensorEntry| format!("sensor=\"{}\"", s.id);
     for (suffix, help, get) in per_sensor {
-        let _ = writeln!(
+        family(
             out,
-            "# HELP triax_sensor_{suffix} {help}\n# TYPE triax_sensor_{suffix} counter"
-        );
-        for s in &sensors {
-            let _ = writeln!(
-                out,
-                "triax_sensor_{suffix}{{sensor=\"{}\"}} {}",
-                s.id,
-                get(&s.counters)
-            );
-        }
-    }
-    let _ = writeln!(out, "# HELP triax_sensor_calibration_version Version in force (0: uncalibrated).\n# TYPE triax_sensor_calibration_version gauge");
-    for s in &sensors {
-        let _ = writeln!(
-            out,
-            "triax_sensor_calibration_version{{sensor=\"{}\"}} {}",
-            s.id,
-            s.calibration_version().unwrap_or(0)
+            &format!("triax_sensor_{suffix}"),
+            "counter",
+            help,
+            sensors.iter().map(|s| (labels(s), get(&s.counters))),
         );
     }
-    out
+    family(
+        out,
+        "triax_sensor_calibration_version",
+        "gauge",
+        "Version in force (0: uncalibrated).",
+        sensors
+            .iter()
+            .map(|s| (labels(s), s.calibration_version().unwrap_or(0))),
+    );
 }
 
 /// Serves the page until shutdown.

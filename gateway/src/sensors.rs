@@ -8,16 +8,35 @@
 //! waits for or blocks the sample path. The store is not touched here: whoever installs a
 //! corrector has made its record durable first.
 //!
-//! The table's own lock guards only membership (a sensor appearing), and is never held across an
-//! await.
+//! The table's own lock guards only membership (a sensor appearing or being forgotten), and is
+//! never held across an await.
+//!
+//! # Admission
+//!
+//! Anyone who can put on a raw key can name a new sensor, so new ids are admitted by a rule
+//! a flood cannot turn against real nodes:
+//! - a sensor with a calibration always has its entry (the lab signed it) and is never
+//!   forgotten;
+//! - a new uncalibrated id is admitted *on probation*; once it sends a second batch it is
+//!   *established*. While the table holds `max_sensors` entries, a new id takes the place of the
+//!   oldest probationary entry, so ids that send one batch and vanish (a flood of random ids)
+//!   only ever displace each other, and a real node, which sends again within a second, is
+//!   established before the flood can reach it. Only when every entry is calibrated or
+//!   established is a new id refused (`over_capacity`);
+//! - an uncalibrated sensor silent for `unknown_sensor_expiry_s` is forgotten
+//!   ([`SensorTable::expire_idle`]), so what a flood admitted ages out.
+//!
+//! A forgotten entry is marked ([`SensorEntry::is_evicted`]); the worker holding its correction
+//! state drops it at its next sweep, which also gives back its declared Zenoh keys.
 
-use std::collections::HashMap;
-use std::sync::atomic::{AtomicI64, AtomicU64, AtomicUsize, Ordering::Relaxed};
-use std::sync::{Arc, RwLock};
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
 
 use arc_swap::ArcSwapOption;
 use time::OffsetDateTime;
 use triax_calibration::corrector::Corrector;
+use triax_protocol::keys::RawKeyRefusal;
 use triax_protocol::messages::SensorStatus;
 use triax_protocol::{Mode, SensorId};
 
@@ -46,9 +65,30 @@ pub struct SensorEntry {
     pub settings: SensorSettings,
     corrector: ArcSwapOption<Corrector>,
     pub counters: SensorCounters,
+    /// Set when the table forgets the sensor: whoever holds the entry lets it go.
+    evicted: AtomicBool,
 }
 
 impl SensorEntry {
+    fn new(id: SensorId, settings: SensorSettings) -> SensorEntry {
+        SensorEntry {
+            id,
+            settings,
+            corrector: ArcSwapOption::empty(),
+            counters: SensorCounters::default(),
+            evicted: AtomicBool::new(false),
+        }
+    }
+
+    /// Whether the table has forgotten this entry (see the module doc).
+    pub fn is_evicted(&self) -> bool {
+        self.evicted.load(Relaxed)
+    }
+
+    fn is_calibrated(&self) -> bool {
+        self.corrector.load().is_some()
+    }
+
     /// The corrector in force, if any: load once per batch.
     pub fn corrector(&self) -> Option<Arc<Corrector>> {
         self.corrector.load_full()
@@ -84,11 +124,34 @@ impl SensorEntry {
     }
 }
 
+/// Most probationary entries looked at to admit one new id. Established entries met on the way
+/// leave the probation queue for good, so the work is constant per admission on average.
+const EVICTION_SCAN: usize = 64;
+
+/// Batches after which an uncalibrated sensor is established (see the module doc).
+pub const ESTABLISHED_BATCHES: u64 = 2;
+
+/// What admission and expiry did, since start.
+#[derive(Debug, Default)]
+pub struct AdmissionCounters {
+    /// New uncalibrated ids admitted.
+    pub admitted: AtomicU64,
+    /// Probationary entries that gave their place to a new id.
+    pub displaced: AtomicU64,
+    /// Uncalibrated entries forgotten after `unknown_sensor_expiry_s` of silence.
+    pub expired: AtomicU64,
+}
+
 /// Every sensor known to the gateway: loaded from the store, or seen on the network.
 #[derive(Debug)]
 pub struct SensorTable {
     config: Arc<Config>,
     sensors: RwLock<HashMap<SensorId, Arc<SensorEntry>>>,
+    /// Uncalibrated ids in admission order that may not be established yet; the oldest gives
+    /// way first. An id can be here after it was established, calibrated or forgotten: that is
+    /// checked when it reaches the front.
+    probation: Mutex<VecDeque<SensorId>>,
+    pub admission: AdmissionCounters,
 }
 
 impl SensorTable {
@@ -96,6 +159,8 @@ impl SensorTable {
         SensorTable {
             config,
             sensors: RwLock::new(HashMap::new()),
+            probation: Mutex::new(VecDeque::new()),
+            admission: AdmissionCounters::default(),
         }
     }
 
@@ -109,27 +174,115 @@ impl SensorTable {
         if let Some(e) = self.get(id) {
             return e;
         }
-        let mut map = self.sensors.write().unwrap_or_else(|p| p.into_inner());
+        let mut map = self.write();
         map.entry(id.clone())
             .or_insert_with(|| {
-                Arc::new(SensorEntry {
-                    id: id.clone(),
-                    settings: self.config.sensor(id.as_str()).clone(),
-                    corrector: ArcSwapOption::empty(),
-                    counters: SensorCounters::default(),
-                })
+                Arc::new(SensorEntry::new(
+                    id.clone(),
+                    self.config.sensor(id.as_str()).clone(),
+                ))
             })
             .clone()
     }
 
-    /// The entry of a sensor seen on the network: created on first sight while the table holds
-    /// fewer than `max_sensors`; none for a new id past that bound. Calibrated sensors always
+    /// The entry of a sensor seen on the network, admitted by the rule of the module doc; none
+    /// when the table is full of calibrated and established sensors. Calibrated sensors always
     /// have their entry (made by [`install`](Self::install)).
     pub fn seen(&self, id: &SensorId) -> Option<Arc<SensorEntry>> {
         if let Some(e) = self.get(id) {
             return Some(e);
         }
-        (self.len() < self.config.max_sensors).then(|| self.entry(id))
+        let mut map = self.write();
+        if let Some(e) = map.get(id) {
+            return Some(e.clone());
+        }
+        let mut probation = self.probation.lock().unwrap_or_else(|p| p.into_inner());
+        if map.len() >= self.config.max_sensors && !self.displace_one(&mut map, &mut probation) {
+            return None;
+        }
+        let entry = Arc::new(SensorEntry::new(
+            id.clone(),
+            self.config.sensor(id.as_str()).clone(),
+        ));
+        // Silent from now on counts from admission, not from the epoch.
+        entry
+            .counters
+            .last_seen_ns
+            .store(crate::worker::now_ns(), Relaxed);
+        map.insert(id.clone(), entry.clone());
+        probation.push_back(id.clone());
+        self.admission.admitted.fetch_add(1, Relaxed);
+        Some(entry)
+    }
+
+    /// Forgets the oldest entry still on probation; false if none is within reach.
+    fn displace_one(
+        &self,
+        map: &mut HashMap<SensorId, Arc<SensorEntry>>,
+        probation: &mut VecDeque<SensorId>,
+    ) -> bool {
+        for _ in 0..EVICTION_SCAN {
+            let Some(candidate) = probation.pop_front() else {
+                return false;
+            };
+            let Some(e) = map.get(&candidate) else {
+                continue; // already forgotten
+            };
+            if e.is_calibrated() || e.counters.batches.load(Relaxed) >= ESTABLISHED_BATCHES {
+                continue; // established: off probation for good
+            }
+            if let Some(e) = map.remove(&candidate) {
+                e.evicted.store(true, Relaxed);
+                self.admission.displaced.fetch_add(1, Relaxed);
+                return true;
+            }
+        }
+        false
+    }
+
+    /// Forgets every uncalibrated sensor silent since before `now_ns − unknown_sensor_expiry`;
+    /// returns how many. Called periodically; the scan holds the read lock, the removal the write
+    /// lock, each briefly.
+    pub fn expire_idle(&self, now_ns: i64) -> usize {
+        let expiry_ns =
+            i64::try_from(self.config.unknown_sensor_expiry.as_nanos()).unwrap_or(i64::MAX);
+        let cutoff_ns = now_ns.saturating_sub(expiry_ns);
+        let idle = |e: &SensorEntry| {
+            !e.is_calibrated() && e.counters.last_seen_ns.load(Relaxed) < cutoff_ns
+        };
+        let stale: Vec<SensorId> = self
+            .read()
+            .values()
+            .filter(|e| idle(e))
+            .map(|e| e.id.clone())
+            .collect();
+        if stale.is_empty() {
+            return 0;
+        }
+        let mut map = self.write();
+        let mut n = 0;
+        for id in stale {
+            // Checked again: the sensor may have spoken or been calibrated meanwhile.
+            if map.get(&id).is_some_and(|e| idle(e)) {
+                if let Some(e) = map.remove(&id) {
+                    e.evicted.store(true, Relaxed);
+                    n += 1;
+                }
+            }
+        }
+        if map.capacity() > 4 * map.len().max(1024) {
+            map.shrink_to_fit();
+        }
+        drop(map);
+        // Lock order, as in `seen`: the map, then the probation queue.
+        let map = self.read();
+        let mut probation = self.probation.lock().unwrap_or_else(|p| p.into_inner());
+        probation.retain(|id| map.contains_key(id));
+        if probation.capacity() > 4 * probation.len().max(1024) {
+            probation.shrink_to_fit();
+        }
+        self.admission.expired.fetch_add(n as u64, Relaxed);
+        n
     }
 
     /// Puts `corrector` in force for its sensor from the next batch on; returns the version it
@@ -158,6 +311,10 @@ impl SensorTable {
         v
     }
 
+    pub fn unknown_sensor_expiry(&self) -> std::time::Duration {
+        self.config.unknown_sensor_expiry
+    }
+
     pub fn max_sensors(&self) -> usize {
         self.config.max_sensors
     }
@@ -172,8 +329,13 @@ impl SensorTable {
 
     fn read(&self) -> std::sync::RwLockReadGuard<'_, HashMap<SensorId, Arc<SensorEntry>>> {
         // A panic while holding the lock leaves the map itself consistent (every mutation is a
-        // single insert), so a poisoned lock is safe to keep using.
+        // single insert or remove), so a poisoned lock is safe to keep using.
         self.sensors.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, HashMap<SensorId, Arc<SensorEntry>>> {
+        // As for `read`.
+        self.sensors.write().unwrap_or_else(|p| p.into_inner())
     }
 }
 
@@ -199,6 +361,21 @@ pub struct GatewayCounters {
     pub sensors_online: AtomicU64,
     /// Keys declared to Zenoh, raw and output (at most `declared_keys_max`).
     pub declared_keys: AtomicUsize,
+    /// Payloads on the raw subscription whose key is not a concrete raw key of this building,
+    /// by [`RawKeyRefusal`] (in the order of [`RawKeyRefusal::ALL`]).
+    pub refused_keys: [AtomicU64; 3],
+}
+
+impl GatewayCounters {
+    /// Counts a payload refused for its key; returns how many were refused for that reason.
+    pub fn refuse_key(&self, reason: RawKeyRefusal) -> u64 {
+        self.refused_keys[reason as usize].fetch_add(1, Relaxed) + 1
+    }
+
+    /// Payloads refused for `reason` so far.
+    pub fn refused_keys(&self, reason: RawKeyRefusal) -> u64 {
+        self.refused_keys[reason as usize].load(Relaxed)
+    }
 }
 
 #[cfg(test)]
@@ -227,19 +404,84 @@ mod tests {
         assert_eq!(t.versions(), [(id, 2)]);
     }
 
+    fn table(max_sensors: usize) -> SensorTable {
+        let mut config = Config::for_tests("b", std::path::Path::new("/nonexistent"), vec![]);
+        config.max_sensors = max_sensors;
+        SensorTable::new(Arc::new(config))
+    }
+
+    fn id(s: &str) -> SensorId {
+        SensorId::new(s).unwrap()
+    }
+
+    /// What the worker does with a batch: counts it.
+    fn batch(t: &SensorTable, s: &str) -> Option<Arc<SensorEntry>> {
+        let e = t.seen(&id(s))?;
+        e.counters.batches.fetch_add(1, Relaxed);
+        Some(e)
+    }
+
     #[test]
     fn the_table_is_bounded_for_unknown_sensors_only() {
-        let mut config = Config::for_tests("b", std::path::Path::new("/nonexistent"), vec![]);
-        config.max_sensors = 2;
-        let t = SensorTable::new(Arc::new(config));
-        let id = |s: &str| SensorId::new(s).unwrap();
-        assert!(t.seen(&id("a")).is_some());
-        assert!(t.seen(&id("b")).is_some());
-        assert!(t.seen(&id("c")).is_none(), "a third unknown id is refused");
-        assert!(t.seen(&id("a")).is_some(), "known ids still pass");
+        let t = table(2);
+        // Established: each sent two batches.
+        for s in ["a", "b", "a", "b"] {
+            assert!(batch(&t, s).is_some());
+        }
+        assert!(batch(&t, "c").is_none(), "a third unknown id is refused");
+        assert!(batch(&t, "a").is_some(), "known ids still pass");
         // A calibration always gets its entry: it comes signed from the lab.
         t.install(Corrector::from_record(&sample::record("c", 1)).unwrap());
         assert_eq!(t.len(), 3);
         assert!(t.seen(&id("c")).is_some());
+    }
+
+    #[test]
+    fn a_flood_of_one_batch_ids_cannot_lock_out_a_real_node() {
+        let t = table(100);
+        t.install(Corrector::from_record(&sample::record("cal", 1)).unwrap());
+        let mut real_node_batches = 0;
+        for i in 0..10_000 {
+            assert!(batch(&t, &format!("flood-{i}")).is_some(), "flood id {i}");
+            // The real node sends every 50th flood batch, from the middle of the flood on.
+            if i >= 5_000 && i % 50 == 0 {
+                let e = batch(&t, "real-node").expect("a real node always gets through");
+                real_node_batches += 1;
+                assert_eq!(
+                    e.counters.batches.load(Relaxed),
+                    real_node_batches,
+                    "established, the real node keeps its counters"
+                );
+            }
+            assert!(t.len() <= 100);
+        }
+        assert!(t.seen(&id("cal")).is_some_and(|e| e.is_calibrated()));
+        let displaced = t.admission.displaced.load(Relaxed);
+        assert_eq!(t.admission.admitted.load(Relaxed), 10_001);
+        assert_eq!(
+            displaced,
+            10_001 + 1 - 100,
+            "admitted + calibrated − capacity"
+        );
+    }
+
+    #[test]
+    fn displaced_and_expired_entries_are_marked_for_their_holders() {
+        let t = table(1);
+        let first = t.seen(&id("x")).unwrap();
+        let second = t.seen(&id("y")).unwrap();
+        assert!(first.is_evicted(), "x gave its place to y");
+        assert!(!second.is_evicted());
+        let now = crate::worker::now_ns();
+        assert_eq!(t.expire_idle(now), 0, "y just arrived");
+        let later = now + t.config.unknown_sensor_expiry.as_nanos() as i64 + 1;
+        assert_eq!(t.expire_idle(later), 1);
+        assert!(second.is_evicted());
+        assert!(t.is_empty());
+        assert_eq!(t.admission.expired.load(Relaxed), 1);
+        // A calibrated sensor is never forgotten.
+        t.install(Corrector::from_record(&sample::record("z", 1)).unwrap());
+        assert_eq!(t.expire_idle(i64::MAX), 0);
+        assert_eq!(t.len(), 1);
     }
 }

@@ -16,6 +16,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
 use time::OffsetDateTime;
+use triax_protocol::keys::RawKeyRefusal;
 use triax_protocol::messages::GatewayStatus;
 use triax_protocol::{SensorId, JSON_FORMAT_VERSION};
 
@@ -110,6 +111,14 @@ impl StatusContext {
             dropped: c.dropped.load(Relaxed),
             pushes_accepted: c.pushes_accepted.load(Relaxed),
             pushes_refused: c.pushes_refused.load(Relaxed),
+            refused_keys: RawKeyRefusal::ALL
+                .iter()
+                .map(|&r| (r.as_str().to_owned(), c.refused_keys(r)))
+                .collect(),
+            over_capacity: c.over_capacity.load(Relaxed),
+            admitted_sensors: self.table.admission.admitted.load(Relaxed),
+            displaced_sensors: self.table.admission.displaced.load(Relaxed),
+            expired_sensors: self.table.admission.expired.load(Relaxed),
             total_sensors: total as u64,
             next_offset,
             sensors,

@@ -39,36 +39,56 @@ pub struct Shared {
     pub declared_keys_max: usize,
 }
 
+/// A place in the `declared_keys_max` budget, given back when dropped.
+struct Place(Arc<GatewayCounters>);
+
+impl Drop for Place {
+    fn drop(&mut self) {
+        self.0.declared_keys.fetch_sub(1, Relaxed);
+    }
+}
+
+/// A key a sensor uses: declared while the budget lasts, plain after. Dropping a declared key
+/// undeclares it (Zenoh's own drop) and then gives its place back.
+enum SensorKey {
+    Declared {
+        key: KeyExpr<'static>,
+        _place: Place,
+    },
+    Plain(KeyExpr<'static>),
+}
+
+impl SensorKey {
+    fn key_expr(&self) -> &KeyExpr<'static> {
+        match self {
+            SensorKey::Declared { key, .. } | SensorKey::Plain(key) => key,
+        }
+    }
+
+    fn is_declared(&self) -> bool {
+        matches!(self, SensorKey::Declared { .. })
+    }
+}
+
 impl Shared {
-    /// Declares `key` to Zenoh if fewer than `declared_keys_max` keys are, so that Zenoh keeps
+    /// `key` declared to Zenoh if fewer than `declared_keys_max` keys are, so that Zenoh keeps
     /// its routes rather than working them out for every batch (see
-    /// [`crate::Config::declared_keys_max`]); `None` once the budget is spent. The declaration
-    /// lasts as long as the returned key is held.
-    fn declare(&self, key: &Key) -> zenoh::Result<Option<KeyExpr<'static>>> {
-        let declare = self
+    /// [`crate::Config::declared_keys_max`]); plain once the budget is spent.
+    fn key(&self, key: &Key) -> zenoh::Result<SensorKey> {
+        let taken = self
             .counters
             .declared_keys
             .fetch_update(Relaxed, Relaxed, |n| {
                 (n < self.declared_keys_max).then_some(n + 1)
             })
             .is_ok();
-        if !declare {
-            return Ok(None);
+        if !taken {
+            return KeyExpr::try_from(key.to_string()).map(SensorKey::Plain);
         }
-        let declared = self.session.declare_keyexpr(key.to_string()).wait();
-        if declared.is_err() {
-            // Give the slot back: the sensor is retried on its next batch.
-            self.counters.declared_keys.fetch_sub(1, Relaxed);
-        }
-        declared.map(Some)
-    }
-
-    /// The key to publish `key` on: declared while the budget lasts, undeclared after.
-    fn output_key(&self, key: Key) -> zenoh::Result<KeyExpr<'static>> {
-        match self.declare(&key)? {
-            Some(declared) => Ok(declared),
-            None => KeyExpr::try_from(key.to_string()),
-        }
+        // Dropped on error, the place goes back to the budget.
+        let place = Place(self.counters.clone());
+        let key = self.session.declare_keyexpr(key.to_string()).wait()?;
+        Ok(SensorKey::Declared { key, _place: place })
     }
 }
 
@@ -82,17 +102,45 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
     (h % n_workers.max(1) as u64) as usize
 }
 
-struct SensorState {
-    entry: Arc<SensorEntry>,
+/// The keys a sensor uses on Zenoh.
+struct SensorKeys {
     /// The sensor's raw key, declared on the gateway's own session while the budget lasts.
     /// Never read: holding it keeps a routing entry for the key, so Zenoh looks up the route of
     /// each incoming batch instead of matching the key against every subscription again, which
     /// it does for a key sent in full (as a node's publisher does unless it declared the key
     /// itself). That matching was a quarter of the gateway's CPU per batch (BENCHMARKS.md).
-    _input_route: Option<KeyExpr<'static>>,
-    corrected_key: KeyExpr<'static>,
+    _input_route: Option<SensorKey>,
+    corrected: SensorKey,
     /// Only for inclinometers.
-    tilt_key: Option<KeyExpr<'static>>,
+    tilt: Option<SensorKey>,
+    /// Whether these keys may be declared: not while the sensor is on probation (see
+    /// [`crate::sensors`]), so that ids a flood names once take no place in the budget.
+    declared: bool,
+}
+
+impl SensorKeys {
+    fn new(shared: &Shared, entry: &SensorEntry, declare: bool) -> zenoh::Result<SensorKeys> {
+        let (b, id) = (&shared.building, &entry.id);
+        let key = |k: Key| match declare {
+            true => shared.key(&k),
+            false => KeyExpr::try_from(k.to_string()).map(SensorKey::Plain),
+        };
+        let input = key(Key::Raw(b.clone(), id.clone()))?;
+        Ok(SensorKeys {
+            _input_route: input.is_declared().then_some(input),
+            corrected: key(Key::Corrected(b.clone(), id.clone()))?,
+            tilt: match entry.settings.tilt {
+                true => Some(key(Key::Tilt(b.clone(), id.clone()))?),
+                false => None,
+            },
+            declared: declare,
+        })
+    }
+}
+
+struct SensorState {
+    entry: Arc<SensorEntry>,
+    keys: SensorKeys,
     sequence: SequenceTracker,
     kernel: SensorKernel,
     next_tilt_ns: i64,
@@ -108,7 +156,15 @@ pub const SHUTDOWN_DRAIN: std::time::Duration = std::time::Duration::from_secs(2
 pub struct Shard {
     sensors: HashMap<Box<str>, Box<SensorState>>,
     scratch: Scratch,
+    /// Batches handled since the last sweep for forgotten sensors.
+    since_sweep: u32,
+    last_sweep: Option<std::time::Instant>,
 }
+
+/// Batches between two looks at the clock for a sweep.
+const SWEEP_CHECK_BATCHES: u32 = 256;
+/// Least time between two sweeps of a shard.
+const SWEEP_INTERVAL: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// Runs one worker, on a thread of its own, until its inbox closes; then corrects what is
 /// still queued, for at most the drain time given to [`Inbox::close`] ([`SHUTDOWN_DRAIN`]),
@@ -147,28 +203,29 @@ pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shared: Arc<Shared>) {
 
 fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
     shared.counters.malformed.fetch_add(1, Relaxed);
-    match SensorId::new(sensor) {
-        // A sensor past the table's bound is counted only gateway-wide.
-        Ok(id) => {
-            let Some(entry) = shared.table.seen(&id) else {
-                return;
-            };
-            let n = entry.counters.rejects.fetch_add(1, Relaxed) + 1;
-            // First and then every thousandth: a broken node must not flood the log.
-            if n == 1 || n % 1000 == 0 {
-                tracing::warn!(sensor = %id, rejects = n, cause = %cause, "malformed raw batch skipped");
-            }
-        }
-        Err(_) => {
-            tracing::warn!(key_sensor = sensor, cause = %cause, "payload on a bad key skipped")
-        }
+    // The key was checked at intake (`keys::raw_sensor_of`); only an id past the table's bound has
+    // no entry, and is counted gateway-wide only.
+    let Some(entry) = SensorId::new(sensor)
+        .ok()
+        .and_then(|id| shared.table.seen(&id))
+    else {
+        return;
+    };
+    let n = entry.counters.rejects.fetch_add(1, Relaxed) + 1;
+    // First and then every thousandth: a broken node must not flood the log.
+    if n == 1 || n % 1000 == 0 {
+        tracing::warn!(sensor, rejects = n, cause = %cause, "malformed raw batch skipped");
     }
 }
 
 impl Shard {
-    /// Corrects and publishes one raw batch; a bad one is counted and skipped.
+    /// Corrects and publishes one raw batch; a bad one is counted and skipped. The batch's key
+    /// is a concrete raw key of the building, checked at intake.
     pub fn handle(&mut self, shared: &Shared, sample: Sample) {
-        let Shard { sensors, scratch } = self;
+        self.sweep_now_and_then();
+        let Shard {
+            sensors, scratch, ..
+        } = self;
         let key = sample.key_expr().as_str();
         let sensor = keys::sensor_chunk(key);
         let payload = sample.payload().to_bytes();
@@ -180,7 +237,8 @@ impl Shard {
             let cause = format!("payload names sensor {}", view.header.sensor_id);
             return reject(shared, sensor, &cause);
         }
-        if !sensors.contains_key(sensor) {
+        let known = sensors.get(sensor).is_some_and(|s| !s.entry.is_evicted());
+        if !known {
             let Some(entry) = shared.table.seen(&view.header.sensor_id) else {
                 let n = shared.counters.over_capacity.fetch_add(1, Relaxed) + 1;
                 if n == 1 || n % 1000 == 0 {
@@ -188,7 +246,7 @@ impl Shard {
                         sensor,
                         skipped = n,
                         max_sensors = shared.table.max_sensors(),
-                        "sensor table full: batch from a new sensor skipped"
+                        "sensor table full of calibrated and established sensors: batch from a new sensor skipped"
                     );
                 }
                 return;
@@ -200,7 +258,7 @@ impl Shard {
                 }
                 Err(e) => {
                     shared.counters.publish_errors.fetch_add(1, Relaxed);
-                    tracing::error!(sensor, cause = %e, "cannot declare the sensor's keys");
+                    tracing::error!(sensor, cause = %e, "cannot make the sensor's keys");
                     return;
                 }
             }
@@ -208,12 +266,15 @@ impl Shard {
         // Inserted just above when missing.
         let state = sensors.get_mut(sensor).expect("sensor state exists");
         let (corrected, tilt_json) = state.correct(&view, scratch);
+        if let Err(e) = state.establish(shared) {
+            tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
+        }
         // Block rather than drop inside Zenoh: when a consumer is slow the shard waits; then a
         // worker's inbox fills and drops the oldest batch, counted, or, under backpressure, Zenoh's
         // receive thread waits and the sensor nodes are slowed.
         if let Err(e) = shared
             .session
-            .put(&state.corrected_key, corrected)
+            .put(state.keys.corrected.key_expr(), corrected)
             .congestion_control(CongestionControl::Block)
             .wait()
         {
@@ -222,8 +283,8 @@ impl Shard {
         } else {
             shared.counters.published_batches.fetch_add(1, Relaxed);
         }
-        if let (Some(json), Some(key)) = (tilt_json, &state.tilt_key) {
-            match shared.session.put(key, json).wait() {
+        if let (Some(json), Some(key)) = (tilt_json, &state.keys.tilt) {
+            match shared.session.put(key.key_expr(), json).wait() {
                 Ok(()) => {
                     shared.counters.tilt_samples.fetch_add(1, Relaxed);
                 }
@@ -231,36 +292,70 @@ impl Shard {
             }
         }
     }
+
+    /// Drops the state of sensors the table forgot (displaced or expired), which gives back
+    /// their declared keys; at most once a [`SWEEP_INTERVAL`], the clock read every
+    /// [`SWEEP_CHECK_BATCHES`] batches.
+    fn sweep_now_and_then(&mut self) {
+        self.since_sweep += 1;
+        if self.since_sweep < SWEEP_CHECK_BATCHES {
+            return;
+        }
+        self.since_sweep = 0;
+        let now = std::time::Instant::now();
+        if self
+            .last_sweep
+            .is_some_and(|last| now.duration_since(last) < SWEEP_INTERVAL)
+        {
+            return;
+        }
+        self.last_sweep = Some(now);
+        self.sweep();
+    }
+
+    /// Drops the state of every sensor the table forgot.
+    pub fn sweep(&mut self) {
+        self.sensors.retain(|_, s| !s.entry.is_evicted());
+        if self.sensors.capacity() > 4 * self.sensors.len().max(256) {
+            self.sensors.shrink_to_fit();
+        }
+    }
 }
 
 impl SensorState {
     fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
-        let id = &entry.id;
-        let b = shared.building.clone();
-        let input_route = shared.declare(&Key::Raw(b.clone(), id.clone()))?;
-        let corrected_key = shared.output_key(Key::Corrected(b.clone(), id.clone()))?;
-        let tilt_key = if entry.settings.tilt {
-            Some(shared.output_key(Key::Tilt(b, id.clone()))?)
-        } else {
-            None
-        };
-        tracing::info!(
-            sensor = %id,
-            mode = ?entry.settings.mode,
-            tilt = entry.settings.tilt,
-            calibration_version = ?entry.calibration_version(),
-            "sensor online"
-        );
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
+            keys: SensorKeys::new(shared, &entry, false)?,
             entry,
-            _input_route: input_route,
-            corrected_key,
-            tilt_key,
             sequence: SequenceTracker::default(),
             next_tilt_ns: i64::MIN,
             last_version: None,
         })
+    }
+
+    /// Declares the sensor's keys once it is calibrated or established (see [`SensorKeys`]).
+    fn establish(&mut self, shared: &Shared) -> zenoh::Result<()> {
+        if self.keys.declared {
+            return Ok(());
+        }
+        let e = &self.entry;
+        let established = e.calibration_version().is_some()
+            || e.counters.batches.load(Relaxed) >= crate::sensors::ESTABLISHED_BATCHES;
+        if !established {
+            return Ok(());
+        }
+        // Marked first: a failure is logged once, and the sensor goes on undeclared.
+        self.keys.declared = true;
+        self.keys = SensorKeys::new(shared, e, true)?;
+        tracing::info!(
+            sensor = %e.id,
+            mode = ?e.settings.mode,
+            tilt = e.settings.tilt,
+            calibration_version = ?e.calibration_version(),
+            "sensor online"
+        );
+        Ok(())
     }
 
     /// The synchronous part: sequence, correction, counters, tilt. Returns the corrected payload
@@ -271,9 +366,10 @@ impl SensorState {
         scratch: &mut Scratch,
     ) -> (Vec<u8>, Option<Vec<u8>>) {
         let c = &self.entry.counters;
-        let verdict = self
-            .sequence
-            .observe(view.header.sequence, view.header.timestamp_ns);
+        let duration_ns = (view.len() as f64 * 1e9 / view.header.sample_rate_hz) as i64;
+        let verdict =
+            self.sequence
+                .observe(view.header.sequence, view.header.timestamp_ns, duration_ns);
         match verdict {
             Verdict::Gap { missing } => {
                 self.kernel.discontinuity();
@@ -324,7 +420,7 @@ impl SensorState {
         c.last_seen_ns.store(now_ns(), Relaxed);
 
         let mut tilt_json = None;
-        if let (Some(corrector), true) = (&corrector, self.tilt_key.is_some()) {
+        if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
                 let est = tilt(corrector.set(SetKind::Static), t.output_lp);

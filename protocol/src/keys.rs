@@ -271,6 +271,64 @@ pub fn sensor_chunk(key: &str) -> &str {
     key.rsplit_once('/').map_or(key, |(_, sensor)| sensor)
 }
 
+/// Why a key expression delivered on a building's raw subscription is not one of its sensors'
+/// raw keys. Zenoh delivers a put to every subscription its key expression intersects, so a put
+/// on `triax/*/raw/x` or `**/x` reaches the raw subscription of every building: only a concrete
+/// key of the building's own is data of one of its sensors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum RawKeyRefusal {
+    /// A chunk holds a wildcard (`*`, `**`, `$*`): the put addresses many keys, no one sensor.
+    Wildcard,
+    /// A concrete key of another building (reached here through a wildcard subscription).
+    OtherBuilding,
+    /// Not `triax/<building>/raw/<sensor>` with a valid sensor id.
+    Malformed,
+}
+
+impl RawKeyRefusal {
+    /// Every reason, in the order status and metrics list them.
+    pub const ALL: [RawKeyRefusal; 3] = [
+        RawKeyRefusal::Wildcard,
+        RawKeyRefusal::OtherBuilding,
+        RawKeyRefusal::Malformed,
+    ];
+
+    /// Name used in status, metrics and logs.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RawKeyRefusal::Wildcard => "wildcard",
+            RawKeyRefusal::OtherBuilding => "other_building",
+            RawKeyRefusal::Malformed => "malformed",
+        }
+    }
+}
+
+/// The sensor of `key` when it is exactly `triax/<building>/raw/<sensor>` with a valid sensor
+/// id; why not otherwise. For the sample path: no allocation, one pass over the key.
+pub fn raw_sensor_of<'k>(key: &'k str, building: &BuildingId) -> Result<&'k str, RawKeyRefusal> {
+    if key.contains(['*', '$']) {
+        return Err(RawKeyRefusal::Wildcard);
+    }
+    let mut chunks = key.split('/');
+    let (Some(ROOT), Some(b), Some("raw"), Some(sensor), None) = (
+        chunks.next(),
+        chunks.next(),
+        chunks.next(),
+        chunks.next(),
+        chunks.next(),
+    ) else {
+        return Err(RawKeyRefusal::Malformed);
+    };
+    if b != building.as_str() {
+        return Err(match validate_id("building", b) {
+            Ok(()) => RawKeyRefusal::OtherBuilding,
+            Err(_) => RawKeyRefusal::Malformed,
+        });
+    }
+    validate_id("sensor", sensor).map_err(|_| RawKeyRefusal::Malformed)?;
+    Ok(sensor)
+}
+
 /// Key expression for every sensor of one stream family in every building,
 /// e.g. `triax/*/corrected/*`.
 pub fn all_buildings(stream: Stream) -> String {
@@ -360,6 +418,47 @@ mod tests {
         let k = Key::Raw(b("hq"), s("acc-9")).to_string();
         assert_eq!(sensor_chunk(&k), "acc-9");
         assert_eq!(sensor_chunk("acc-9"), "acc-9");
+    }
+
+    #[test]
+    fn only_concrete_raw_keys_of_the_building_name_a_sensor() {
+        let hq = b("hq");
+        assert_eq!(raw_sensor_of("triax/hq/raw/acc-01", &hq), Ok("acc-01"));
+        for wild in [
+            "triax/*/raw/acc-01",
+            "**/raw/acc-01",
+            "triax/**/acc-01",
+            "**/acc-01",
+            "triax/hq/raw/*",
+            "triax/hq/*/acc-01",
+            "triax/hq/raw/acc-$*",
+            "triax/hq/raw/**",
+        ] {
+            assert_eq!(
+                raw_sensor_of(wild, &hq),
+                Err(RawKeyRefusal::Wildcard),
+                "{wild}"
+            );
+        }
+        assert_eq!(
+            raw_sensor_of("triax/other/raw/acc-01", &hq),
+            Err(RawKeyRefusal::OtherBuilding)
+        );
+        for bad in [
+            "triax/hq/raw",
+            "triax/hq/raw/a/b",
+            "triax/hq/corrected/acc-01",
+            "other/hq/raw/acc-01",
+            "triax/hq/raw/@x",
+            "triax/h@q/raw/x",
+            "triax/hq/raw/",
+        ] {
+            assert_eq!(
+                raw_sensor_of(bad, &hq),
+                Err(RawKeyRefusal::Malformed),
+                "{bad}"
+            );
+        }
     }
 
     #[test]

@@ -178,6 +178,22 @@ pub struct GatewayStatus {
     pub dropped: u64,
     pub pushes_accepted: u64,
     pub pushes_refused: u64,
+    /// Raw payloads on a key that is not a concrete raw key of this building, by reason
+    /// (`wildcard`, `other_building`, `malformed`): counted and skipped.
+    #[serde(default)]
+    pub refused_keys: BTreeMap<String, u64>,
+    /// Raw batches skipped because they came from a new sensor id while the sensor table was
+    /// full of calibrated and established sensors.
+    #[serde(default)]
+    pub over_capacity: u64,
+    /// New uncalibrated sensor ids admitted; probationary ones that gave their place to a newer
+    /// id; uncalibrated ones forgotten after a silence.
+    #[serde(default)]
+    pub admitted_sensors: u64,
+    #[serde(default)]
+    pub displaced_sensors: u64,
+    #[serde(default)]
+    pub expired_sensors: u64,
     /// Sensors the gateway knows; `sensors` is the page the query asked for.
     #[serde(default)]
     pub total_sensors: u64,
@@ -339,6 +355,11 @@ mod tests {
             dropped: 0,
             pushes_accepted: 1,
             pushes_refused: 1,
+            refused_keys: [("wildcard".to_owned(), 3)].into_iter().collect(),
+            over_capacity: 4,
+            admitted_sensors: 5,
+            displaced_sensors: 6,
+            expired_sensors: 7,
             total_sensors: 7,
             next_offset: Some(1),
             sensors: vec![SensorStatus {

@@ -18,7 +18,10 @@
 //! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
+//! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 
+#[path = "gateway/hardening.rs"]
+mod hardening;
 mod util;
 
 use std::f64::consts::PI;
@@ -215,20 +218,24 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
         .await
         .unwrap();
     let ids = ["u-1", "u-2", "u-3"];
+    // Two batches each: a sensor's keys are declared once it is established.
     for id in ids {
         let publisher = session.declare_publisher(key_raw("b8", id)).await.unwrap();
         wait_matching(&publisher).await;
-        publisher
-            .put(raw(id, 0, vec![[0.1, -0.2, 0.98]; 10]))
-            .await
-            .unwrap();
+        for seq in 0..2 {
+            publisher
+                .put(raw(id, seq, vec![[0.1, -0.2, 0.98]; 10]))
+                .await
+                .unwrap();
+        }
     }
-    let mut got: Vec<String> = collect(&sub, 3)
+    let mut got: Vec<String> = collect(&sub, 6)
         .await
         .into_iter()
         .map(|b| b.header.sensor_id.to_string())
         .collect();
     got.sort();
+    got.dedup();
     assert_eq!(got, ids, "declared or not, every sensor's stream arrives");
     let page = metrics(gw.metrics.expect("metrics enabled")).await;
     assert!(page.contains("triax_gateway_declared_keys 1\n"), "{page}");

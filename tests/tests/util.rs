@@ -61,6 +61,23 @@ pub async fn wait_until(what: &str, cond: impl Fn() -> bool) {
     }
 }
 
+/// Returns as soon as the asynchronous `cond` holds, checked every 50 ms; fails the test,
+/// naming `what`, after [`TIMEOUT`].
+pub async fn wait_until_async<F, Fut>(what: &str, cond: F)
+where
+    F: Fn() -> Fut,
+    Fut: std::future::Future<Output = bool>,
+{
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while !cond().await {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "timed out waiting for {what}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
 /// Returns once something accepts connections on `port` of 127.0.0.1: a listener there is up.
 pub async fn wait_for_listener(port: u16) {
     let deadline = tokio::time::Instant::now() + TIMEOUT;
