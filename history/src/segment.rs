@@ -1,0 +1,358 @@
+//! Segment files: a log of framed blocks and an index of fixed-size entries, one per block.
+//!
+//! ```text
+//! <id>.log   frame*      frame = len:u32 crc32:u32 block(len bytes)      (little-endian)
+//! <id>.idx   entry*      entry = 72 bytes, see `IndexEntry`
+//! ```
+//!
+//! The writer appends a group of frames, syncs the log (`fdatasync`), then appends their index
+//! entries. So the index never names a block that is not durable; after a crash it may lag the
+//! log, or end in a torn entry. Opening checks the index (entries contiguous from offset 0, within
+//! the log), keeps its valid prefix, and scans the log from there, checking each frame's CRC: the
+//! log is cut after the last whole frame and the index rebuilt to match. A block damaged later
+//! (bit rot) fails its CRC when read and is reported, never served.
+
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Write};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use crate::block::{Block, BlockSummary};
+use crate::HistoryError;
+
+/// Bytes of a frame's header: length and CRC.
+pub const FRAME_HEADER: usize = 8;
+/// Bytes of an index entry.
+pub const ENTRY_BYTES: usize = 72;
+/// Largest block accepted when reading: a length past this is damage.
+pub const MAX_BLOCK_BYTES: u32 = 64 << 20;
+
+/// What the index keeps of one block.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IndexEntry {
+    /// Where the frame starts in the log.
+    pub offset: u64,
+    /// The frame's length, header included.
+    pub frame_len: u32,
+    /// FNV-1a of the sensor id (the block names the sensor; this finds it without reading).
+    pub sensor_hash: u64,
+    pub summary: BlockSummary,
+}
+
+impl IndexEntry {
+    pub fn end(&self) -> u64 {
+        self.offset + u64::from(self.frame_len)
+    }
+
+    fn encode(&self, out: &mut Vec<u8>) {
+        let s = &self.summary;
+        out.extend_from_slice(&self.offset.to_le_bytes());
+        out.extend_from_slice(&self.frame_len.to_le_bytes());
+        out.extend_from_slice(&u16::from(s.checkpoint).to_le_bytes());
+        // Capped: a block of more than 65 535 batches is not written (see the writer).
+        out.extend_from_slice(&(s.n_records.min(u32::from(u16::MAX)) as u16).to_le_bytes());
+        out.extend_from_slice(&self.sensor_hash.to_le_bytes());
+        out.extend_from_slice(&s.min_ts.to_le_bytes());
+        out.extend_from_slice(&s.max_ts.to_le_bytes());
+        out.extend_from_slice(&s.min_seq.to_le_bytes());
+        out.extend_from_slice(&s.max_seq.to_le_bytes());
+        out.extend_from_slice(&s.first_arrival.to_le_bytes());
+        out.extend_from_slice(&s.last_arrival.to_le_bytes());
+    }
+
+    fn decode(b: &[u8; ENTRY_BYTES]) -> IndexEntry {
+        let u64_at = |i: usize| {
+            let mut a = [0u8; 8];
+            a.copy_from_slice(&b[i..i + 8]);
+            u64::from_le_bytes(a)
+        };
+        let u16_at = |i: usize| u16::from_le_bytes([b[i], b[i + 1]]);
+        IndexEntry {
+            offset: u64_at(0),
+            frame_len: u32::from_le_bytes([b[8], b[9], b[10], b[11]]),
+            sensor_hash: u64_at(16),
+            summary: BlockSummary {
+                checkpoint: u16_at(12) & 1 != 0,
+                n_records: u32::from(u16_at(14)),
+                min_ts: u64_at(24) as i64,
+                max_ts: u64_at(32) as i64,
+                min_seq: u64_at(40),
+                max_seq: u64_at(48),
+                first_arrival: u64_at(56),
+                last_arrival: u64_at(64),
+            },
+        }
+    }
+}
+
+/// FNV-1a of a sensor id.
+pub fn sensor_hash(id: &str) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in id.bytes() {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    h
+}
+
+pub fn log_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("{id:016}.log"))
+}
+
+pub fn idx_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("{id:016}.idx"))
+}
+
+/// The segment id of a log file name, if it is one.
+pub fn parse_log_name(name: &str) -> Option<u64> {
+    let stem = name.strip_suffix(".log")?;
+    (stem.len() == 16 && stem.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| stem.parse().ok())
+        .flatten()
+}
+
+fn io<'p>(
+    action: &'static str,
+    path: &'p Path,
+) -> impl FnOnce(std::io::Error) -> HistoryError + 'p {
+    move |source| HistoryError::Io {
+        action,
+        path: path.to_owned(),
+        source,
+    }
+}
+
+/// Reads the frame at `entry` from `log` and checks its CRC.
+pub fn read_frame(log: &File, path: &Path, entry: &IndexEntry) -> Result<Vec<u8>, HistoryError> {
+    let mut frame = vec![0u8; entry.frame_len as usize];
+    log.read_exact_at(&mut frame, entry.offset)
+        .map_err(io("read a block", path))?;
+    check_frame(&frame).ok_or_else(|| HistoryError::Damaged {
+        path: path.to_owned(),
+        offset: entry.offset,
+        reason: "length or CRC does not match".into(),
+    })?;
+    frame.drain(..FRAME_HEADER);
+    Ok(frame)
+}
+
+/// The body of a whole frame whose CRC matches; none otherwise.
+fn check_frame(frame: &[u8]) -> Option<&[u8]> {
+    let (head, body) = frame.split_at_checked(FRAME_HEADER)?;
+    let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]) as usize;
+    let crc = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
+    (len == body.len() && crc32fast::hash(body) == crc).then_some(body)
+}
+
+/// Appends the frame of `block` to `out`.
+pub fn frame(block: &[u8], out: &mut Vec<u8>) {
+    // Blocks are bounded well below 4 GiB by the writer.
+    out.extend_from_slice(&(block.len() as u32).to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(block).to_le_bytes());
+    out.extend_from_slice(block);
+}
+
+/// A segment brought back to a consistent state: its index entries, and how much was cut.
+#[derive(Debug)]
+pub struct Recovered {
+    pub entries: Vec<IndexEntry>,
+    pub log_bytes: u64,
+    /// Bytes cut from the end of the log (a torn write).
+    pub cut_bytes: u64,
+    /// Entries rebuilt by scanning the log.
+    pub rescanned: usize,
+}
+
+/// Checks a segment's index against its log, rebuilds what the index lacks, and cuts a torn
+/// tail. Rewrites the files only when something was wrong.
+pub fn recover(dir: &Path, id: u64) -> Result<Recovered, HistoryError> {
+    let (lp, ip) = (log_path(dir, id), idx_path(dir, id));
+    let log = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&lp)
+        .map_err(io("open a log", &lp))?;
+    let log_len = log.metadata().map_err(io("stat a log", &lp))?.len();
+    let mut idx_bytes = Vec::new();
+    match File::open(&ip) {
+        Ok(mut f) => {
+            f.read_to_end(&mut idx_bytes)
+                .map_err(io("read an index", &ip))?;
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(io("open an index", &ip)(e)),
+    }
+    let mut entries = Vec::with_capacity(idx_bytes.len() / ENTRY_BYTES);
+    let mut end = 0u64;
+    for chunk in idx_bytes.chunks_exact(ENTRY_BYTES) {
+        // Cannot fail: chunks_exact yields ENTRY_BYTES-long slices.
+        let e = IndexEntry::decode(chunk.try_into().expect("entry-sized chunk"));
+        let sane = e.offset == end
+            && e.frame_len as usize > FRAME_HEADER
+            && e.frame_len <= MAX_BLOCK_BYTES
+            && e.end() <= log_len;
+        if !sane {
+            break;
+        }
+        end = e.end();
+        entries.push(e);
+    }
+    let indexed = entries.len();
+    let index_whole = indexed * ENTRY_BYTES == idx_bytes.len();
+    // Whatever the index does not cover is scanned frame by frame.
+    let mut offset = end;
+    while offset + FRAME_HEADER as u64 <= log_len {
+        let mut head = [0u8; FRAME_HEADER];
+        log.read_exact_at(&mut head, offset)
+            .map_err(io("read a frame", &lp))?;
+        let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+        let frame_len = FRAME_HEADER as u64 + u64::from(len);
+        if len > MAX_BLOCK_BYTES || offset + frame_len > log_len {
+            break;
+        }
+        let mut frame = vec![0u8; frame_len as usize];
+        log.read_exact_at(&mut frame, offset)
+            .map_err(io("read a frame", &lp))?;
+        let Some(body) = check_frame(&frame) else {
+            break;
+        };
+        let Ok(block) = Block::decode(body) else {
+            break;
+        };
+        entries.push(entry_of(&block, offset, frame_len as u32));
+        offset += frame_len;
+    }
+    let cut_bytes = log_len - offset;
+    if cut_bytes > 0 {
+        log.set_len(offset).map_err(io("cut a torn log", &lp))?;
+        log.sync_all().map_err(io("sync a log", &lp))?;
+    }
+    let rescanned = entries.len() - indexed;
+    if rescanned > 0 || !index_whole {
+        let mut out = Vec::with_capacity(entries.len() * ENTRY_BYTES);
+        for e in &entries {
+            e.encode(&mut out);
+        }
+        let tmp = ip.with_extension("idx.tmp");
+        std::fs::write(&tmp, &out).map_err(io("write an index", &tmp))?;
+        std::fs::rename(&tmp, &ip).map_err(io("replace an index", &ip))?;
+    }
+    Ok(Recovered {
+        entries,
+        log_bytes: offset,
+        cut_bytes,
+        rescanned,
+    })
+}
+
+/// The index entry of a decoded block.
+fn entry_of(block: &Block<'_>, offset: u64, frame_len: u32) -> IndexEntry {
+    let mut s = BlockSummary {
+        checkpoint: block.checkpoint.is_some(),
+        n_records: block.kept.len().min(u32::MAX as usize) as u32,
+        min_ts: i64::MAX,
+        max_ts: i64::MIN,
+        min_seq: u64::MAX,
+        max_seq: 0,
+        first_arrival: block.kept.first().map_or(0, |k| k.arrival),
+        last_arrival: block.kept.last().map_or(0, |k| k.arrival),
+    };
+    for k in &block.kept {
+        s.min_ts = s.min_ts.min(k.timestamp_ns);
+        s.max_ts = s.max_ts.max(k.timestamp_ns);
+        s.min_seq = s.min_seq.min(k.sequence);
+        s.max_seq = s.max_seq.max(k.sequence);
+    }
+    IndexEntry {
+        offset,
+        frame_len,
+        sensor_hash: sensor_hash(block.sensor.as_str()),
+        summary: s,
+    }
+}
+
+/// Reads a whole index file (a sealed segment's, which recovery made whole).
+pub fn read_index(dir: &Path, id: u64) -> Result<Vec<IndexEntry>, HistoryError> {
+    let ip = idx_path(dir, id);
+    let bytes = std::fs::read(&ip).map_err(io("read an index", &ip))?;
+    Ok(bytes
+        .chunks_exact(ENTRY_BYTES)
+        // Cannot fail: chunks_exact yields ENTRY_BYTES-long slices.
+        .map(|c| IndexEntry::decode(c.try_into().expect("entry-sized chunk")))
+        .collect())
+}
+
+/// The segment being written.
+#[derive(Debug)]
+pub struct SegmentWriter {
+    pub id: u64,
+    log: File,
+    idx: File,
+    log_path: PathBuf,
+    idx_path: PathBuf,
+    pub log_bytes: u64,
+    pub idx_bytes: u64,
+}
+
+impl SegmentWriter {
+    /// Creates segment `id` (its files must not exist).
+    pub fn create(dir: &Path, id: u64) -> Result<SegmentWriter, HistoryError> {
+        let (lp, ip) = (log_path(dir, id), idx_path(dir, id));
+        let open = |p: &Path| {
+            OpenOptions::new()
+                .create_new(true)
+                .append(true)
+                .open(p)
+                .map_err(io("create a segment file", p))
+        };
+        let log = open(&lp)?;
+        let idx = open(&ip)?;
+        // The directory entry itself must survive a crash.
+        File::open(dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io("sync the history directory", dir))?;
+        Ok(SegmentWriter {
+            id,
+            log,
+            idx,
+            log_path: lp,
+            idx_path: ip,
+            log_bytes: 0,
+            idx_bytes: 0,
+        })
+    }
+
+    /// Appends framed blocks and makes them durable, then indexes them. Returns their entries.
+    pub fn append(
+        &mut self,
+        frames: &[u8],
+        blocks: &[(u64, u32, BlockSummary)],
+    ) -> Result<Vec<IndexEntry>, HistoryError> {
+        self.log
+            .write_all(frames)
+            .map_err(io("append to a log", &self.log_path))?;
+        self.log
+            .sync_data()
+            .map_err(io("sync a log", &self.log_path))?;
+        let mut entries = Vec::with_capacity(blocks.len());
+        let mut offset = self.log_bytes;
+        let mut out = Vec::with_capacity(blocks.len() * ENTRY_BYTES);
+        for &(sensor_hash, frame_len, summary) in blocks {
+            let e = IndexEntry {
+                offset,
+                frame_len,
+                sensor_hash,
+                summary,
+            };
+            e.encode(&mut out);
+            offset += u64::from(frame_len);
+            entries.push(e);
+        }
+        self.log_bytes = offset;
+        self.idx
+            .write_all(&out)
+            .map_err(io("append to an index", &self.idx_path))?;
+        self.idx_bytes += out.len() as u64;
+        Ok(entries)
+    }
+}

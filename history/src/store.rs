@@ -1,0 +1,678 @@
+//! The history directory: its segments, the writer that appends to the newest, readers, and
+//! retention.
+
+use std::collections::{HashMap, VecDeque};
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant, SystemTime};
+
+use triax_protocol::SensorId;
+
+use crate::block::{BlockBuilder, BlockSummary, Kept};
+use crate::segment::{self, IndexEntry, SegmentWriter};
+use crate::HistoryError;
+
+/// Where and how much to keep.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HistoryConfig {
+    pub dir: PathBuf,
+    /// Most bytes on disk, logs and indexes; the oldest segments go first.
+    pub max_bytes: u64,
+    /// Oldest data kept, by the time its segment was last written.
+    pub retention: Duration,
+    /// A segment is closed and a new one started past this size...
+    pub segment_bytes: u64,
+    /// ... or this age.
+    pub segment_age: Duration,
+}
+
+impl HistoryConfig {
+    /// 30 days, 20 GiB, 64 MiB or 1 h segments.
+    pub fn new(dir: impl Into<PathBuf>) -> HistoryConfig {
+        HistoryConfig {
+            dir: dir.into(),
+            max_bytes: 20 << 30,
+            retention: Duration::from_secs(30 * 86_400),
+            segment_bytes: 64 << 20,
+            segment_age: Duration::from_secs(3600),
+        }
+    }
+}
+
+/// Running totals, for status and metrics.
+#[derive(Debug, Default)]
+pub struct HistoryCounters {
+    pub written_batches: AtomicU64,
+    pub written_samples: AtomicU64,
+    pub written_blocks: AtomicU64,
+    pub flushes: AtomicU64,
+    pub deleted_segments: AtomicU64,
+    pub deleted_bytes: AtomicU64,
+    /// Blocks that failed their CRC when read.
+    pub damaged_blocks: AtomicU64,
+    pub write_errors: AtomicU64,
+}
+
+/// What the history holds now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct HistoryStats {
+    pub bytes: u64,
+    pub segments: usize,
+    /// First-sample time of the oldest batch kept (none when empty).
+    pub oldest_ns: Option<i64>,
+    pub newest_ns: Option<i64>,
+}
+
+/// A segment as readers see it.
+#[derive(Debug)]
+struct Segment {
+    id: u64,
+    log_path: PathBuf,
+    bytes: u64,
+    /// Range of every block's first-sample times and arrival numbers; empty ranges when the
+    /// segment holds nothing yet.
+    min_ts: i64,
+    max_ts: i64,
+    first_arrival: u64,
+    last_arrival: u64,
+    modified: SystemTime,
+    /// The segment being written keeps its entries here; closed ones read theirs from disk.
+    live: Option<Vec<IndexEntry>>,
+}
+
+impl Segment {
+    fn absorb(&mut self, e: &IndexEntry) {
+        let s = &e.summary;
+        if self.min_ts > self.max_ts {
+            self.first_arrival = s.first_arrival;
+        }
+        self.min_ts = self.min_ts.min(s.min_ts);
+        self.max_ts = self.max_ts.max(s.max_ts);
+        self.last_arrival = self.last_arrival.max(s.last_arrival);
+        self.bytes += u64::from(e.frame_len) + segment::ENTRY_BYTES as u64;
+    }
+
+    fn empty(id: u64, dir: &Path) -> Segment {
+        Segment {
+            id,
+            log_path: segment::log_path(dir, id),
+            bytes: 0,
+            min_ts: i64::MAX,
+            max_ts: i64::MIN,
+            first_arrival: 0,
+            last_arrival: 0,
+            modified: SystemTime::now(),
+            live: None,
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.min_ts > self.max_ts
+    }
+}
+
+/// Closed segments' indexes most recently read, by segment: each grouped by sensor.
+const INDEX_CACHE: usize = 8;
+type SensorIndex = HashMap<u64, Vec<IndexEntry>>;
+
+/// A history directory, shared by its writer and its readers.
+#[derive(Debug)]
+pub struct History {
+    config: HistoryConfig,
+    segments: RwLock<Vec<Segment>>,
+    index_cache: Mutex<VecDeque<(u64, Arc<SensorIndex>)>>,
+    pub counters: HistoryCounters,
+    /// Held for the history's life: one gateway per directory.
+    _lock: File,
+}
+
+/// What [`History::open`] found and made of the directory.
+#[derive(Debug)]
+pub struct Opened {
+    pub history: Arc<History>,
+    pub writer: Writer,
+    /// Bytes cut from a torn end of the newest segment, and index entries rebuilt from its log.
+    pub cut_bytes: u64,
+    pub rescanned_blocks: usize,
+    pub segments: usize,
+}
+
+impl History {
+    /// Opens (creating it if missing) the history in `config.dir`, brings its newest segment to
+    /// a consistent state after a crash, and starts a new segment for writing.
+    pub fn open(config: HistoryConfig) -> Result<Opened, HistoryError> {
+        let dir = config.dir.clone();
+        let io = |action, source| HistoryError::Io {
+            action,
+            path: dir.clone(),
+            source,
+        };
+        std::fs::create_dir_all(&dir).map_err(|e| io("create the directory", e))?;
+        let lock = File::options()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(dir.join("LOCK"))
+            .map_err(|e| io("open the lock file", e))?;
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                return Err(HistoryError::Locked { path: dir.clone() })
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(io("lock", e)),
+        }
+        let mut ids = Vec::new();
+        for entry in std::fs::read_dir(&dir).map_err(|e| io("list", e))? {
+            let entry = entry.map_err(|e| io("list", e))?;
+            if let Some(id) = entry.file_name().to_str().and_then(segment::parse_log_name) {
+                ids.push(id);
+            }
+        }
+        ids.sort_unstable();
+        let mut segments = Vec::with_capacity(ids.len() + 1);
+        let (mut cut_bytes, mut rescanned_blocks) = (0, 0);
+        for (i, &id) in ids.iter().enumerate() {
+            let mut seg = Segment::empty(id, &dir);
+            // Only the newest segment can have been cut short: older ones were closed whole.
+            let entries = if i + 1 == ids.len() {
+                let r = segment::recover(&dir, id)?;
+                cut_bytes = r.cut_bytes;
+                rescanned_blocks = r.rescanned;
+                r.entries
+            } else {
+                segment::read_index(&dir, id)?
+            };
+            entries.iter().for_each(|e| seg.absorb(e));
+            seg.modified = std::fs::metadata(&seg.log_path)
+                .and_then(|m| m.modified())
+                .unwrap_or_else(|_| SystemTime::now());
+            segments.push(seg);
+        }
+        let next_arrival = segments
+            .iter()
+            .filter(|s| !s.is_empty())
+            .map(|s| s.last_arrival + 1)
+            .max()
+            .unwrap_or(0);
+        let next_id = ids.last().map_or(1, |id| id + 1);
+        let writer_segment = SegmentWriter::create(&dir, next_id)?;
+        let mut active = Segment::empty(next_id, &dir);
+        active.live = Some(Vec::new());
+        segments.push(active);
+        let n_segments = segments.len();
+        let history = Arc::new(History {
+            config,
+            segments: RwLock::new(segments),
+            index_cache: Mutex::new(VecDeque::new()),
+            counters: HistoryCounters::default(),
+            _lock: lock,
+        });
+        let writer = Writer {
+            history: history.clone(),
+            segment: Some(writer_segment),
+            segment_started: Instant::now(),
+            pending: HashMap::new(),
+            ready: Vec::new(),
+            next_arrival,
+        };
+        Ok(Opened {
+            history,
+            writer,
+            cut_bytes,
+            rescanned_blocks,
+            segments: n_segments,
+        })
+    }
+
+    pub fn config(&self) -> &HistoryConfig {
+        &self.config
+    }
+
+    pub fn stats(&self) -> HistoryStats {
+        let segs = self.read();
+        let filled = || segs.iter().filter(|s| !s.is_empty());
+        HistoryStats {
+            bytes: segs.iter().map(|s| s.bytes).sum(),
+            segments: segs.len(),
+            oldest_ns: filled().map(|s| s.min_ts).min(),
+            newest_ns: filled().map(|s| s.max_ts).max(),
+        }
+    }
+
+    fn read(&self) -> std::sync::RwLockReadGuard<'_, Vec<Segment>> {
+        // Every update is a push, a pop or a field write: a poisoned list is still consistent.
+        self.segments.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn write(&self) -> std::sync::RwLockWriteGuard<'_, Vec<Segment>> {
+        self.segments.write().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The index of a closed segment, grouped by sensor, from the cache or from disk.
+    fn sensor_index(&self, id: u64) -> Result<Arc<SensorIndex>, HistoryError> {
+        let cache = self.index_cache.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((_, idx)) = cache.iter().find(|(i, _)| *i == id) {
+            return Ok(idx.clone());
+        }
+        drop(cache);
+        let mut by_sensor: SensorIndex = HashMap::new();
+        for e in segment::read_index(&self.config.dir, id)? {
+            by_sensor.entry(e.sensor_hash).or_default().push(e);
+        }
+        let idx = Arc::new(by_sensor);
+        let mut cache = self.index_cache.lock().unwrap_or_else(|p| p.into_inner());
+        cache.push_front((id, idx.clone()));
+        cache.truncate(INDEX_CACHE);
+        Ok(idx)
+    }
+
+    /// The blocks to read for `query`: from the last checkpoint of the sensor at or before its
+    /// first matching block (or the sensor's oldest kept block, if it has no checkpoint before)
+    /// to its last block that may match, in the order they were written.
+    pub fn scan(&self, query: &Query) -> Result<Scan, HistoryError> {
+        let hash = segment::sensor_hash(query.sensor.as_str());
+        // Segment ids, paths, whether each may hold a match, and the live segment's entries.
+        struct Seen {
+            id: u64,
+            path: PathBuf,
+            may_match: bool,
+            live: Option<Vec<IndexEntry>>,
+        }
+        let seen: Vec<Seen> = self
+            .read()
+            .iter()
+            .map(|s| Seen {
+                id: s.id,
+                path: s.log_path.clone(),
+                may_match: !s.is_empty() && query.may_match_segment(s),
+                live: s.live.as_ref().map(|entries| {
+                    entries
+                        .iter()
+                        .filter(|e| e.sensor_hash == hash)
+                        .copied()
+                        .collect()
+                }),
+            })
+            .collect();
+        let entries_of = |s: &Seen| -> Result<Vec<IndexEntry>, HistoryError> {
+            match &s.live {
+                Some(e) => Ok(e.clone()),
+                None => Ok(self
+                    .sensor_index(s.id)?
+                    .get(&hash)
+                    .cloned()
+                    .unwrap_or_default()),
+            }
+        };
+        let (Some(first), Some(last)) = (
+            seen.iter().position(|s| s.may_match),
+            seen.iter().rposition(|s| s.may_match),
+        ) else {
+            return Ok(Scan::empty());
+        };
+        // Every block of the sensor from the first segment that may match to the last.
+        let mut blocks: Vec<(usize, IndexEntry)> = Vec::new();
+        for (i, s) in seen.iter().enumerate().take(last + 1).skip(first) {
+            blocks.extend(entries_of(s)?.into_iter().map(|e| (i, e)));
+        }
+        let Some(first_match) = blocks.iter().position(|(_, e)| query.may_match(&e.summary)) else {
+            return Ok(Scan::empty());
+        };
+        let last_match = blocks
+            .iter()
+            .rposition(|(_, e)| query.may_match(&e.summary))
+            .unwrap_or(first_match);
+        blocks.truncate(last_match + 1);
+        blocks.drain(..first_match);
+        // Back to the checkpoint the replay starts from: in the block itself or before it.
+        let mut before: Vec<(usize, IndexEntry)> = Vec::new();
+        if !blocks[0].1.summary.checkpoint {
+            let mut found = false;
+            'back: for i in (0..=blocks[0].0).rev() {
+                let mut earlier = entries_of(&seen[i])?;
+                if i == blocks[0].0 {
+                    earlier.retain(|e| e.offset < blocks[0].1.offset);
+                }
+                for e in earlier.into_iter().rev() {
+                    let checkpoint = e.summary.checkpoint;
+                    before.push((i, e));
+                    if checkpoint {
+                        found = true;
+                        break 'back;
+                    }
+                }
+            }
+            if !found {
+                // No checkpoint kept before: the replay starts cold at the first match.
+                before.clear();
+            }
+        }
+        before.reverse();
+        before.extend(blocks);
+        let segments: Vec<(u64, PathBuf)> = seen.into_iter().map(|s| (s.id, s.path)).collect();
+        Ok(Scan {
+            blocks: before
+                .into_iter()
+                .map(|(i, e)| (segments[i].0, segments[i].1.clone(), e))
+                .collect(),
+            next: 0,
+            open: None,
+        })
+    }
+
+    /// Records a block that failed its check when read.
+    pub fn count_damaged(&self) {
+        self.counters.damaged_blocks.fetch_add(1, Relaxed);
+    }
+
+    /// Deletes closed segments past the size or the age limit, oldest first; returns how many.
+    fn enforce_retention(&self) -> usize {
+        let now = SystemTime::now();
+        let mut deleted = 0;
+        loop {
+            let victim = {
+                let segs = self.read();
+                let total: u64 = segs.iter().map(|s| s.bytes).sum();
+                let oldest = match segs.first() {
+                    Some(s) if s.live.is_none() => s,
+                    _ => break,
+                };
+                let too_old = now
+                    .duration_since(oldest.modified)
+                    .is_ok_and(|age| age > self.config.retention);
+                if total <= self.config.max_bytes && !too_old {
+                    break;
+                }
+                (oldest.id, oldest.bytes)
+            };
+            let (id, bytes) = victim;
+            let dir = &self.config.dir;
+            let removed = [segment::log_path(dir, id), segment::idx_path(dir, id)]
+                .iter()
+                .map(std::fs::remove_file)
+                .all(|r| r.is_ok() || r.is_err_and(|e| e.kind() == std::io::ErrorKind::NotFound));
+            if !removed {
+                self.counters.write_errors.fetch_add(1, Relaxed);
+                break;
+            }
+            self.write().retain(|s| s.id != id);
+            let mut cache = self.index_cache.lock().unwrap_or_else(|p| p.into_inner());
+            cache.retain(|(i, _)| *i != id);
+            self.counters.deleted_segments.fetch_add(1, Relaxed);
+            self.counters.deleted_bytes.fetch_add(bytes, Relaxed);
+            deleted += 1;
+        }
+        deleted
+    }
+}
+
+/// Which batches of one sensor a reader wants.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Query {
+    pub sensor: SensorId,
+    /// First-sample time in `[from_ns, to_ns)`.
+    pub from_ns: Option<i64>,
+    pub to_ns: Option<i64>,
+    /// Sequence number in `[from_seq, to_seq]`.
+    pub from_seq: Option<u64>,
+    pub to_seq: Option<u64>,
+    /// Only batches that arrived after this one.
+    pub after_arrival: Option<u64>,
+}
+
+impl Query {
+    /// Every batch of `sensor`.
+    pub fn all(sensor: SensorId) -> Query {
+        Query {
+            sensor,
+            from_ns: None,
+            to_ns: None,
+            from_seq: None,
+            to_seq: None,
+            after_arrival: None,
+        }
+    }
+
+    /// Whether one batch is wanted.
+    pub fn matches<S>(&self, k: &Kept<S>) -> bool {
+        self.from_ns.is_none_or(|f| k.timestamp_ns >= f)
+            && self.to_ns.is_none_or(|t| k.timestamp_ns < t)
+            && self.from_seq.is_none_or(|f| k.sequence >= f)
+            && self.to_seq.is_none_or(|t| k.sequence <= t)
+            && self.after_arrival.is_none_or(|a| k.arrival > a)
+    }
+
+    /// Whether a block may hold a wanted batch.
+    fn may_match(&self, s: &BlockSummary) -> bool {
+        self.from_ns.is_none_or(|f| s.max_ts >= f)
+            && self.to_ns.is_none_or(|t| s.min_ts < t)
+            && self.from_seq.is_none_or(|f| s.max_seq >= f)
+            && self.to_seq.is_none_or(|t| s.min_seq <= t)
+            && self.after_arrival.is_none_or(|a| s.last_arrival > a)
+    }
+
+    fn may_match_segment(&self, s: &Segment) -> bool {
+        self.from_ns.is_none_or(|f| s.max_ts >= f)
+            && self.to_ns.is_none_or(|t| s.min_ts < t)
+            && self.after_arrival.is_none_or(|a| s.last_arrival > a)
+    }
+}
+
+/// The blocks of one query, read one at a time.
+#[derive(Debug)]
+pub struct Scan {
+    blocks: Vec<(u64, PathBuf, IndexEntry)>,
+    next: usize,
+    open: Option<(u64, File)>,
+}
+
+/// One block of a scan, checked and ready to decode with [`crate::Block::decode`].
+#[derive(Debug)]
+pub struct ScannedBlock {
+    pub bytes: Vec<u8>,
+    pub entry: IndexEntry,
+}
+
+impl Scan {
+    fn empty() -> Scan {
+        Scan {
+            blocks: Vec::new(),
+            next: 0,
+            open: None,
+        }
+    }
+
+    /// Blocks left to read.
+    pub fn remaining(&self) -> usize {
+        self.blocks.len() - self.next
+    }
+
+    /// The next block; an error for a block that cannot be read or fails its CRC (the scan goes
+    /// on with the next one).
+    pub fn next_block(&mut self) -> Option<Result<ScannedBlock, HistoryError>> {
+        let (id, path, entry) = self.blocks.get(self.next)?.clone();
+        self.next += 1;
+        if self.open.as_ref().is_none_or(|(open_id, _)| *open_id != id) {
+            match File::open(&path) {
+                Ok(f) => self.open = Some((id, f)),
+                Err(source) => {
+                    return Some(Err(HistoryError::Io {
+                        action: "open a log",
+                        path,
+                        source,
+                    }))
+                }
+            }
+        }
+        // Set just above.
+        let (_, file) = self.open.as_ref().expect("log is open");
+        Some(segment::read_frame(file, &path, &entry).map(|bytes| ScannedBlock { bytes, entry }))
+    }
+}
+
+/// Largest block: a sensor's pending batches are closed into a block past this many bytes...
+const BLOCK_BYTES_MAX: usize = 1 << 20;
+/// ... or this many batches (the index keeps the count in 16 bits).
+const BLOCK_BATCHES_MAX: u32 = 60_000;
+
+/// Appends to the history: batches gather per sensor in memory and go to disk, one block per
+/// sensor, at each [`flush`](Self::flush).
+#[derive(Debug)]
+pub struct Writer {
+    history: Arc<History>,
+    segment: Option<SegmentWriter>,
+    segment_started: Instant,
+    pending: HashMap<SensorId, BlockBuilder>,
+    /// Blocks closed before the flush (a checkpoint or the size limit started a new one).
+    ready: Vec<(SensorId, BlockBuilder)>,
+    next_arrival: u64,
+}
+
+impl Writer {
+    pub fn history(&self) -> &Arc<History> {
+        &self.history
+    }
+
+    /// Keeps one batch of `sensor` (its `arrival` is assigned here and returned). A checkpoint
+    /// is the correction state before this batch: it starts a new block.
+    pub fn append(
+        &mut self,
+        sensor: &SensorId,
+        mut kept: Kept<&[u8]>,
+        checkpoint: Option<&[u8]>,
+    ) -> u64 {
+        kept.arrival = self.next_arrival;
+        self.next_arrival += 1;
+        let closes = |b: &BlockBuilder| {
+            checkpoint.is_some()
+                || b.len() >= BLOCK_BYTES_MAX
+                || b.summary.n_records >= BLOCK_BATCHES_MAX
+        };
+        match self.pending.get_mut(sensor) {
+            Some(b) if !closes(b) => b.push(&kept),
+            other => {
+                let mut fresh = BlockBuilder::new(sensor, checkpoint);
+                fresh.push(&kept);
+                match other {
+                    Some(b) => {
+                        let old = std::mem::replace(b, fresh);
+                        self.ready.push((sensor.clone(), old));
+                    }
+                    None => {
+                        self.pending.insert(sensor.clone(), fresh);
+                    }
+                }
+            }
+        }
+        let c = &self.history.counters;
+        c.written_batches.fetch_add(1, Relaxed);
+        c.written_samples
+            .fetch_add(kept.n_samples() as u64, Relaxed);
+        kept.arrival
+    }
+
+    /// Batches kept in memory, not yet on disk.
+    pub fn pending_batches(&self) -> usize {
+        self.pending
+            .values()
+            .chain(self.ready.iter().map(|(_, b)| b))
+            .map(|b| b.summary.n_records as usize)
+            .sum()
+    }
+
+    /// Writes every pending block, makes it durable, publishes it to readers, then rolls the
+    /// segment and applies retention when due.
+    pub fn flush(&mut self) -> Result<(), HistoryError> {
+        let mut blocks: Vec<(SensorId, BlockBuilder)> = std::mem::take(&mut self.ready);
+        blocks.extend(self.pending.drain());
+        if !blocks.is_empty() {
+            self.write_blocks(blocks)?;
+        }
+        self.history.counters.flushes.fetch_add(1, Relaxed);
+        let due = self.segment.as_ref().is_none_or(|s| {
+            s.log_bytes >= self.history.config.segment_bytes
+                || (s.log_bytes > 0
+                    && self.segment_started.elapsed() >= self.history.config.segment_age)
+        });
+        if due {
+            self.roll()?;
+        }
+        self.history.enforce_retention();
+        Ok(())
+    }
+
+    fn write_blocks(&mut self, blocks: Vec<(SensorId, BlockBuilder)>) -> Result<(), HistoryError> {
+        let mut frames = Vec::new();
+        let mut meta = Vec::with_capacity(blocks.len());
+        for (sensor, b) in blocks {
+            let (bytes, summary) = b.finish();
+            let start = frames.len();
+            segment::frame(&bytes, &mut frames);
+            meta.push((
+                segment::sensor_hash(sensor.as_str()),
+                (frames.len() - start) as u32,
+                summary,
+            ));
+        }
+        if self.segment.is_none() {
+            self.roll()?;
+        }
+        // Present after `roll`.
+        let seg = self.segment.as_mut().expect("a segment is open");
+        match seg.append(&frames, &meta) {
+            Ok(entries) => {
+                let id = seg.id;
+                let mut segs = self.history.write();
+                if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
+                    for e in &entries {
+                        s.absorb(e);
+                    }
+                    s.modified = SystemTime::now();
+                    s.live
+                        .get_or_insert_with(Vec::new)
+                        .extend(entries.iter().copied());
+                }
+                self.history
+                    .counters
+                    .written_blocks
+                    .fetch_add(entries.len() as u64, Relaxed);
+                Ok(())
+            }
+            Err(e) => {
+                // The segment's end is unknown now: close it (recovery cuts what is torn) and
+                // write the next flush to a fresh one. These blocks are lost, and counted.
+                self.history.counters.write_errors.fetch_add(1, Relaxed);
+                let id = seg.id;
+                self.segment = None;
+                let _ = segment::recover(&self.history.config.dir, id);
+                Err(e)
+            }
+        }
+    }
+
+    /// Closes the segment being written and starts the next.
+    fn roll(&mut self) -> Result<(), HistoryError> {
+        let dir = self.history.config.dir.clone();
+        let closing = self.segment.take().map(|s| s.id);
+        let next_id = {
+            let segs = self.history.read();
+            segs.last().map_or(1, |s| s.id + 1)
+        };
+        let fresh = SegmentWriter::create(&dir, next_id)?;
+        let mut segs = self.history.write();
+        if let Some(id) = closing {
+            if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
+                s.live = None;
+            }
+        }
+        let mut seg = Segment::empty(next_id, &dir);
+        seg.live = Some(Vec::new());
+        segs.push(seg);
+        drop(segs);
+        self.segment = Some(fresh);
+        self.segment_started = Instant::now();
+        Ok(())
+    }
+}

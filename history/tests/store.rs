@@ -1,0 +1,266 @@
+//! The history on a real directory: what is flushed comes back bit for bit, by time, sequence
+//! and arrival; a torn end is cut after a crash; retention keeps the size cap; a damaged block is
+//! reported and never served.
+
+use std::path::Path;
+
+use triax_history::{Block, History, HistoryConfig, Kept, Opened, Query, Verdict};
+use triax_protocol::SensorId;
+
+fn id(s: &str) -> SensorId {
+    SensorId::new(s).unwrap()
+}
+
+/// Batch `seq` of a 100 Hz sensor sending 10 samples per batch; sample values encode (seed, seq,
+/// index) so that any mix-up shows.
+fn samples(seed: u32, seq: u64) -> Vec<u8> {
+    (0..30)
+        .flat_map(|i| (seed as f32 * 1000.0 + seq as f32 + i as f32 / 64.0).to_le_bytes())
+        .collect()
+}
+
+fn ts(seq: u64) -> i64 {
+    1_800_000_000_000_000_000 + seq as i64 * 100_000_000
+}
+
+fn kept(seq: u64, samples: &[u8]) -> Kept<&[u8]> {
+    Kept {
+        arrival: 0,
+        sequence: seq,
+        timestamp_ns: ts(seq),
+        sample_rate_hz: 100.0,
+        temperature_c: None,
+        calibration_version: 1 + seq / 100,
+        verdict: Verdict::InOrder,
+        samples,
+    }
+}
+
+fn open(dir: &Path, max_bytes: u64, segment_bytes: u64) -> Opened {
+    let mut c = HistoryConfig::new(dir);
+    c.max_bytes = max_bytes;
+    c.segment_bytes = segment_bytes;
+    History::open(c).unwrap()
+}
+
+/// What a scan yields: the checkpoint of its first block, and each wanted batch's sequence
+/// number and samples.
+type Read = (Option<Vec<u8>>, Vec<(u64, Vec<u8>)>);
+
+fn read(h: &History, q: &Query) -> Read {
+    let mut scan = h.scan(q).unwrap();
+    let mut first_checkpoint = None;
+    let mut out = Vec::new();
+    let mut first = true;
+    while let Some(b) = scan.next_block() {
+        let b = b.unwrap();
+        let block = Block::decode(&b.bytes).unwrap();
+        assert_eq!(block.sensor, q.sensor);
+        if first {
+            first_checkpoint = block.checkpoint.map(<[u8]>::to_vec);
+            first = false;
+        }
+        for k in block.kept.iter().filter(|k| q.matches(*k)) {
+            out.push((k.sequence, k.samples.to_vec()));
+        }
+    }
+    (first_checkpoint, out)
+}
+
+#[test]
+fn flushed_batches_come_back_by_time_sequence_and_arrival_across_segments_and_reopen() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        // Small segments: the stream spans many.
+        let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 32 << 10);
+        for seq in 0..1000u64 {
+            for (seed, s) in [(1, "a"), (2, "b"), (3, "c")] {
+                // A checkpoint every 100 batches, as the gateway's every 10 s of data.
+                let ck = (seq % 100 == 0).then(|| format!("ck {s} {seq}").into_bytes());
+                let smp = samples(seed, seq);
+                writer.append(&id(s), kept(seq, &smp), ck.as_deref());
+            }
+            if seq % 10 == 9 {
+                writer.flush().unwrap();
+            }
+        }
+        writer.flush().unwrap();
+        assert!(writer.history().stats().segments > 10);
+    }
+    let Opened { history: h, .. } = open(dir.path(), u64::MAX, 32 << 10);
+    let mut q = Query::all(id("b"));
+    let (_, all) = read(&h, &q);
+    assert_eq!(all.len(), 1000);
+    for (i, (seq, smp)) in all.iter().enumerate() {
+        assert_eq!(*seq, i as u64);
+        assert_eq!(smp, &samples(2, i as u64), "batch {i} bit for bit");
+    }
+    // A time range starting mid-way: the scan starts at the checkpoint before it.
+    q.from_ns = Some(ts(455));
+    q.to_ns = Some(ts(470));
+    let (ck, got) = read(&h, &q);
+    assert_eq!(ck.as_deref(), Some(&b"ck b 400"[..]));
+    assert_eq!(
+        got.iter().map(|g| g.0).collect::<Vec<_>>(),
+        (455..470).collect::<Vec<_>>()
+    );
+    // A sequence range.
+    let mut q = Query::all(id("c"));
+    q.from_seq = Some(998);
+    let (ck, got) = read(&h, &q);
+    assert_eq!(ck.as_deref(), Some(&b"ck c 900"[..]));
+    assert_eq!(got.len(), 2);
+    // Arrival numbers order all three sensors: `a` came first in each round.
+    let scan_arrivals = |s: &str| -> Vec<u64> {
+        let mut scan = h.scan(&Query::all(id(s))).unwrap();
+        let mut v = Vec::new();
+        while let Some(b) = scan.next_block() {
+            v.extend(
+                Block::decode(&b.unwrap().bytes)
+                    .unwrap()
+                    .kept
+                    .iter()
+                    .map(|k| k.arrival),
+            );
+        }
+        v
+    };
+    let (a, b) = (scan_arrivals("a"), scan_arrivals("b"));
+    assert_eq!(a.len(), 1000);
+    assert!(a.iter().zip(&b).all(|(x, y)| y == &(x + 1)));
+    // After a cursor.
+    let mut q = Query::all(id("a"));
+    q.after_arrival = Some(a[997]);
+    assert_eq!(read(&h, &q).1.len(), 2);
+    // Writing again continues the arrival order.
+    drop(h);
+    let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 32 << 10);
+    let smp = samples(1, 1000);
+    let arrival = writer.append(&id("a"), kept(1000, &smp), None);
+    assert_eq!(arrival, a[999] + 3, "after c's last batch");
+}
+
+#[test]
+fn a_torn_end_is_cut_and_everything_flushed_before_it_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 64 << 20);
+        for seq in 0..50u64 {
+            let smp = samples(1, seq);
+            writer.append(&id("a"), kept(seq, &smp), (seq == 0).then_some(&b"x"[..]));
+            writer.flush().unwrap();
+        }
+    }
+    // A crash mid-write: half a frame at the end of the log, and an index entry torn in two.
+    let log = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+        .max()
+        .unwrap();
+    let idx = log.with_extension("idx");
+    let mut bytes = std::fs::read(&log).unwrap();
+    let good_len = bytes.len();
+    bytes.extend_from_slice(&[200, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7]);
+    std::fs::write(&log, &bytes).unwrap();
+    let mut ib = std::fs::read(&idx).unwrap();
+    // Three whole entries lost and a fourth torn.
+    ib.truncate(ib.len() - 72 * 3 - 10);
+    std::fs::write(&idx, &ib).unwrap();
+
+    let opened = open(dir.path(), u64::MAX, 64 << 20);
+    assert_eq!(opened.cut_bytes, 11);
+    assert_eq!(
+        opened.rescanned_blocks, 4,
+        "the lost index entries are rebuilt"
+    );
+    assert_eq!(std::fs::metadata(&log).unwrap().len() as usize, good_len);
+    let (ck, got) = read(&opened.history, &Query::all(id("a")));
+    assert_eq!(ck.as_deref(), Some(&b"x"[..]));
+    assert_eq!(got.len(), 50);
+}
+
+#[test]
+fn a_damaged_block_is_reported_and_the_rest_served() {
+    let dir = tempfile::tempdir().unwrap();
+    let Opened {
+        mut writer,
+        history,
+        ..
+    } = open(dir.path(), u64::MAX, 64 << 20);
+    for seq in 0..3u64 {
+        let smp = samples(1, seq);
+        writer.append(&id("a"), kept(seq, &smp), None);
+        writer.flush().unwrap();
+    }
+    // Flip one sample bit of the middle block, on disk.
+    let log = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+        .max()
+        .unwrap();
+    let mut bytes = std::fs::read(&log).unwrap();
+    let block_len = bytes.len() / 3;
+    bytes[block_len + block_len / 2] ^= 0x10;
+    std::fs::write(&log, &bytes).unwrap();
+    let mut scan = history.scan(&Query::all(id("a"))).unwrap();
+    let results: Vec<_> = std::iter::from_fn(|| scan.next_block()).collect();
+    assert_eq!(results.len(), 3);
+    assert!(results[0].is_ok() && results[2].is_ok());
+    let err = results[1].as_ref().unwrap_err().to_string();
+    assert!(err.contains("damaged block"), "{err}");
+}
+
+#[test]
+fn retention_keeps_the_size_cap_oldest_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = 200 << 10;
+    let Opened {
+        mut writer,
+        history,
+        ..
+    } = open(dir.path(), cap, 16 << 10);
+    for seq in 0..5000u64 {
+        let smp = samples(1, seq);
+        writer.append(
+            &id("a"),
+            kept(seq, &smp),
+            (seq % 50 == 0).then_some(&b"ck"[..]),
+        );
+        if seq % 20 == 19 {
+            writer.flush().unwrap();
+        }
+        let on_disk: u64 = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().metadata().unwrap().len())
+            .sum();
+        // The cap, plus the segment being written and one pending flush.
+        assert!(
+            on_disk <= cap + (16 << 10) + 20 * 200,
+            "{on_disk} bytes on disk"
+        );
+    }
+    writer.flush().unwrap();
+    let stats = history.stats();
+    assert!(stats.bytes <= cap, "{stats:?}");
+    let deleted = history
+        .counters
+        .deleted_segments
+        .load(std::sync::atomic::Ordering::Relaxed);
+    assert!(deleted > 10, "{deleted} segments deleted");
+    // What is left is the newest stretch, contiguous up to the last batch.
+    let (_, got) = read(&history, &Query::all(id("a")));
+    let seqs: Vec<u64> = got.iter().map(|g| g.0).collect();
+    assert_eq!(*seqs.last().unwrap(), 4999);
+    assert!(seqs.windows(2).all(|w| w[1] == w[0] + 1));
+    assert!(seqs[0] > 3000, "oldest kept {}", seqs[0]);
+}
+
+#[test]
+fn one_writer_per_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let _first = open(dir.path(), u64::MAX, 64 << 20);
+    let second = History::open(HistoryConfig::new(dir.path())).unwrap_err();
+    assert!(second.to_string().contains("in use"), "{second}");
+}
