@@ -13,7 +13,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 pub use triax_net::{ConfigError, ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
@@ -59,7 +59,7 @@ pub enum Overload {
 }
 
 /// How a sensor's stream is corrected.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum CorrectionMode {
     /// The static set: quasi-static use (inclination, slow drift).
@@ -81,8 +81,31 @@ impl CorrectionMode {
     }
 }
 
-/// Per-sensor processing settings.
+/// Where and how much history the gateway keeps (`[history]`).
 #[derive(Debug, Clone, PartialEq)]
+pub struct HistorySettings {
+    pub path: PathBuf,
+    pub retention: Duration,
+    pub max_bytes: u64,
+    pub segment_bytes: u64,
+    /// Longest a corrected batch waits before it is on disk.
+    pub flush_interval: Duration,
+    /// Batches waiting for the writer before further ones are not kept (counted).
+    pub queue_batches: usize,
+}
+
+impl HistorySettings {
+    pub fn history_config(&self) -> triax_history::HistoryConfig {
+        let mut c = triax_history::HistoryConfig::new(&self.path);
+        c.max_bytes = self.max_bytes;
+        c.retention = self.retention;
+        c.segment_bytes = self.segment_bytes;
+        c
+    }
+}
+
+/// Per-sensor processing settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SensorSettings {
     pub mode: CorrectionMode,
     /// Crossover of split mode.
@@ -165,6 +188,8 @@ pub struct Config {
     pub declared_keys_max: usize,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
+    /// None: no history is kept (and history queries are not answered).
+    pub history: Option<HistorySettings>,
     /// None: no metrics endpoint.
     pub metrics_listen: Option<SocketAddr>,
     /// Settings of sensors not listed in `sensors`.
@@ -197,6 +222,9 @@ impl Config {
         c.building = BuildingId::new(building).expect("test building ids are valid");
         c.gateway_name = format!("triax-gateway-{building}");
         c.store_path = store_path.to_owned();
+        if let Some(h) = c.history.as_mut() {
+            h.path = store_path.with_extension("history");
+        }
         c.zenoh.listen = listen;
         c.zenoh.multicast_scouting = Some(false);
         c.metrics_listen = None;
@@ -222,6 +250,8 @@ pub struct FileConfig {
     #[serde(default)]
     pub calibration: FileCalibration,
     #[serde(default)]
+    pub history: FileHistory,
+    #[serde(default)]
     pub metrics: FileMetrics,
     #[serde(default)]
     pub defaults: FileSensor,
@@ -240,6 +270,18 @@ pub struct FileCalibration {
     pub catchup_interval_s: Option<f64>,
     /// Seconds a catch-up request waits for the registry.
     pub catchup_timeout_s: Option<f64>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileHistory {
+    pub enabled: Option<bool>,
+    pub path: Option<PathBuf>,
+    pub retention_days: Option<f64>,
+    pub max_gib: Option<f64>,
+    pub segment_mib: Option<f64>,
+    pub flush_interval_ms: Option<f64>,
+    pub queue_batches: Option<usize>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -321,6 +363,10 @@ impl FileConfig {
         } else {
             None
         };
+        let store_path = self
+            .store_path
+            .unwrap_or_else(|| PathBuf::from("triax-store"));
+        let history = history_settings(self.history, &store_path)?;
         let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
@@ -332,9 +378,7 @@ impl FileConfig {
         Ok(Config {
             building,
             gateway_name,
-            store_path: self
-                .store_path
-                .unwrap_or_else(|| PathBuf::from("triax-store")),
+            store_path,
             workers,
             queue_capacity_batches,
             overload: self.overload.unwrap_or_default(),
@@ -343,6 +387,7 @@ impl FileConfig {
             declared_keys_max: self.declared_keys_max.unwrap_or(DEFAULT_DECLARED_KEYS_MAX),
             zenoh,
             calibration,
+            history,
             metrics_listen,
             defaults,
             sensors,
@@ -406,6 +451,62 @@ fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, Confi
         catchup_interval,
         catchup_timeout,
     })
+}
+
+/// `store_path`: the default history lives beside the store, in `triax-history`.
+fn history_settings(
+    h: FileHistory,
+    store_path: &Path,
+) -> Result<Option<HistorySettings>, ConfigError> {
+    if !h.enabled.unwrap_or(true) {
+        return Ok(None);
+    }
+    let within = |field: &str, v: f64, range: std::ops::RangeInclusive<f64>| {
+        if v.is_finite() && range.contains(&v) {
+            Ok(v)
+        } else {
+            Err(ConfigError::invalid(
+                format!("history.{field}"),
+                format!("{v} is outside {}..={}", range.start(), range.end()),
+            ))
+        }
+    };
+    let days = within(
+        "retention_days",
+        h.retention_days.unwrap_or(30.0),
+        0.001..=36_500.0,
+    )?;
+    let gib = within("max_gib", h.max_gib.unwrap_or(20.0), 0.001..=1_000_000.0)?;
+    let segment_mib = within(
+        "segment_mib",
+        h.segment_mib.unwrap_or(64.0),
+        0.0625..=4096.0,
+    )?;
+    let flush_ms = within(
+        "flush_interval_ms",
+        h.flush_interval_ms.unwrap_or(1000.0),
+        10.0..=60_000.0,
+    )?;
+    let queue_batches = h.queue_batches.unwrap_or(65_536);
+    if !(1..=10_000_000).contains(&queue_batches) {
+        return Err(ConfigError::invalid(
+            "history.queue_batches",
+            format!("{queue_batches} is outside 1..=10000000"),
+        ));
+    }
+    Ok(Some(HistorySettings {
+        path: h.path.unwrap_or_else(|| {
+            store_path
+                .parent()
+                .unwrap_or(Path::new(""))
+                .join("triax-history")
+        }),
+        retention: Duration::from_secs_f64(days * 86_400.0),
+        max_bytes: (gib * (1u64 << 30) as f64) as u64,
+        segment_bytes: (segment_mib * (1u64 << 20) as f64) as u64,
+        flush_interval: Duration::from_secs_f64(flush_ms / 1000.0),
+        queue_batches,
+    }))
 }
 
 /// `v` seconds as a duration, refused with `field` unless finite and within `range`.
@@ -480,6 +581,12 @@ pub struct ConfigArgs {
     /// Directory of the calibration store.
     #[arg(long, env = "TRIAX_STORE")]
     pub store: Option<PathBuf>,
+    /// Directory of the history of raw batches (default `triax-history` beside the store).
+    #[arg(long, env = "TRIAX_HISTORY")]
+    pub history: Option<PathBuf>,
+    /// Keep no history (history queries are then not answered).
+    #[arg(long, env = "TRIAX_NO_HISTORY")]
+    pub no_history: bool,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
     /// Metrics endpoint address, e.g. 0.0.0.0:9750.
@@ -528,6 +635,12 @@ impl ConfigArgs {
         }
         if let Some(s) = &self.store {
             f.store_path = Some(s.clone());
+        }
+        if let Some(h) = &self.history {
+            f.history.path = Some(h.clone());
+        }
+        if self.no_history {
+            f.history.enabled = Some(false);
         }
         self.zenoh.apply_to(&mut f.zenoh);
         if let Some(m) = &self.metrics_listen {

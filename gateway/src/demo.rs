@@ -353,6 +353,9 @@ pub async fn run(
     config.building = BuildingId::new("demo").expect("literal building id is valid");
     config.gateway_name = "triax-gateway-demo".into();
     config.store_path = store_path;
+    if let Some(h) = config.history.as_mut() {
+        h.path = dir.path().join("history");
+    }
     config.zenoh.listen = vec![endpoint.clone()];
     config.zenoh.connect.clear();
     config.zenoh.mode = None;

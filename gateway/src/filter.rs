@@ -12,11 +12,13 @@
 
 use std::f64::consts::{FRAC_1_SQRT_2, PI};
 
+use serde::{Deserialize, Serialize};
+
 /// Q of the two sections of a fourth-order Butterworth filter.
 const BUTTERWORTH4_Q: [f64; 2] = [0.541_196_100_146_197, 1.306_562_964_876_376_4];
 
 /// Coefficients of one section, normalised so that `a0 = 1`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Coefficients {
     b: [f64; 3],
     a: [f64; 2],
@@ -57,7 +59,7 @@ pub fn realisable(cutoff_hz: f64, sample_rate_hz: f64) -> bool {
 }
 
 /// One biquad section applied to three axes with shared coefficients.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Biquad3 {
     c: Coefficients,
     s1: [f64; 3],
@@ -114,7 +116,7 @@ impl Biquad3 {
 }
 
 /// A fourth-order Butterworth filter, high or low pass (two cascaded sections).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Butterworth4 {
     sections: [Biquad3; 2],
 }
@@ -159,7 +161,7 @@ pub type Lanes = [f32; 4];
 /// is its steady state), so the state holds the signal's variation and not gravity's 1 g, and
 /// the round-off stays some 10⁻⁷ of that variation. The sections are the same transposed
 /// direct form II as [`Biquad3`].
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct HighPass4x32 {
     /// Per section: b0, b1, b2, a1, a2.
     c: [[f32; 5]; 2],

@@ -63,6 +63,7 @@
 //! After a sequence gap or a node restart the detector starts afresh (the jump across the
 //! missing stretch is not signal), and duplicate batches bypass it.
 
+use serde::{Deserialize, Serialize};
 use triax_calibration::corrector::{Corrector, SetCorrector, Validity};
 use triax_protocol::batch::{flags, CorrectedBatchWriter, CorrectedSample, CorrectionInfo, Mode};
 use triax_protocol::record::SetKind;
@@ -73,6 +74,9 @@ use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients, HighPass4x3
 
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
+
+/// Format of [`SensorKernel::checkpoint`]: changes whenever the kernel's state changes shape.
+const CHECKPOINT_FORMAT: u8 = 1;
 
 /// Content slower than this is the constant part of the signal (gravity, offsets, drift over
 /// minutes), which every calibrated domain includes: the lower band check ignores it.
@@ -98,7 +102,7 @@ pub struct BatchOutcome {
 /// of line: the crossover (split mode only), the tilt low pass (inclinometers only) and the
 /// detector's low pass (records with a lower band edge). What every calibrated sensor has, the
 /// detector's high pass, stays inline.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct Design {
     sample_rate_hz: f64,
     version: u64,
@@ -107,7 +111,7 @@ struct Design {
     tilt: Option<Box<Biquad3>>,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct Detector {
     high: Option<HighPass4x32>,
     low: Option<Box<LowBand>>,
@@ -116,7 +120,7 @@ struct Detector {
 
 /// The varying content below the band: the constant part removed, then the low pass (none when
 /// its corner cannot be realised: then all varying content is below the band).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct LowBand {
     constant: Biquad3,
     low: Option<Butterworth4>,
@@ -141,7 +145,7 @@ impl LowBand {
 }
 
 /// Low-passed outputs and flags since the last tilt estimate.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TiltState {
     /// Low-passed raw outputs at the end of the last batch.
     pub output_lp: [f64; 3],
@@ -151,7 +155,7 @@ pub struct TiltState {
 }
 
 /// Per-sensor memory of the sample path.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SensorKernel {
     settings: SensorSettings,
     design: Option<Design>,
@@ -197,6 +201,25 @@ impl SensorKernel {
 
     pub fn settings(&self) -> &SensorSettings {
         &self.settings
+    }
+
+    /// Appends the kernel's whole state (settings, filter memory, designs) to `out`, for the
+    /// history's checkpoints: a kernel restored from it corrects the batches that follow into
+    /// the same bytes as this one does.
+    pub fn checkpoint(&self, out: &mut Vec<u8>) {
+        out.push(CHECKPOINT_FORMAT);
+        // Serialising plain data into a Vec cannot fail.
+        let bytes = postcard::to_allocvec(self).expect("kernel state serialises");
+        out.extend_from_slice(&bytes);
+    }
+
+    /// A kernel as [`checkpoint`](Self::checkpoint) saved it; `None` if the bytes are not a
+    /// checkpoint of this format (an older build's, or damage).
+    pub fn restore(bytes: &[u8]) -> Option<SensorKernel> {
+        match bytes.split_first() {
+            Some((&CHECKPOINT_FORMAT, rest)) => postcard::from_bytes(rest).ok(),
+            _ => None,
+        }
     }
 
     /// Wire mode this sensor's batches carry when calibrated.

@@ -36,11 +36,14 @@ pub mod catchup;
 pub mod config;
 pub mod demo;
 pub mod filter;
+pub mod heartbeat;
+pub mod history;
 pub mod inbox;
 pub mod kernel;
 pub mod memory;
 pub mod metrics;
 pub mod push;
+pub mod replay;
 pub mod sensors;
 pub mod sequence;
 pub mod shutdown;
@@ -97,6 +100,8 @@ pub enum GatewayError {
     },
     #[error("a gateway task failed: {0}")]
     Task(String),
+    #[error(transparent)]
+    History(#[from] triax_history::HistoryError),
 }
 
 fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError {
@@ -194,8 +199,12 @@ pub struct Gateway {
     /// Drop-oldest only: the workers' inboxes and threads.
     inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
     workers: Vec<std::thread::JoinHandle<()>>,
+    /// The history's writer thread; none when the history is off.
+    recorder: Option<history::Recorder>,
     metrics_addr: Option<SocketAddr>,
     started_at: OffsetDateTime,
+    /// The lock on the store (see [`claim_store`]), released last.
+    _claim: std::fs::File,
 }
 
 /// Installs the binaries' logging: one line per event on stderr, filtered by `filter`
@@ -256,12 +265,189 @@ async fn open_and_load(path: &Path, table: &SensorTable) -> Result<(Store, usize
     Ok((store, loaded))
 }
 
+/// Holds the gateway's claim on its store for its life: a second gateway on the same store (and
+/// history) is refused at start, and none can slip in while the store is closed and opened again
+/// at start-up (see [`open_and_load`]).
+fn claim_store(store_path: &Path) -> Result<std::fs::File, GatewayError> {
+    let path = store_path.with_extension("lock");
+    let io = |source| GatewayError::Store {
+        path: path.clone(),
+        source: StoreError::Io {
+            action: "lock the store",
+            source,
+        },
+    };
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(io)?;
+    }
+    let file = std::fs::File::options()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(io)?;
+    match triax_history::lock::try_lock_exclusive(&file) {
+        Ok(true) => Ok(file),
+        Ok(false) => Err(io(std::io::Error::other(
+            "another gateway holds this store",
+        ))),
+        Err(e) => Err(io(e)),
+    }
+}
+
+/// Opens the history and starts its writer thread; none when the history is off.
+async fn open_history(config: &Config) -> Result<Option<history::Recorder>, GatewayError> {
+    let Some(h) = config.history.clone() else {
+        return Ok(None);
+    };
+    let opened = tokio::task::spawn_blocking(move || {
+        triax_history::History::open(h.history_config()).map(|o| (o, h))
+    })
+    .await
+    .map_err(|e| GatewayError::Task(e.to_string()))?
+    .map_err(GatewayError::History)?;
+    let (o, h) = opened;
+    if o.cut_bytes > 0 || o.rescanned_blocks > 0 {
+        tracing::warn!(
+            cut_bytes = o.cut_bytes,
+            rescanned_blocks = o.rescanned_blocks,
+            "history: a torn end was cut after a crash (what was flushed is kept)"
+        );
+    }
+    let stats = o.history.stats();
+    tracing::info!(path = %h.path.display(), segments = stats.segments, bytes = stats.bytes, "history open");
+    let recorder = history::Recorder::start(o.writer, h.queue_batches, h.flush_interval)
+        .map_err(|e| GatewayError::Task(format!("starting the history writer: {e}")))?;
+    Ok(Some(recorder))
+}
+
+/// The worker inboxes (drop-oldest) or the shards (backpressure), and the raw subscription
+/// that feeds them.
+async fn start_intake(
+    config: &Config,
+    session: &zenoh::Session,
+    counters: &Arc<GatewayCounters>,
+    shared: &Arc<worker::Shared>,
+) -> Result<(Arc<Vec<Arc<Inbox<Sample>>>>, zenoh::pubsub::Subscriber<()>), GatewayError> {
+    // Under backpressure nothing is queued: the receive callback runs the shards itself.
+    let n_inboxes = match config.overload {
+        Overload::DropOldest => config.workers,
+        Overload::Backpressure => 0,
+    };
+    let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
+        (0..n_inboxes)
+            .map(|_| {
+                Arc::new(Inbox::new(
+                    config.queue_capacity_batches,
+                    counters.dropped.clone(),
+                ))
+            })
+            .collect(),
+    );
+    let intake = match config.overload {
+        Overload::DropOldest => Intake::Queues(inboxes.clone()),
+        Overload::Backpressure => Intake::Shards(
+            (0..config.workers).map(|_| Default::default()).collect(),
+            shared.clone(),
+        ),
+    };
+    let received = counters.clone();
+    let building = config.building.clone();
+    let subscriber = session
+        .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
+        .callback(move |sample: Sample| {
+            received.received_batches.fetch_add(1, Relaxed);
+            let key = sample.key_expr().as_str();
+            match keys::raw_sensor_of(key, &building) {
+                Ok(_) => intake.take(sample),
+                Err(reason) => refuse_key(&received, reason, key),
+            }
+        })
+        .await
+        .map_err(zenoh_err("subscribe to raw streams"))?;
+    Ok((inboxes, subscriber))
+}
+
+/// Answers status queries until shutdown.
+async fn serve_status(
+    session: &zenoh::Session,
+    ctx: status::StatusContext,
+    mut shutdown: shutdown::Shutdown,
+) -> Result<JoinHandle<()>, GatewayError> {
+    let queryable = session
+        .declare_queryable(Key::Status(ctx.config.building.clone()).to_string())
+        .await
+        .map_err(zenoh_err("declare the status queryable"))?;
+    Ok(tokio::spawn(async move {
+        loop {
+            let query = tokio::select! {
+                q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+                _ = shutdown.recv() => break,
+            };
+            let replied = match status::StatusQuery::parse(query.parameters().iter()) {
+                Ok(q) => {
+                    let body = to_json(&ctx.status(&q));
+                    let key = Key::Status(ctx.config.building.clone()).to_string();
+                    query.reply(key, body).await
+                }
+                Err(problem) => query.reply_err(problem).await,
+            };
+            if let Err(e) = replied {
+                tracing::warn!(cause = %e, "status reply failed");
+            }
+        }
+    }))
+}
+
+/// Binds the metrics endpoint and serves it until shutdown; returns the bound address.
+async fn serve_metrics(
+    addr: SocketAddr,
+    src: metrics::MetricsSource,
+    shutdown: shutdown::Shutdown,
+) -> Result<(SocketAddr, JoinHandle<()>), GatewayError> {
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|source| GatewayError::Metrics { addr, source })?;
+    let bound = listener
+        .local_addr()
+        .map_err(|source| GatewayError::Metrics { addr, source })?;
+    tracing::info!(addr = %bound, "metrics at http://{bound}/metrics");
+    Ok((bound, tokio::spawn(metrics::serve(listener, src, shutdown))))
+}
+
+/// Starts one worker thread per inbox; on failure, closes every inbox so that the threads
+/// already started end.
+fn start_workers(
+    inboxes: &Arc<Vec<Arc<Inbox<Sample>>>>,
+    shared: &Arc<worker::Shared>,
+) -> Result<Vec<std::thread::JoinHandle<()>>, GatewayError> {
+    let mut workers = Vec::new();
+    for (i, inbox) in inboxes.iter().enumerate() {
+        let (inbox, shared) = (inbox.clone(), shared.clone());
+        let spawned = std::thread::Builder::new()
+            .name(format!("triax-worker-{i}"))
+            .spawn(move || worker::run(i, inbox, shared));
+        match spawned {
+            Ok(worker) => workers.push(worker),
+            Err(e) => {
+                close_all(inboxes, std::time::Instant::now());
+                return Err(GatewayError::Task(format!(
+                    "starting worker thread {i}: {e}"
+                )));
+            }
+        }
+    }
+    Ok(workers)
+}
+
 impl Gateway {
-    /// Opens the store, loads the calibrations, joins Zenoh, and starts serving.
+    /// Opens the store and the history, loads the calibrations, joins Zenoh, and starts
+    /// serving.
     pub async fn start(config: Config) -> Result<Gateway, GatewayError> {
         let config = Arc::new(config);
         let started_at = OffsetDateTime::now_utc();
         let path = config.store_path.clone();
+        let claim = claim_store(&path)?;
         let store_err = |source| GatewayError::Store {
             path: path.clone(),
             source,
@@ -273,89 +459,51 @@ impl Gateway {
             .await
             .map_err(|e| GatewayError::Task(e.to_string()))?;
         tracing::info!(building = %config.building, calibrations = loaded, store = %path.display(), "calibrations loaded");
+        let recorder = open_history(&config).await?;
 
-        let zconfig = config.zenoh.to_config()?;
-        let session = zenoh::open(zconfig)
+        let session = zenoh::open(config.zenoh.to_config()?)
             .await
             .map_err(zenoh_err("open session"))?;
         let counters = Arc::new(GatewayCounters::default());
         let (trigger, shutdown) = shutdown::channel();
-        // Under backpressure nothing is queued: the receive callback runs the shards itself.
-        let n_inboxes = match config.overload {
-            Overload::DropOldest => config.workers,
-            Overload::Backpressure => 0,
-        };
-        let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
-            (0..n_inboxes)
-                .map(|_| {
-                    Arc::new(Inbox::new(
-                        config.queue_capacity_batches,
-                        counters.dropped.clone(),
-                    ))
-                })
-                .collect(),
-        );
         let shared = Arc::new(worker::Shared {
             building: config.building.clone(),
             session: session.clone(),
             table: table.clone(),
             counters: counters.clone(),
             declared_keys_max: config.declared_keys_max,
+            history: recorder.as_ref().map(|r| r.sink.clone()),
         });
+        let (inboxes, subscriber) = start_intake(&config, &session, &counters, &shared).await?;
         let mut tasks = Vec::new();
-
-        let intake = match config.overload {
-            Overload::DropOldest => Intake::Queues(inboxes.clone()),
-            Overload::Backpressure => Intake::Shards(
-                (0..config.workers).map(|_| Default::default()).collect(),
-                shared.clone(),
-            ),
-        };
-        let received = counters.clone();
-        let building = config.building.clone();
-        let subscriber = session
-            .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
-            .callback(move |sample: Sample| {
-                received.received_batches.fetch_add(1, Relaxed);
-                let key = sample.key_expr().as_str();
-                match keys::raw_sensor_of(key, &building) {
-                    Ok(_) => intake.take(sample),
-                    Err(reason) => refuse_key(&received, reason, key),
-                }
-            })
-            .await
-            .map_err(zenoh_err("subscribe to raw streams"))?;
-
         let status_ctx = status::StatusContext {
             config: config.clone(),
             table: table.clone(),
             counters: counters.clone(),
+            history: shared.history.clone(),
             started_at,
         };
-        let queryable = session
-            .declare_queryable(Key::Status(config.building.clone()).to_string())
-            .await
-            .map_err(zenoh_err("declare the status queryable"))?;
-        let mut sd = shutdown.clone();
-        tasks.push(tokio::spawn(async move {
-            loop {
-                let query = tokio::select! {
-                    q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
-                    _ = sd.recv() => break,
-                };
-                let replied = match status::StatusQuery::parse(query.parameters().iter()) {
-                    Ok(q) => {
-                        let body = to_json(&status_ctx.status(&q));
-                        let key = Key::Status(status_ctx.config.building.clone()).to_string();
-                        query.reply(key, body).await
-                    }
-                    Err(problem) => query.reply_err(problem).await,
-                };
-                if let Err(e) = replied {
-                    tracing::warn!(cause = %e, "status reply failed");
-                }
-            }
-        }));
+        tasks.push(serve_status(&session, status_ctx, shutdown.clone()).await?);
+        if let Some(sink) = &shared.history {
+            let ctx = Arc::new(replay::ReplayContext {
+                building: config.building.clone(),
+                table: table.clone(),
+                store: store.clone(),
+                sink: sink.clone(),
+            });
+            tasks.push(
+                replay::serve(session.clone(), ctx, shutdown.clone())
+                    .await
+                    .map_err(zenoh_err("declare the history queryable"))?,
+            );
+        }
+        tasks.push(tokio::spawn(heartbeat::run(
+            session.clone(),
+            config.building.clone(),
+            config.gateway_name.clone(),
+            table.clone(),
+            shutdown.clone(),
+        )));
 
         let updater = Arc::new(push::Updater::new(
             config.building.clone(),
@@ -377,7 +525,6 @@ impl Gateway {
             config.calibration.catchup_timeout,
             shutdown.clone(),
         ));
-
         tasks.push(tokio::spawn(expire_unknown_sensors(
             table.clone(),
             shutdown.clone(),
@@ -390,50 +537,27 @@ impl Gateway {
 
         let mut metrics_addr = None;
         if let Some(addr) = config.metrics_listen {
-            let listener = tokio::net::TcpListener::bind(addr)
-                .await
-                .map_err(|source| GatewayError::Metrics { addr, source })?;
-            let bound = listener
-                .local_addr()
-                .map_err(|source| GatewayError::Metrics { addr, source })?;
-            metrics_addr = Some(bound);
             let boxes = inboxes.clone();
             let src = metrics::MetricsSource {
                 table: table.clone(),
                 counters: counters.clone(),
+                history: shared.history.clone(),
                 queued: Arc::new(move || boxes.iter().map(|b| b.len()).sum()),
             };
-            tasks.push(tokio::spawn(metrics::serve(
-                listener,
-                src,
-                shutdown.clone(),
-            )));
-            tracing::info!(addr = %bound, "metrics at http://{bound}/metrics");
+            let (bound, task) = serve_metrics(addr, src, shutdown.clone()).await?;
+            metrics_addr = Some(bound);
+            tasks.push(task);
         }
         // Last, so that a start that fails leaves no thread behind. Batches taken meanwhile
         // wait in the inboxes.
-        let mut workers = Vec::new();
-        for (i, inbox) in inboxes.iter().enumerate() {
-            let (inbox, shared) = (inbox.clone(), shared.clone());
-            let spawned = std::thread::Builder::new()
-                .name(format!("triax-worker-{i}"))
-                .spawn(move || worker::run(i, inbox, shared));
-            match spawned {
-                Ok(worker) => workers.push(worker),
-                Err(e) => {
-                    close_all(&inboxes, std::time::Instant::now());
-                    return Err(GatewayError::Task(format!(
-                        "starting worker thread {i}: {e}"
-                    )));
-                }
-            }
-        }
+        let workers = start_workers(&inboxes, &shared)?;
         tracing::info!(
             building = %config.building,
             gateway = %config.gateway_name,
             zid = %session.zid(),
             workers = config.workers,
             overload = ?config.overload,
+            history = config.history.is_some(),
             "gateway running"
         );
         Ok(Gateway {
@@ -448,8 +572,10 @@ impl Gateway {
             tasks,
             inboxes,
             workers,
+            recorder,
             metrics_addr,
             started_at,
+            _claim: claim,
         })
     }
 
@@ -528,6 +654,12 @@ impl Gateway {
         .map_err(|e| GatewayError::Task(e.to_string()))?;
         if joined > 0 {
             tracing::error!(workers = joined, "worker threads ended abnormally");
+        }
+        // The workers have handed over their last batches: keep them.
+        if let Some(mut recorder) = self.recorder.take() {
+            tokio::task::spawn_blocking(move || recorder.stop())
+                .await
+                .map_err(|e| GatewayError::Task(e.to_string()))?;
         }
         if let Err(e) = self.session.close().await {
             tracing::warn!(cause = %e, "zenoh session did not close cleanly");

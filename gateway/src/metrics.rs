@@ -14,6 +14,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
 use triax_protocol::keys::RawKeyRefusal;
+use triax_protocol::messages::HistoryStatus;
 
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::shutdown::Shutdown;
@@ -28,6 +29,7 @@ const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 pub struct MetricsSource {
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
+    pub history: Option<Arc<crate::history::Sink>>,
     pub queued: Arc<dyn Fn() -> usize + Send + Sync>,
 }
 
@@ -60,6 +62,9 @@ pub fn render(src: &MetricsSource) -> String {
     let mut out = String::with_capacity(4096);
     render_flow(&mut out, src);
     render_intake(&mut out, src);
+    if let Some(h) = &src.history {
+        render_history(&mut out, &h.status());
+    }
     render_sensors(&mut out, &src.table.snapshot());
     out
 }
@@ -164,6 +169,76 @@ fn render_intake(out: &mut String, src: &MetricsSource) {
             "triax_gateway_expired_sensors_total",
             "Uncalibrated sensors forgotten after unknown_sensor_expiry_s of silence.",
             a.expired.load(Relaxed),
+        ),
+    ];
+    for (name, help, v) in counters {
+        family(out, name, "counter", help, single(v));
+    }
+}
+
+/// The history: what it holds, and what it kept, dropped and deleted.
+fn render_history(out: &mut String, h: &HistoryStatus) {
+    let gauges: [(&str, &str, u64); 5] = [
+        (
+            "triax_history_bytes",
+            "History on disk, logs and indexes.",
+            h.bytes,
+        ),
+        (
+            "triax_history_max_bytes",
+            "Size cap of the history.",
+            h.max_bytes,
+        ),
+        (
+            "triax_history_segments",
+            "History segments on disk.",
+            h.segments,
+        ),
+        (
+            "triax_history_queued_batches",
+            "Batches waiting for the history writer.",
+            h.queued_batches,
+        ),
+        (
+            "triax_history_oldest_seconds",
+            "First-sample time of the oldest batch kept, s since the Unix epoch (0: empty).",
+            h.oldest_ns
+                .map_or(0, |ns| (ns.max(0) / 1_000_000_000) as u64),
+        ),
+    ];
+    for (name, help, v) in gauges {
+        family(out, name, "gauge", help, single(v));
+    }
+    let counters: [(&str, &str, u64); 6] = [
+        (
+            "triax_history_written_batches_total",
+            "Batches kept.",
+            h.written_batches,
+        ),
+        (
+            "triax_history_dropped_batches_total",
+            "Batches not kept: the writer's queue was full.",
+            h.dropped_batches,
+        ),
+        (
+            "triax_history_deleted_segments_total",
+            "Segments removed by retention.",
+            h.deleted_segments,
+        ),
+        (
+            "triax_history_deleted_bytes_total",
+            "Bytes removed by retention.",
+            h.deleted_bytes,
+        ),
+        (
+            "triax_history_damaged_blocks_total",
+            "Blocks that failed their check when read.",
+            h.damaged_blocks,
+        ),
+        (
+            "triax_history_write_errors_total",
+            "History flushes that failed.",
+            h.write_errors,
         ),
     ];
     for (name, help, v) in counters {

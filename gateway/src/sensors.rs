@@ -56,6 +56,11 @@ pub struct SensorCounters {
     pub uncalibrated_samples: AtomicU64,
     /// Receive time of the last batch, ns since the Unix epoch; 0 before the first.
     pub last_seen_ns: AtomicI64,
+    /// The last corrected batch published: its sequence number and first-sample time, and when
+    /// it was published (ns since the Unix epoch, 0 before the first), for the heartbeat.
+    pub last_published_sequence: AtomicU64,
+    pub last_published_timestamp_ns: AtomicI64,
+    pub last_published_ns: AtomicI64,
 }
 
 /// One sensor as the gateway knows it.
@@ -78,6 +83,14 @@ impl SensorEntry {
             counters: SensorCounters::default(),
             evicted: AtomicBool::new(false),
         }
+    }
+
+    /// Records a corrected batch published, for the heartbeat.
+    pub fn note_published(&self, sequence: u64, timestamp_ns: i64) {
+        let c = &self.counters;
+        c.last_published_sequence.store(sequence, Relaxed);
+        c.last_published_timestamp_ns.store(timestamp_ns, Relaxed);
+        c.last_published_ns.store(crate::worker::now_ns(), Relaxed);
     }
 
     /// Whether the table has forgotten this entry (see the module doc).
@@ -309,6 +322,11 @@ impl SensorTable {
         let mut v: Vec<_> = self.read().values().cloned().collect();
         v.sort_by(|a, b| a.id.cmp(&b.id));
         v
+    }
+
+    /// The settings a sensor has (or would have, if it came online).
+    pub fn settings_of(&self, id: &SensorId) -> SensorSettings {
+        self.config.sensor(id.as_str()).clone()
     }
 
     pub fn unknown_sensor_expiry(&self) -> std::time::Duration {

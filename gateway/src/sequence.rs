@@ -18,8 +18,6 @@
 //! later (a bug, a reset counter, or a hostile sender) has lost at most one batch, and
 //! `missing_batches` stays a count of batches that can really have been lost.
 
-use triax_protocol::batch::flags;
-
 /// A jump back by more than this many batches is a node restart, not a late batch.
 pub const RESTART_BACKWARDS: u64 = 1024;
 
@@ -33,12 +31,13 @@ pub enum Verdict {
 }
 
 impl Verdict {
-    /// Batch-level flags for this verdict.
-    pub fn flags(self) -> u16 {
+    /// What the history keeps of this verdict: what a replay needs.
+    pub fn kept(self) -> triax_history::Verdict {
         match self {
-            Verdict::Gap { .. } => flags::SEQUENCE_GAP,
-            Verdict::Duplicate => flags::DUPLICATE,
-            _ => 0,
+            Verdict::InOrder | Verdict::First => triax_history::Verdict::InOrder,
+            Verdict::Gap { .. } => triax_history::Verdict::Gap,
+            Verdict::Duplicate => triax_history::Verdict::Duplicate,
+            Verdict::Restart => triax_history::Verdict::Restart,
         }
     }
 }

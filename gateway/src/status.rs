@@ -79,6 +79,7 @@ pub struct StatusContext {
     pub config: Arc<Config>,
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
+    pub history: Option<Arc<crate::history::Sink>>,
     pub started_at: OffsetDateTime,
 }
 
@@ -119,6 +120,7 @@ impl StatusContext {
             admitted_sensors: self.table.admission.admitted.load(Relaxed),
             displaced_sensors: self.table.admission.displaced.load(Relaxed),
             expired_sensors: self.table.admission.expired.load(Relaxed),
+            history: self.history.as_ref().map(|h| h.status()),
             total_sensors: total as u64,
             next_offset,
             sensors,
@@ -144,6 +146,7 @@ mod tests {
             config,
             table,
             counters: Arc::default(),
+            history: None,
             started_at: OffsetDateTime::UNIX_EPOCH,
         }
     }

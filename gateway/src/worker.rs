@@ -13,7 +13,8 @@ use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
-use triax_protocol::batch::corrected_len;
+use triax_calibration::corrector::Corrector;
+use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
 use zenoh::key_expr::KeyExpr;
@@ -21,8 +22,9 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
+use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
-use crate::kernel::{Scratch, SensorKernel};
+use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
 use crate::tilt::tilt;
@@ -37,6 +39,8 @@ pub struct Shared {
     pub counters: Arc<GatewayCounters>,
     /// [`crate::Config::declared_keys_max`].
     pub declared_keys_max: usize,
+    /// Where corrected batches are kept; none when the history is off.
+    pub history: Option<Arc<history::Sink>>,
 }
 
 /// A place in the `declared_keys_max` budget, given back when dropped.
@@ -146,6 +150,10 @@ struct SensorState {
     next_tilt_ns: i64,
     /// Version of the last batch, to log changes once.
     last_version: Option<u64>,
+    /// When the history is next owed a checkpoint, by the sensor's clock, and batches since
+    /// the last one.
+    next_checkpoint_ns: i64,
+    since_checkpoint: u32,
 }
 
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
@@ -265,26 +273,43 @@ impl Shard {
         }
         // Inserted just above when missing.
         let state = sensors.get_mut(sensor).expect("sensor state exists");
-        let (corrected, tilt_json) = state.correct(&view, scratch);
+        let corrected = state.correct(&view, scratch);
         if let Err(e) = state.establish(shared) {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
         }
-        // Block rather than drop inside Zenoh: when a consumer is slow the shard waits; then a
-        // worker's inbox fills and drops the oldest batch, counted, or, under backpressure, Zenoh's
-        // receive thread waits and the sensor nodes are slowed.
+        if let Some(sink) = &shared.history {
+            sink.offer(history::Item {
+                entry: state.entry.clone(),
+                payload: sample.payload().clone(),
+                verdict: corrected.verdict,
+                calibration_version: corrected.calibration_version,
+                checkpoint: corrected.checkpoint,
+            });
+        }
+        // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches on
+        // its own link, and catches up from the history; it never holds up the gateway or the
+        // other consumers.
         if let Err(e) = shared
             .session
-            .put(state.keys.corrected.key_expr(), corrected)
-            .congestion_control(CongestionControl::Block)
+            .put(state.keys.corrected.key_expr(), corrected.payload)
+            .congestion_control(CongestionControl::Drop)
             .wait()
         {
             shared.counters.publish_errors.fetch_add(1, Relaxed);
             tracing::warn!(sensor, cause = %e, "corrected batch not published");
         } else {
             shared.counters.published_batches.fetch_add(1, Relaxed);
+            state
+                .entry
+                .note_published(view.header.sequence, view.header.timestamp_ns);
         }
-        if let (Some(json), Some(key)) = (tilt_json, &state.keys.tilt) {
-            match shared.session.put(key.key_expr(), json).wait() {
+        if let (Some(json), Some(key)) = (corrected.tilt, &state.keys.tilt) {
+            match shared
+                .session
+                .put(key.key_expr(), json)
+                .congestion_control(CongestionControl::Drop)
+                .wait()
+            {
                 Ok(()) => {
                     shared.counters.tilt_samples.fetch_add(1, Relaxed);
                 }
@@ -331,6 +356,8 @@ impl SensorState {
             sequence: SequenceTracker::default(),
             next_tilt_ns: i64::MIN,
             last_version: None,
+            next_checkpoint_ns: i64::MIN,
+            since_checkpoint: 0,
         })
     }
 
@@ -358,21 +385,21 @@ impl SensorState {
         Ok(())
     }
 
-    /// The synchronous part: sequence, correction, counters, tilt. Returns the corrected payload
-    /// and the tilt sample due, if any.
-    fn correct(
-        &mut self,
-        view: &RawBatchView<'_>,
-        scratch: &mut Scratch,
-    ) -> (Vec<u8>, Option<Vec<u8>>) {
-        let c = &self.entry.counters;
+    /// The synchronous part: sequence, correction, counters, tilt, and what the history keeps.
+    fn correct(&mut self, view: &RawBatchView<'_>, scratch: &mut Scratch) -> Corrected {
         let duration_ns = (view.len() as f64 * 1e9 / view.header.sample_rate_hz) as i64;
         let verdict =
             self.sequence
                 .observe(view.header.sequence, view.header.timestamp_ns, duration_ns);
+        // The state before this batch, which a replay restores and then feeds the same batch.
+        let checkpoint = self.checkpoint_due(view.header.timestamp_ns).then(|| {
+            let mut ck = Vec::with_capacity(512);
+            self.kernel.checkpoint(&mut ck);
+            ck
+        });
+        let c = &self.entry.counters;
         match verdict {
             Verdict::Gap { missing } => {
-                self.kernel.discontinuity();
                 c.gaps.fetch_add(1, Relaxed);
                 c.missing_batches.fetch_add(missing, Relaxed);
                 tracing::debug!(sensor = %self.entry.id, sequence = view.header.sequence, missing, "sequence gap");
@@ -382,7 +409,6 @@ impl SensorState {
                 tracing::debug!(sensor = %self.entry.id, sequence = view.header.sequence, "duplicate batch");
             }
             Verdict::Restart => {
-                self.kernel.discontinuity();
                 c.restarts.fetch_add(1, Relaxed);
                 tracing::info!(sensor = %self.entry.id, sequence = view.header.sequence, "sensor node restarted");
             }
@@ -403,10 +429,12 @@ impl SensorState {
         }
         let n = view.len();
         let mut out = Vec::with_capacity(corrected_len(view.header.sensor_id.as_str().len(), n));
-        let outcome = self.kernel.correct_batch(
+        let judged = verdict.kept();
+        let outcome = correct_judged(
+            &mut self.kernel,
             view,
             corrector.as_deref(),
-            verdict.flags(),
+            judged,
             scratch,
             &mut out,
         );
@@ -442,8 +470,63 @@ impl SensorState {
                 self.next_tilt_ns = t.timestamp_ns.saturating_add(interval_ns);
             }
         }
-        (out, tilt_json)
+        Corrected {
+            payload: out,
+            tilt: tilt_json,
+            verdict: judged,
+            calibration_version: version.unwrap_or(0),
+            checkpoint,
+        }
     }
+
+    /// Whether the history is owed a checkpoint before the batch at `timestamp_ns`: at the
+    /// sensor's first batch, then every [`CHECKPOINT_INTERVAL_NS`] of its clock or
+    /// [`CHECKPOINT_INTERVAL_BATCHES`] batches, whichever comes first.
+    fn checkpoint_due(&mut self, timestamp_ns: i64) -> bool {
+        self.since_checkpoint = self.since_checkpoint.saturating_add(1);
+        let due = timestamp_ns >= self.next_checkpoint_ns
+            || self.since_checkpoint > CHECKPOINT_INTERVAL_BATCHES;
+        if due {
+            self.next_checkpoint_ns = timestamp_ns.saturating_add(CHECKPOINT_INTERVAL_NS);
+            self.since_checkpoint = 0;
+        }
+        due
+    }
+}
+
+/// A batch corrected, with what the history keeps of it.
+struct Corrected {
+    payload: Vec<u8>,
+    tilt: Option<Vec<u8>>,
+    verdict: history::Verdict,
+    calibration_version: u64,
+    checkpoint: Option<Vec<u8>>,
+}
+
+/// Corrects a batch the sequence tracking judged `verdict`: a gap or a restart first resets
+/// the frequency detector, and the verdict's batch flag goes on the batch. The one path of both
+/// the live stream and the history's replay, so that the two agree byte for byte.
+pub fn correct_judged(
+    kernel: &mut SensorKernel,
+    view: &RawBatchView<'_>,
+    corrector: Option<&Corrector>,
+    verdict: history::Verdict,
+    scratch: &mut Scratch,
+    out: &mut Vec<u8>,
+) -> BatchOutcome {
+    let stream_flags = match verdict {
+        history::Verdict::Gap => {
+            kernel.discontinuity();
+            flags::SEQUENCE_GAP
+        }
+        history::Verdict::Restart => {
+            kernel.discontinuity();
+            0
+        }
+        history::Verdict::Duplicate => flags::DUPLICATE,
+        history::Verdict::InOrder => 0,
+    };
+    kernel.correct_batch(view, corrector, stream_flags, scratch, out)
 }
 
 /// Now, ns since the Unix epoch.

@@ -29,6 +29,7 @@
 //! `history` module owns the writer thread and the replay.
 
 pub mod block;
+pub mod lock;
 pub mod segment;
 mod store;
 pub mod varint;

@@ -17,6 +17,8 @@ use std::io::{Read, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
+use triax_protocol::SensorId;
+
 use crate::block::{Block, BlockSummary};
 use crate::HistoryError;
 
@@ -101,6 +103,56 @@ pub fn log_path(dir: &Path, id: u64) -> PathBuf {
 
 pub fn idx_path(dir: &Path, id: u64) -> PathBuf {
     dir.join(format!("{id:016}.idx"))
+}
+
+/// The ids of the sensors a closed segment holds, one per line.
+pub fn sensors_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("{id:016}.sensors"))
+}
+
+/// The sensors a segment holds: from its `.sensors` file, or else from one block header per
+/// sensor (and the file is then written).
+pub fn sensors_of(
+    dir: &Path,
+    id: u64,
+    entries: &[IndexEntry],
+) -> Result<Vec<SensorId>, HistoryError> {
+    let sp = sensors_path(dir, id);
+    if let Ok(text) = std::fs::read_to_string(&sp) {
+        return Ok(text.lines().filter_map(|l| SensorId::new(l).ok()).collect());
+    }
+    let lp = log_path(dir, id);
+    let log = File::open(&lp).map_err(io("open a log", &lp))?;
+    let mut seen = std::collections::HashSet::new();
+    let mut ids = Vec::new();
+    for e in entries {
+        if !seen.insert(e.sensor_hash) {
+            continue;
+        }
+        // Frame header, block version, id length, id.
+        let mut head = vec![0u8; (FRAME_HEADER + 2 + 64).min(e.frame_len as usize)];
+        log.read_exact_at(&mut head, e.offset)
+            .map_err(io("read a block header", &lp))?;
+        let id = head
+            .get(FRAME_HEADER + 1)
+            .and_then(|&n| head.get(FRAME_HEADER + 2..FRAME_HEADER + 2 + usize::from(n)))
+            .and_then(|b| std::str::from_utf8(b).ok())
+            .and_then(|s| SensorId::new(s).ok());
+        ids.extend(id);
+    }
+    write_sensors(dir, id, &ids)?;
+    Ok(ids)
+}
+
+/// Writes a segment's `.sensors` file.
+pub fn write_sensors(dir: &Path, id: u64, ids: &[SensorId]) -> Result<(), HistoryError> {
+    let sp = sensors_path(dir, id);
+    let mut text = String::with_capacity(ids.len() * 12);
+    for s in ids {
+        text.push_str(s.as_str());
+        text.push('\n');
+    }
+    std::fs::write(&sp, text).map_err(io("write a sensor list", &sp))
 }
 
 /// The segment id of a log file name, if it is one.

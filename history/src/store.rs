@@ -1,7 +1,7 @@
 //! The history directory: its segments, the writer that appends to the newest, readers, and
 //! retention.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -123,6 +123,8 @@ pub struct History {
     config: HistoryConfig,
     segments: RwLock<Vec<Segment>>,
     index_cache: Mutex<VecDeque<(u64, Arc<SensorIndex>)>>,
+    /// Every sensor with batches kept (and perhaps some whose batches retention removed).
+    sensors: RwLock<BTreeSet<SensorId>>,
     pub counters: HistoryCounters,
     /// Held for the history's life: one gateway per directory.
     _lock: File,
@@ -156,12 +158,8 @@ impl History {
             .write(true)
             .open(dir.join("LOCK"))
             .map_err(|e| io("open the lock file", e))?;
-        match lock.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => {
-                return Err(HistoryError::Locked { path: dir.clone() })
-            }
-            Err(std::fs::TryLockError::Error(e)) => return Err(io("lock", e)),
+        if !crate::lock::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
+            return Err(HistoryError::Locked { path: dir.clone() });
         }
         let mut ids = Vec::new();
         for entry in std::fs::read_dir(&dir).map_err(|e| io("list", e))? {
@@ -172,6 +170,7 @@ impl History {
         }
         ids.sort_unstable();
         let mut segments = Vec::with_capacity(ids.len() + 1);
+        let mut sensors = BTreeSet::new();
         let (mut cut_bytes, mut rescanned_blocks) = (0, 0);
         for (i, &id) in ids.iter().enumerate() {
             let mut seg = Segment::empty(id, &dir);
@@ -185,6 +184,7 @@ impl History {
                 segment::read_index(&dir, id)?
             };
             entries.iter().for_each(|e| seg.absorb(e));
+            sensors.extend(segment::sensors_of(&dir, id, &entries)?);
             seg.modified = std::fs::metadata(&seg.log_path)
                 .and_then(|m| m.modified())
                 .unwrap_or_else(|_| SystemTime::now());
@@ -206,6 +206,7 @@ impl History {
             config,
             segments: RwLock::new(segments),
             index_cache: Mutex::new(VecDeque::new()),
+            sensors: RwLock::new(sensors),
             counters: HistoryCounters::default(),
             _lock: lock,
         });
@@ -216,6 +217,7 @@ impl History {
             pending: HashMap::new(),
             ready: Vec::new(),
             next_arrival,
+            segment_sensors: BTreeSet::new(),
         };
         Ok(Opened {
             history,
@@ -228,6 +230,16 @@ impl History {
 
     pub fn config(&self) -> &HistoryConfig {
         &self.config
+    }
+
+    /// Every sensor with batches kept, in id order.
+    pub fn sensors(&self) -> Vec<SensorId> {
+        self.sensors
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .cloned()
+            .collect()
     }
 
     pub fn stats(&self) -> HistoryStats {
@@ -389,10 +401,14 @@ impl History {
             };
             let (id, bytes) = victim;
             let dir = &self.config.dir;
-            let removed = [segment::log_path(dir, id), segment::idx_path(dir, id)]
-                .iter()
-                .map(std::fs::remove_file)
-                .all(|r| r.is_ok() || r.is_err_and(|e| e.kind() == std::io::ErrorKind::NotFound));
+            let removed = [
+                segment::log_path(dir, id),
+                segment::idx_path(dir, id),
+                segment::sensors_path(dir, id),
+            ]
+            .iter()
+            .map(std::fs::remove_file)
+            .all(|r| r.is_ok() || r.is_err_and(|e| e.kind() == std::io::ErrorKind::NotFound));
             if !removed {
                 self.counters.write_errors.fetch_add(1, Relaxed);
                 break;
@@ -528,6 +544,8 @@ pub struct Writer {
     /// Blocks closed before the flush (a checkpoint or the size limit started a new one).
     ready: Vec<(SensorId, BlockBuilder)>,
     next_arrival: u64,
+    /// Sensors of the segment being written, for its `.sensors` file.
+    segment_sensors: BTreeSet<SensorId>,
 }
 
 impl Writer {
@@ -545,6 +563,22 @@ impl Writer {
     ) -> u64 {
         kept.arrival = self.next_arrival;
         self.next_arrival += 1;
+        if !self.segment_sensors.contains(sensor) {
+            self.segment_sensors.insert(sensor.clone());
+            let known = self
+                .history
+                .sensors
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .contains(sensor);
+            if !known {
+                self.history
+                    .sensors
+                    .write()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .insert(sensor.clone());
+            }
+        }
         let closes = |b: &BlockBuilder| {
             checkpoint.is_some()
                 || b.len() >= BLOCK_BYTES_MAX
@@ -656,6 +690,12 @@ impl Writer {
     fn roll(&mut self) -> Result<(), HistoryError> {
         let dir = self.history.config.dir.clone();
         let closing = self.segment.take().map(|s| s.id);
+        if let Some(id) = closing {
+            let ids: Vec<SensorId> = std::mem::take(&mut self.segment_sensors)
+                .into_iter()
+                .collect();
+            segment::write_sensors(&dir, id, &ids)?;
+        }
         let next_id = {
             let segs = self.history.read();
             segs.last().map_or(1, |s| s.id + 1)

@@ -88,6 +88,7 @@ fn flushed_batches_come_back_by_time_sequence_and_arrival_across_segments_and_re
         assert!(writer.history().stats().segments > 10);
     }
     let Opened { history: h, .. } = open(dir.path(), u64::MAX, 32 << 10);
+    assert_eq!(h.sensors(), [id("a"), id("b"), id("c")]);
     let mut q = Query::all(id("b"));
     let (_, all) = read(&h, &q);
     assert_eq!(all.len(), 1000);

@@ -405,6 +405,42 @@ impl<'a> RawBatchView<'a> {
         self.samples.is_empty()
     }
 
+    /// The samples as they are in the payload: 12 bytes (3 × f32 little-endian) each.
+    pub fn sample_bytes(&self) -> &'a [u8] {
+        self.samples
+    }
+
+    /// Appends the raw batch of `header` whose samples are `sample_bytes` (as
+    /// [`Self::sample_bytes`] gives them) to `out`: the payload a node sent, from its parts.
+    ///
+    /// # Panics
+    /// If `sample_bytes` is not 1..=[`MAX_SAMPLES`] whole samples: a programming error of the
+    /// caller, which read them from a valid batch.
+    pub fn encode_parts(
+        out: &mut Vec<u8>,
+        header: &BatchHeader,
+        temperature_c: Option<f32>,
+        sample_bytes: &[u8],
+    ) {
+        let n = sample_bytes.len() / RAW_SAMPLE_BYTES;
+        assert!(
+            sample_bytes.len() == n * RAW_SAMPLE_BYTES && (1..=MAX_SAMPLES).contains(&n),
+            "a raw batch holds 1..={MAX_SAMPLES} whole samples, not {} bytes",
+            sample_bytes.len()
+        );
+        let header_flags = if temperature_c.is_some() {
+            RAW_HAS_TEMPERATURE
+        } else {
+            0
+        };
+        out.reserve(raw_len(header.sensor_id.as_str().len(), n, header_flags));
+        write_prefix(out, KIND_RAW, header_flags, header, n);
+        if let Some(t) = temperature_c {
+            out.extend_from_slice(&t.to_le_bytes());
+        }
+        out.extend_from_slice(sample_bytes);
+    }
+
     /// Sample `i` (`i < len()`).
     #[inline]
     pub fn sample(&self, i: usize) -> [f32; 3] {

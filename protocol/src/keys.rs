@@ -9,6 +9,8 @@
 //! triax/<building>/calibration/registry          lab registry queryable (catch-up)
 //! triax/<building>/status                        GatewayStatus (JSON), gateway queryable
 //! triax/<building>/alert/<sensor>                Alert (JSON), alerting → operators
+//! triax/<building>/history/<sensor>              history query → corrected batches (binary)
+//! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -149,6 +151,8 @@ pub enum Key {
     CalibrationRegistry(BuildingId),
     Status(BuildingId),
     Alert(BuildingId, SensorId),
+    History(BuildingId, SensorId),
+    Heartbeat(BuildingId),
 }
 
 /// Why a key string is not a Triax key.
@@ -176,7 +180,9 @@ impl Key {
             | Key::CalibrationAck(b, _)
             | Key::CalibrationRegistry(b)
             | Key::Status(b)
-            | Key::Alert(b, _) => b,
+            | Key::Alert(b, _)
+            | Key::History(b, _)
+            | Key::Heartbeat(b) => b,
         }
     }
 
@@ -187,8 +193,9 @@ impl Key {
             | Key::Tilt(_, s)
             | Key::CalibrationPush(_, s)
             | Key::CalibrationAck(_, s)
-            | Key::Alert(_, s) => Some(s),
-            Key::CalibrationRegistry(_) | Key::Status(_) => None,
+            | Key::Alert(_, s)
+            | Key::History(_, s) => Some(s),
+            Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) => None,
         }
     }
 
@@ -213,6 +220,8 @@ impl Key {
             ["calibration", "registry"] => Key::CalibrationRegistry(b),
             ["status"] => Key::Status(b),
             ["alert", s] => Key::Alert(b, sensor(s)?),
+            ["history", s] => Key::History(b, sensor(s)?),
+            ["heartbeat"] => Key::Heartbeat(b),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -229,6 +238,8 @@ impl fmt::Display for Key {
             Key::CalibrationRegistry(b) => write!(f, "{ROOT}/{b}/calibration/registry"),
             Key::Status(b) => write!(f, "{ROOT}/{b}/status"),
             Key::Alert(b, s) => write!(f, "{ROOT}/{b}/alert/{s}"),
+            Key::History(b, s) => write!(f, "{ROOT}/{b}/history/{s}"),
+            Key::Heartbeat(b) => write!(f, "{ROOT}/{b}/heartbeat"),
         }
     }
 }
@@ -242,6 +253,7 @@ pub enum Stream {
     CalibrationPush,
     CalibrationAck,
     Alert,
+    History,
 }
 
 impl Stream {
@@ -253,6 +265,7 @@ impl Stream {
             Stream::CalibrationPush => "calibration/push",
             Stream::CalibrationAck => "calibration/ack",
             Stream::Alert => "alert",
+            Stream::History => "history",
         }
     }
 }
@@ -362,6 +375,8 @@ mod tests {
             Key::CalibrationRegistry(b("hq")),
             Key::Status(b("hq")),
             Key::Alert(b("hq"), s("acc-01")),
+            Key::History(b("hq"), s("acc-01")),
+            Key::Heartbeat(b("hq")),
         ];
         for k in keys {
             let text = k.to_string();

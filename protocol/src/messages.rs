@@ -194,6 +194,9 @@ pub struct GatewayStatus {
     pub displaced_sensors: u64,
     #[serde(default)]
     pub expired_sensors: u64,
+    /// The gateway's history of raw batches; absent when it keeps none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub history: Option<HistoryStatus>,
     /// Sensors the gateway knows; `sensors` is the page the query asked for.
     #[serde(default)]
     pub total_sensors: u64,
@@ -204,9 +207,68 @@ pub struct GatewayStatus {
     pub sensors: Vec<SensorStatus>,
 }
 
+/// What a gateway's history holds and has done since the gateway started.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HistoryStatus {
+    /// On disk now, logs and indexes.
+    pub bytes: u64,
+    pub max_bytes: u64,
+    pub retention_s: u64,
+    pub segments: u64,
+    /// First-sample times of the oldest and newest batches kept; absent when empty.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oldest_ns: Option<i64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub newest_ns: Option<i64>,
+    /// Batches kept since start.
+    pub written_batches: u64,
+    /// Batches not kept: the writer's queue was full (the disk did not keep up).
+    pub dropped_batches: u64,
+    /// Batches waiting for the writer now.
+    pub queued_batches: u64,
+    /// Segments and bytes removed by retention since start.
+    pub deleted_segments: u64,
+    pub deleted_bytes: u64,
+    /// Blocks that failed their check when read (never served).
+    pub damaged_blocks: u64,
+    /// Flushes that failed (their batches are lost).
+    pub write_errors: u64,
+}
+
 impl JsonMessage for GatewayStatus {
     const WHAT: &'static str = "gateway status";
     // About 300 bytes a sensor; a gateway sends at most 5000 a reply, and pages the rest.
+    const MAX_BYTES: usize = 8 << 20;
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
+}
+
+/// What a gateway says every second on `triax/<building>/heartbeat`: it is alive, and the last
+/// batch it published per active sensor, so that a consumer notices a lost last batch.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Heartbeat {
+    pub format_version: u32,
+    pub building: BuildingId,
+    pub gateway: String,
+    /// Heartbeats since the gateway started; a jump means some were lost.
+    pub sequence: u64,
+    #[serde(with = "time::serde::rfc3339")]
+    pub at: OffsetDateTime,
+    /// Sensors with a batch published in the last 10 s.
+    pub sensors: BTreeMap<SensorId, HeartbeatSensor>,
+}
+
+/// The last batch published for one sensor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HeartbeatSensor {
+    pub last_sequence: u64,
+    pub last_timestamp_ns: i64,
+}
+
+impl JsonMessage for Heartbeat {
+    const WHAT: &'static str = "heartbeat";
+    // About 70 bytes a sensor: room for a gateway's 100 000.
     const MAX_BYTES: usize = 8 << 20;
     fn format_version(&self) -> u32 {
         self.format_version
@@ -360,6 +422,21 @@ mod tests {
             admitted_sensors: 5,
             displaced_sensors: 6,
             expired_sensors: 7,
+            history: Some(HistoryStatus {
+                bytes: 1,
+                max_bytes: 2,
+                retention_s: 3,
+                segments: 4,
+                oldest_ns: Some(5),
+                newest_ns: None,
+                written_batches: 6,
+                dropped_batches: 7,
+                queued_batches: 8,
+                deleted_segments: 9,
+                deleted_bytes: 10,
+                damaged_blocks: 11,
+                write_errors: 12,
+            }),
             total_sensors: 7,
             next_offset: Some(1),
             sensors: vec![SensorStatus {

@@ -1,0 +1,267 @@
+//! The gateway's side of the history ([`triax_history`]): what the correction workers hand
+//! over, the writer thread that keeps it, and the durability rule.
+//!
+//! The sample path never waits for the disk. A worker, once it has corrected a batch, offers
+//! the raw payload (a reference-counted Zenoh buffer, not a copy), the sequence verdict, the
+//! calibration version used and, when one is due, a checkpoint of the sensor's correction state,
+//! to a bounded queue ([`Sink::offer`]); when the queue is full the batch is not kept, and
+//! counted (`history_dropped_batches`). The writer thread takes the whole queue every
+//! [`DRAIN_INTERVAL`], gathers each sensor's batches into a block, and flushes: it writes and
+//! syncs (`fdatasync`) at least every `flush_interval` (one second by default), so a batch is
+//! durable at most one interval, plus one sync, after it was corrected. A history query first
+//! asks for a flush of everything queued so far ([`Sink::sync`]), so a consumer that noticed a
+//! gap finds the batches it missed even if they arrived a moment ago.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+pub use triax_history::Verdict;
+use triax_history::{History, Kept, Writer};
+use triax_protocol::messages::HistoryStatus;
+use triax_protocol::RawBatchView;
+use zenoh::bytes::ZBytes;
+
+use crate::sensors::SensorEntry;
+
+/// How often the writer takes what the workers queued.
+pub const DRAIN_INTERVAL: Duration = Duration::from_millis(20);
+
+/// A checkpoint of a sensor's correction state is kept at least this often, by the sensor's
+/// clock: a replay starts from the checkpoint before the first batch it serves.
+pub const CHECKPOINT_INTERVAL_NS: i64 = 60_000_000_000;
+/// ... or after this many batches, whatever the clock says.
+pub const CHECKPOINT_INTERVAL_BATCHES: u32 = 6000;
+
+/// One corrected batch, handed to the history.
+pub struct Item {
+    pub entry: Arc<SensorEntry>,
+    pub payload: ZBytes,
+    pub verdict: Verdict,
+    pub calibration_version: u64,
+    /// The correction state before this batch, when a checkpoint was due.
+    pub checkpoint: Option<Vec<u8>>,
+}
+
+/// The history's counters, as status and metrics show them.
+#[derive(Debug, Default)]
+pub struct SinkCounters {
+    /// Batches handed to the history.
+    pub offered: AtomicU64,
+    /// Batches not kept because the queue was full (the disk did not keep up).
+    pub dropped: AtomicU64,
+    /// Batches handed to the history and then made durable or dropped: what a sync waits for.
+    pub settled: AtomicU64,
+}
+
+/// The queue between the workers and the writer thread.
+pub struct Sink {
+    state: Mutex<SinkState>,
+    wake: Condvar,
+    settled: Condvar,
+    capacity: usize,
+    pub counters: SinkCounters,
+    pub history: Arc<History>,
+}
+
+struct SinkState {
+    queue: Vec<Item>,
+    /// A reader waits for everything offered up to this count to be durable.
+    sync_to: u64,
+    closed: bool,
+}
+
+impl Sink {
+    /// Offers a batch; false (and counted) when the queue is full or closed.
+    pub fn offer(&self, item: Item) -> bool {
+        self.counters.offered.fetch_add(1, Relaxed);
+        let mut s = self.lock();
+        if s.closed || s.queue.len() >= self.capacity {
+            drop(s);
+            self.counters.dropped.fetch_add(1, Relaxed);
+            self.counters.settled.fetch_add(1, Relaxed);
+            return false;
+        }
+        s.queue.push(item);
+        true
+    }
+
+    /// Batches waiting for the writer.
+    pub fn queued(&self) -> usize {
+        self.lock().queue.len()
+    }
+
+    /// Waits, at most `timeout`, until every batch offered before the call is durable (or was
+    /// dropped); true if it is.
+    pub fn sync(&self, timeout: Duration) -> bool {
+        let target = self.counters.offered.load(Relaxed);
+        let deadline = Instant::now() + timeout;
+        let mut s = self.lock();
+        s.sync_to = s.sync_to.max(target);
+        self.wake.notify_one();
+        while self.counters.settled.load(Relaxed) < target {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() || s.closed {
+                return false;
+            }
+            s = self
+                .settled
+                .wait_timeout(s, left)
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
+        true
+    }
+
+    /// The history's figures, for status (and, field by field, metrics).
+    pub fn status(&self) -> HistoryStatus {
+        let h = &self.history;
+        let stats = h.stats();
+        let c = &h.counters;
+        HistoryStatus {
+            bytes: stats.bytes,
+            max_bytes: h.config().max_bytes,
+            retention_s: h.config().retention.as_secs(),
+            segments: stats.segments as u64,
+            oldest_ns: stats.oldest_ns,
+            newest_ns: stats.newest_ns,
+            written_batches: c.written_batches.load(Relaxed),
+            dropped_batches: self.counters.dropped.load(Relaxed),
+            queued_batches: self.queued() as u64,
+            deleted_segments: c.deleted_segments.load(Relaxed),
+            deleted_bytes: c.deleted_bytes.load(Relaxed),
+            damaged_blocks: c.damaged_blocks.load(Relaxed),
+            write_errors: c.write_errors.load(Relaxed),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, SinkState> {
+        // The state is a queue and two plain fields: consistent after any panic.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// The writer thread.
+pub struct Recorder {
+    pub sink: Arc<Sink>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Recorder {
+    /// Starts the writer thread over `writer`, with a queue of `capacity` batches.
+    pub fn start(
+        writer: Writer,
+        capacity: usize,
+        flush_interval: Duration,
+    ) -> std::io::Result<Recorder> {
+        let sink = Arc::new(Sink {
+            state: Mutex::new(SinkState {
+                queue: Vec::new(),
+                sync_to: 0,
+                closed: false,
+            }),
+            wake: Condvar::new(),
+            settled: Condvar::new(),
+            capacity: capacity.max(1),
+            counters: SinkCounters::default(),
+            history: writer.history().clone(),
+        });
+        let stop = Arc::new(AtomicBool::new(false));
+        let (s, st) = (sink.clone(), stop.clone());
+        let thread = std::thread::Builder::new()
+            .name("triax-history".into())
+            .spawn(move || run(writer, &s, &st, flush_interval))?;
+        Ok(Recorder {
+            sink,
+            thread: Some(thread),
+            stop,
+        })
+    }
+
+    /// Takes what is queued, flushes it, and stops the thread.
+    pub fn stop(&mut self) {
+        self.stop.store(true, Relaxed);
+        {
+            let mut s = self.sink.lock();
+            s.closed = true;
+        }
+        self.sink.wake.notify_all();
+        if let Some(t) = self.thread.take() {
+            if t.join().is_err() {
+                tracing::error!("history writer ended abnormally");
+            }
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Duration) {
+    let mut next_flush = Instant::now() + flush_interval;
+    let mut taken: Vec<Item> = Vec::new();
+    let mut unflushed = 0u64;
+    let mut write_errors = 0u64;
+    loop {
+        let (sync_wanted, closing) = {
+            let mut s = sink.lock();
+            if !s.closed && s.queue.is_empty() && s.sync_to <= sink.counters.settled.load(Relaxed) {
+                s = sink
+                    .wake
+                    .wait_timeout(s, DRAIN_INTERVAL)
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
+            }
+            std::mem::swap(&mut s.queue, &mut taken);
+            (
+                s.sync_to > sink.counters.settled.load(Relaxed),
+                s.closed || stop.load(Relaxed),
+            )
+        };
+        for item in taken.drain(..) {
+            keep(&mut writer, item);
+            unflushed += 1;
+        }
+        let now = Instant::now();
+        if now >= next_flush || sync_wanted || closing {
+            if let Err(e) = writer.flush() {
+                write_errors += 1;
+                // First and then every hundredth: a full disk must not flood the log.
+                if write_errors == 1 || write_errors % 100 == 0 {
+                    tracing::error!(cause = %e, errors = write_errors, "history flush failed: batches lost");
+                }
+            }
+            sink.counters.settled.fetch_add(unflushed, Relaxed);
+            unflushed = 0;
+            sink.settled.notify_all();
+            next_flush = now + flush_interval;
+        }
+        if closing && sink.lock().queue.is_empty() {
+            return;
+        }
+    }
+}
+
+/// Adds one item to the writer's pending blocks.
+fn keep(writer: &mut Writer, item: Item) {
+    let bytes = item.payload.to_bytes();
+    // The worker parsed this payload before correcting it; it cannot fail here.
+    let Ok(view) = RawBatchView::parse(&bytes) else {
+        return;
+    };
+    let kept = Kept {
+        arrival: 0,
+        sequence: view.header.sequence,
+        timestamp_ns: view.header.timestamp_ns,
+        sample_rate_hz: view.header.sample_rate_hz,
+        temperature_c: view.temperature_c,
+        calibration_version: item.calibration_version,
+        verdict: item.verdict,
+        samples: view.sample_bytes(),
+    };
+    writer.append(&item.entry.id, kept, item.checkpoint.as_deref());
+}
