@@ -19,9 +19,13 @@
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
+//! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
+//!   outage, retention.
 
 #[path = "gateway/hardening.rs"]
 mod hardening;
+#[path = "gateway/history.rs"]
+mod history;
 mod util;
 
 use std::f64::consts::PI;
