@@ -101,7 +101,26 @@ pub struct Router {
 
 impl Router {
     pub async fn start() -> Router {
-        let port = free_port();
+        Router::start_on(free_port()).await
+    }
+
+    /// Kills the router, waits `down`, and starts it again on the same endpoint: a site link
+    /// that goes away and comes back.
+    pub async fn restart_after(&mut self, down: Duration) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        tokio::time::sleep(down).await;
+        let port = self
+            .endpoint
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .expect("the endpoint names a port");
+        // The old router, already reaped, is dropped here.
+        *self = Router::start_on(port).await;
+    }
+
+    async fn start_on(port: u16) -> Router {
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let child = Command::new("zenohd")
             .args(["--no-multicast-scouting", "--listen", &endpoint])
