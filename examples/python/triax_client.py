@@ -1,10 +1,14 @@
 #!/usr/bin/env python3
 """A Triax client in Python, written from PROTOCOL.md alone.
 
-Two commands:
+Three commands:
 
   subscribe  decode a building's corrected batches (PROTOCOL.md §2.2) and print every sample
              with its expanded uncertainty (k·u) and quality flags (§2.3);
+  follow     the same, losing nothing (PROTOCOL.md §5.2): sequence gaps and the heartbeat are
+             filled from the gateway's history, and with --out FILE the batches go to FILE as
+             JSON lines, from which a restarted `follow --out FILE` resumes where it stopped,
+             exactly once;
   simulate   publish raw batches (§2.1) for one sensor, as a sensor node would: a sine on x and
              gravity on z, turned into outputs through a diagonal gain and offset.
 
@@ -13,6 +17,7 @@ Requires only `eclipse-zenoh` (see requirements.txt) and the standard library.
   python3 triax_client.py subscribe --building hq
   python3 triax_client.py simulate --building hq --sensor py-01 --count 100
   python3 triax_client.py subscribe --building hq --connect tcp/127.0.0.1:7447 --no-multicast
+  python3 triax_client.py follow --building hq --out hq.jsonl   # kill it, start it again: no loss
 
 With --json, each batch is one JSON object on a line (non-finite numbers as null), for other
 programs to read.
@@ -267,6 +272,158 @@ def cmd_subscribe(args):
     return 0
 
 
+# --- History and losing nothing (PROTOCOL.md §5) -----------------------------------------------
+
+HISTORY_PAGE = 10000
+RESTART_BACKWARDS = 1024
+FLAG_DUPLICATE = 0x0080
+
+
+def history_key(building, sensor):
+    return f"{ROOT}/{check_id('building', building)}/history/{check_id('sensor', sensor)}"
+
+
+def fetch_history(session, building, sensor, from_seq=None, to_seq=None, timeout_s=10.0):
+    """Every kept batch of `sensor` with a sequence number in [from_seq, to_seq], page by page,
+    as (payload bytes, decoded batch), in the order the gateway received them."""
+    params = [f"limit={HISTORY_PAGE}"]
+    if from_seq is not None:
+        params.append(f"from_seq={from_seq}")
+    if to_seq is not None:
+        params.append(f"to_seq={to_seq}")
+    out = []
+    after = None
+    while True:
+        page = params + ([f"after={after}"] if after else [])
+        selector = f"{history_key(building, sensor)}?{';'.join(page)}"
+        replies = session.get(
+            selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
+        )
+        n = 0
+        for reply in replies:
+            if reply.ok is None:
+                raise RuntimeError(f"history query {selector}: {reply.err.payload.to_bytes().decode()}")
+            payload = reply.ok.payload.to_bytes()
+            out.append((payload, decode_corrected(payload)))
+            if reply.ok.attachment is not None:
+                after = reply.ok.attachment.to_bytes().decode()
+            n += 1
+        if n < HISTORY_PAGE or after is None:
+            return out
+
+
+class Follower:
+    """A building's corrected batches, none lost that the history holds (PROTOCOL.md §5.2)."""
+
+    def __init__(self, session, building, last=None):
+        self.session = session
+        self.building = building
+        # The last sequence number handed over, per sensor.
+        self.last = dict(last or {})
+        self.live = session.declare_subscriber(corrected_key(building))
+        self.beats = session.declare_subscriber(f"{ROOT}/{check_id('building', building)}/heartbeat")
+        self.ready = []
+        self.recovered = 0
+        for sensor, last_seq in list(self.last.items()):
+            self.recover(sensor, last_seq + 1, None)
+
+    def recover(self, sensor, from_seq, to_seq):
+        for payload, batch in fetch_history(self.session, self.building, sensor, from_seq, to_seq):
+            self.recovered += 1
+            self.hand_over(payload, batch)
+
+    def hand_over(self, payload, batch):
+        self.last[batch["sensor_id"]] = batch["sequence"]
+        self.ready.append((payload, batch))
+
+    def on_live(self, payload):
+        batch = decode_corrected(payload)
+        sensor, seq = batch["sensor_id"], batch["sequence"]
+        last = self.last.get(sensor)
+        if last is not None:
+            if seq > last + 1:
+                self.recover(sensor, last + 1, seq - 1)
+            elif seq <= last:
+                duplicate = batch["batch_flags"] & FLAG_DUPLICATE
+                restart = seq == 0 or last - seq > RESTART_BACKWARDS
+                if not duplicate and not restart:
+                    return  # already handed over from the history
+        self.hand_over(payload, batch)
+
+    def on_heartbeat(self, payload):
+        beat = json.loads(payload)
+        if beat.get("format_version") != 1:
+            return
+        for sensor, s in beat.get("sensors", {}).items():
+            last = self.last.get(sensor)
+            if last is not None and last < s["last_sequence"] <= last + RESTART_BACKWARDS:
+                self.recover(sensor, last + 1, s["last_sequence"])
+
+    def poll(self):
+        """The batches ready now, in order (an empty list if none)."""
+        while True:
+            sample = self.beats.try_recv()
+            if sample is None:
+                break
+            self.on_heartbeat(sample.payload.to_bytes())
+        while True:
+            sample = self.live.try_recv()
+            if sample is None:
+                break
+            try:
+                self.on_live(sample.payload.to_bytes())
+            except DecodeError as e:
+                print(f"{sample.key_expr}: refused: {e}", file=sys.stderr)
+        ready, self.ready = self.ready, []
+        return ready
+
+
+def resume_state(path):
+    """The last sequence number per sensor in an output file of `follow --out`. A line cut short
+    by a kill is removed: its batch was not handed over, and comes again from the history."""
+    last = {}
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except FileNotFoundError:
+        return last
+    whole = data[: data.rfind(b"\n") + 1]
+    if len(whole) != len(data):
+        with open(path, "r+b") as f:
+            f.truncate(len(whole))
+    for line in whole.splitlines():
+        b = json.loads(line)
+        last[b["sensor_id"]] = b["sequence"]
+    return last
+
+
+def cmd_follow(args):
+    session = open_session(args)
+    last = resume_state(args.out) if args.out else {}
+    follower = Follower(session, args.building, last)
+    out = open(args.out, "a", buffering=1) if args.out else sys.stdout
+    print(json.dumps({"event": "ready", "resumed_sensors": len(last)}), file=sys.stderr, flush=True)
+    handed = 0
+    try:
+        while args.count == 0 or handed < args.count:
+            ready = follower.poll()
+            if not ready:
+                time.sleep(0.005)
+                continue
+            for payload, batch in ready:
+                key = f"{ROOT}/{args.building}/corrected/{batch['sensor_id']}"
+                line = json.loads(batch_json(key, batch))
+                line["payload_hex"] = payload.hex()
+                # One write per line: a kill leaves at most the last line cut short.
+                out.write(json.dumps(line) + "\n")
+                handed += 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+    return 0
+
+
 def cmd_simulate(args):
     session = open_session(args)
     key = raw_key(args.building, args.sensor)
@@ -326,6 +483,9 @@ def main(argv=None):
     s.add_argument("--sensor", help="one sensor (default: every sensor of the building)")
     s.add_argument("--timeout-s", type=float, default=0, help="give up after this long (0: never)")
 
+    f = sub.add_parser("follow", parents=[common], help="corrected batches, losing nothing")
+    f.add_argument("--out", help="append JSON lines here, and resume from what it holds")
+
     m = sub.add_parser("simulate", parents=[common], help="publish raw batches as a sensor node")
     m.add_argument("--sensor", default="py-01")
     m.add_argument("--rate-hz", type=float, default=100.0)
@@ -341,7 +501,8 @@ def main(argv=None):
     m.add_argument("--warmup-s", type=float, default=1.0)
 
     args = p.parse_args(argv)
-    return cmd_subscribe(args) if args.command == "subscribe" else cmd_simulate(args)
+    commands = {"subscribe": cmd_subscribe, "follow": cmd_follow, "simulate": cmd_simulate}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

@@ -7,8 +7,13 @@
 //! must be what Rust decodes from the raw stream, and every corrected value Python decoded must
 //! be bit for bit what `CorrectedBatch::decode` reads.
 //!
-//! Needs a Python interpreter with `eclipse-zenoh` installed, named by `TRIAX_PYTHON` (CI sets
-//! it). Without it the test says it skipped, and checks nothing.
+//! `a_killed_python_follower_resumes_and_loses_nothing`: twenty sensors stream; one Python
+//! `follow --out` runs throughout, another is killed with SIGKILL, stays down 10 s and is
+//! started again on its file. Both files end holding every batch once, in order, byte for byte
+//! the same.
+//!
+//! Needs a Python interpreter with `eclipse-zenoh` installed, named by `TRIAX_PYTHON`
+//! (`scripts/test` sets it up); without it the tests fail and say so.
 
 mod util;
 
@@ -66,6 +71,16 @@ fn python(python: &str, args: &[String]) -> (Reaped, std::sync::mpsc::Receiver<S
     (Reaped(child), rx)
 }
 
+/// The Python that `scripts/test` set up with `eclipse-zenoh`.
+fn python_interpreter() -> String {
+    std::env::var("TRIAX_PYTHON").unwrap_or_else(|_| {
+        panic!(
+            "TRIAX_PYTHON is not set: run the tests with scripts/test, which makes a Python \
+             environment with eclipse-zenoh under target/pyenv and names it"
+        )
+    })
+}
+
 fn next_line(rx: &std::sync::mpsc::Receiver<String>, what: &str) -> Value {
     let line = rx
         .recv_timeout(Duration::from_secs(30))
@@ -88,10 +103,7 @@ fn same_f32(python: f64, rust: f32) -> bool {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn python_client_round_trips_through_a_gateway() {
-    let Ok(py) = std::env::var("TRIAX_PYTHON") else {
-        println!("skipped: TRIAX_PYTHON not set (a Python with eclipse-zenoh is needed)");
-        return;
-    };
+    let py = python_interpreter();
 
     // A gateway whose store already holds the sensor's calibration.
     let dir = tempfile::tempdir().unwrap();
@@ -276,6 +288,157 @@ async fn python_client_round_trips_through_a_gateway() {
     );
     drop((raw_sub, corrected_sub));
     session.close().await.unwrap();
+    stop.send(()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), gateway)
+        .await
+        .expect("gateway stops on shutdown")
+        .unwrap()
+        .unwrap();
+}
+
+/// Batches per sensor in a `follow --out` file: (sequence, payload hex), in file order.
+fn followed(path: &std::path::Path) -> BTreeMap<String, Vec<(u64, String)>> {
+    let mut out: BTreeMap<String, Vec<(u64, String)>> = BTreeMap::new();
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    for line in text.lines() {
+        let Ok(v) = serde_json::from_str::<Value>(line) else {
+            continue; // a line cut short by the kill, removed when the follower resumes
+        };
+        out.entry(v["sensor_id"].as_str().unwrap().to_owned())
+            .or_default()
+            .push((
+                v["sequence"].as_u64().unwrap(),
+                v["payload_hex"].as_str().unwrap().to_owned(),
+            ));
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_killed_python_follower_resumes_and_loses_nothing() {
+    let py = python_interpreter();
+    let dir = tempfile::tempdir().unwrap();
+    let store_path = dir.path().join("store");
+    let ids: Vec<String> = (0..20).map(|i| format!("pf-{i:02}")).collect();
+    {
+        let store = Store::open(&store_path).unwrap();
+        for id in &ids {
+            store
+                .put(&sample::record(id, 1))
+                .unwrap()
+                .expect("accepted");
+        }
+    }
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let config = triax_gateway::Config::for_tests("pfb", &store_path, vec![endpoint.clone()]);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let gateway = tokio::spawn(triax_gateway::run(config, async {
+        let _ = stopped.await;
+    }));
+    wait_for_listener(port).await;
+    let follow = |out: &std::path::Path| -> Reaped {
+        let args = [
+            "follow",
+            "--building",
+            "pfb",
+            "--connect",
+            &endpoint,
+            "--no-multicast",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .map(String::from);
+        let child = Command::new(&py)
+            .arg(script())
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {py}: {e}"));
+        Reaped(child)
+    };
+    let (steady_file, away_file) = (
+        dir.path().join("steady.jsonl"),
+        dir.path().join("away.jsonl"),
+    );
+    let steady = follow(&steady_file);
+    let mut away = follow(&away_file);
+    // The node: twenty sensors at ten batches a second, for 22 s.
+    let mut zc = zenoh::Config::default();
+    zc.insert_json5("mode", "\"peer\"").unwrap();
+    zc.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    zc.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    let node = zenoh::open(zc).await.unwrap();
+    let b = BuildingId::new("pfb").unwrap();
+    let mut publishers = Vec::new();
+    for id in &ids {
+        let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
+        publishers.push(node.declare_publisher(key).await.unwrap());
+    }
+    // Let both followers subscribe before the first batch.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let rounds = 220u64;
+    let started = tokio::time::Instant::now();
+    let mut killed_at = None;
+    let mut restarted = false;
+    for seq in 0..rounds {
+        for (id, p) in ids.iter().zip(&publishers) {
+            let batch = RawBatch {
+                header: triax_protocol::batch::BatchHeader {
+                    sensor_id: SensorId::new(id.as_str()).unwrap(),
+                    sequence: seq,
+                    timestamp_ns: START_NS + seq as i64 * 100_000_000,
+                    sample_rate_hz: 100.0,
+                },
+                temperature_c: None,
+                samples: (0..10)
+                    .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
+                    .collect(),
+            };
+            p.put(batch.encode()).await.unwrap();
+        }
+        let t = started.elapsed();
+        if killed_at.is_none() && t > Duration::from_secs(4) {
+            // SIGKILL: no chance to finish a line or save anything.
+            away.0.kill().unwrap();
+            away.0.wait().unwrap();
+            killed_at = Some(t);
+        }
+        if !restarted && killed_at.is_some_and(|k| t > k + Duration::from_secs(10)) {
+            away = follow(&away_file);
+            restarted = true;
+        }
+        tokio::time::sleep_until(started + Duration::from_millis(100 * (seq + 1))).await;
+    }
+    assert!(restarted, "the follower was killed and started again");
+    let total = ids.len() * rounds as usize;
+    let count = |f: &std::path::Path| followed(f).values().map(Vec::len).sum::<usize>();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while (count(&steady_file) < total || count(&away_file) < total)
+        && tokio::time::Instant::now() < deadline
+    {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let (a, c) = (followed(&steady_file), followed(&away_file));
+    assert_eq!(a.len(), ids.len());
+    for id in &ids {
+        let seqs: Vec<u64> = a[id].iter().map(|(s, _)| *s).collect();
+        assert_eq!(
+            seqs,
+            (0..rounds).collect::<Vec<_>>(),
+            "{id}: the steady follower"
+        );
+        assert_eq!(
+            a.get(id),
+            c.get(id),
+            "{id}: the resumed follower, once each, same bytes"
+        );
+    }
+    drop((steady, away));
+    node.close().await.unwrap();
     stop.send(()).unwrap();
     tokio::time::timeout(Duration::from_secs(10), gateway)
         .await
