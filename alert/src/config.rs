@@ -35,7 +35,7 @@
 //! silently unchecked one.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 pub use triax_net::{ConfigError, ZenohMode, ZenohSettings};
@@ -112,6 +112,9 @@ fn above(threshold: f64) -> Limit {
     }
 }
 
+/// Default of [`Config::state_path`].
+pub const DEFAULT_STATE_PATH: &str = "triax-alert-state.json";
+
 /// Settings of the window and decision logic, shared by every sensor.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Settings {
@@ -156,6 +159,9 @@ pub struct Config {
     pub buildings: BTreeMap<BuildingId, Building>,
     /// Subscribe to every building, with [`Config::defaults`] for unlisted ones.
     pub watch_all_buildings: bool,
+    /// Where the last sequence number handled per sensor is kept, so that after a restart the
+    /// service reads what it missed from the gateways' histories; none: start afresh.
+    pub state_path: Option<PathBuf>,
 }
 
 impl Config {
@@ -203,6 +209,7 @@ struct FileConfig {
     frequency_min_rms_mps2: Option<f64>,
     #[serde(default)]
     watch_all_buildings: bool,
+    state_path: Option<PathBuf>,
     #[serde(default)]
     zenoh: ZenohSettings,
     #[serde(default)]
@@ -319,6 +326,12 @@ impl FileConfig {
             defaults: self.defaults,
             buildings,
             watch_all_buildings: self.watch_all_buildings,
+            // Empty: no state kept.
+            state_path: match self.state_path {
+                None => Some(PathBuf::from(DEFAULT_STATE_PATH)),
+                Some(p) if p.as_os_str().is_empty() => None,
+                Some(p) => Some(p),
+            },
         })
     }
 }

@@ -272,6 +272,7 @@ fn make_alert(
         flagged_fraction: ctx.flagged_fraction,
         statement: statement(ctx, kind, j, unit, detail),
         at: ctx.now,
+        late: false,
     }
 }
 
@@ -602,6 +603,7 @@ impl Monitor {
                 flagged_fraction: 0.0,
                 statement,
                 at: now,
+                late: false,
             };
             let span = state.span.clone();
             out.extend(rate_limit(

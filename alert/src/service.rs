@@ -1,26 +1,39 @@
-//! The thin Zenoh layer around [`Monitor`]: subscribe, decode, feed, publish, log.
+//! The thin Zenoh layer around [`Monitor`]: follow, decode, feed, publish, log, remember.
 //!
-//! Zenoh delivers samples to callbacks on its own threads; each callback only copies the key and
-//! payload into a bounded channel (`try_send`, counted when full), so a slow consumer never
-//! blocks Zenoh's receive path and memory stays bounded. One task owns the [`Monitor`] and does
-//! everything else, so the window state needs no lock.
+//! Corrected streams come through a [`Follower`] per building, which loses nothing the gateway's
+//! history holds (PROTOCOL.md §5.2): a stretch this service missed (it was slow, partitioned from
+//! the building, or restarted) is read back from the history and fed to the monitor in order
+//! before the live batch that showed the gap, so every window is judged on complete data, and an
+//! alert raised from such data says it is late. The last sequence number handled per sensor is
+//! kept in `state_path` (written every [`STATE_PERIOD`] and at shutdown): a restarted service
+//! resumes from it. With `watch_all_buildings`, buildings are found by their gateways'
+//! heartbeats.
+//!
+//! Tilt samples are not kept in the histories; they arrive through a plain subscription whose
+//! callback only copies into a bounded channel (`try_send`, counted when full). One task owns the
+//! [`Monitor`] and does everything else, so the window state needs no lock.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::future::Future;
+use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
 use time::OffsetDateTime;
 use tokio::sync::mpsc;
+use triax_client::{Delivery, FollowOptions, Follower};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, TiltSample};
-use triax_protocol::{from_json, to_json, CorrectedBatch, Key};
+use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId};
 
 use crate::config::Config;
 use crate::monitor::Monitor;
 
-/// Messages waiting for the monitor before new ones are dropped (and counted).
+/// Messages waiting for the monitor.
 pub const INBOX_CAPACITY: usize = 4096;
+/// How often the resume state is written.
+pub const STATE_PERIOD: Duration = Duration::from_secs(1);
 
 /// Why the service could not run.
 #[derive(Debug, thiserror::Error)]
@@ -29,6 +42,8 @@ pub enum ServiceError {
     ZenohConfig(#[from] triax_net::ZenohConfigError),
     #[error("zenoh: {what}: {message}")]
     Zenoh { what: &'static str, message: String },
+    #[error("state file {path}: {message}")]
+    State { path: String, message: String },
 }
 
 fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError {
@@ -38,63 +53,103 @@ fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError 
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Source {
-    Corrected,
-    Tilt,
+enum Inbound {
+    Corrected(BuildingId, Delivery),
+    Tilt {
+        key: String,
+        payload: Vec<u8>,
+    },
+    /// A gateway's heartbeat named a building not followed yet.
+    Building(BuildingId),
 }
 
-struct Inbound {
-    source: Source,
-    key: String,
-    payload: Vec<u8>,
-}
+/// The last sequence number handled, per building and sensor.
+type Positions = BTreeMap<BuildingId, BTreeMap<SensorId, u64>>;
 
-/// Key expressions to subscribe to: per watched building, or every building.
-fn subscriptions(config: &Config) -> Vec<(Source, String)> {
-    let mut out = Vec::new();
-    for (source, stream) in [
-        (Source::Corrected, Stream::Corrected),
-        (Source::Tilt, Stream::Tilt),
-    ] {
-        if config.watch_all_buildings {
-            out.push((source, all_buildings(stream)));
-        } else {
-            out.extend(
-                config
-                    .buildings
-                    .keys()
-                    .map(|b| (source, all_sensors(b, stream))),
-            );
-        }
+/// Reads the resume state; none if the file does not exist.
+fn load_state(path: &Path) -> Result<Positions, ServiceError> {
+    let bad = |message: String| ServiceError::State {
+        path: path.display().to_string(),
+        message,
+    };
+    match std::fs::read(path) {
+        Ok(bytes) => serde_json::from_slice(&bytes).map_err(|e| bad(e.to_string())),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Positions::new()),
+        Err(e) => Err(bad(e.to_string())),
     }
-    out
 }
 
-/// How often staleness is checked: often enough to report within a quarter of the allowance.
-fn stale_check_period(config: &Config) -> Duration {
-    Duration::from_secs_f64((config.settings.stale_after_s / 4.0).clamp(0.05, 5.0))
+/// Writes the resume state whole or not at all (a new file renamed over the old).
+fn save_state(path: &Path, positions: &Positions) -> std::io::Result<()> {
+    let tmp = path.with_extension("tmp");
+    // A map of ids to numbers always serialises.
+    let body = serde_json::to_vec(positions).expect("positions serialise");
+    std::fs::write(&tmp, body)?;
+    std::fs::rename(&tmp, path)
+}
+
+/// Follows one building: every delivery goes to the monitor's inbox, waiting for room (a full
+/// inbox slows the follower, whose own gap-filling makes up for what Zenoh then drops).
+async fn follow(
+    session: &zenoh::Session,
+    building: BuildingId,
+    resume: BTreeMap<SensorId, u64>,
+    tx: mpsc::Sender<Inbound>,
+) -> Result<tokio::task::JoinHandle<()>, ServiceError> {
+    let mut options = FollowOptions::new(building.clone());
+    options.resume_after = resume;
+    let mut follower =
+        Follower::start(session, options)
+            .await
+            .map_err(|e| ServiceError::Zenoh {
+                what: "follow a building",
+                message: e.to_string(),
+            })?;
+    tracing::info!(building = %building, "following corrected streams");
+    Ok(tokio::spawn(async move {
+        while let Some(d) = follower.next().await {
+            if tx
+                .send(Inbound::Corrected(building.clone(), d))
+                .await
+                .is_err()
+            {
+                return;
+            }
+        }
+    }))
 }
 
 /// Runs the alerting service until `shutdown` completes.
 ///
-/// Opens a Zenoh session from `config.zenoh`, subscribes to the corrected and tilt streams of
-/// the watched buildings, publishes every alert on `triax/<building>/alert/<sensor>` and logs it.
+/// Opens a Zenoh session from `config.zenoh`, follows the corrected streams and subscribes to
+/// the tilt streams of the watched buildings, publishes every alert on
+/// `triax/<building>/alert/<sensor>` and logs it.
 pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(), ServiceError> {
+    let mut positions = match &config.state_path {
+        Some(p) => load_state(p)?,
+        None => Positions::new(),
+    };
     let session = zenoh::open(config.zenoh.to_config()?)
         .await
         .map_err(zenoh_error("open session"))?;
     let (tx, mut rx) = mpsc::channel::<Inbound>(INBOX_CAPACITY);
     let dropped = Arc::new(AtomicU64::new(0));
     let mut subscribers = Vec::new();
-    for (source, expr) in subscriptions(&config) {
-        let tx = tx.clone();
-        let dropped = dropped.clone();
+    let tilt_exprs: Vec<String> = if config.watch_all_buildings {
+        vec![all_buildings(Stream::Tilt)]
+    } else {
+        config
+            .buildings
+            .keys()
+            .map(|b| all_sensors(b, Stream::Tilt))
+            .collect()
+    };
+    for expr in tilt_exprs {
+        let (tx, dropped) = (tx.clone(), dropped.clone());
         let sub = session
             .declare_subscriber(expr.clone())
             .callback(move |sample| {
-                let msg = Inbound {
-                    source,
+                let msg = Inbound::Tilt {
                     key: sample.key_expr().as_str().to_owned(),
                     payload: sample.payload().to_bytes().into_owned(),
                 };
@@ -107,32 +162,94 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         tracing::info!(key_expr = %expr, "subscribed");
         subscribers.push(sub);
     }
-    drop(tx);
+    if config.watch_all_buildings {
+        let tx = tx.clone();
+        let sub = session
+            .declare_subscriber("triax/*/heartbeat")
+            .callback(move |sample| {
+                if let Ok(Key::Heartbeat(b)) = Key::parse(sample.key_expr().as_str()) {
+                    let _ = tx.try_send(Inbound::Building(b));
+                }
+            })
+            .await
+            .map_err(zenoh_error("declare subscriber"))?;
+        subscribers.push(sub);
+    }
+    let mut followed: BTreeSet<BuildingId> = BTreeSet::new();
+    let mut followers = Vec::new();
+    // Buildings listed, and buildings the state remembers when watching all.
+    let mut initial: BTreeSet<BuildingId> = config.buildings.keys().cloned().collect();
+    if config.watch_all_buildings {
+        initial.extend(positions.keys().cloned());
+    }
+    for b in initial {
+        let resume = positions.get(&b).cloned().unwrap_or_default();
+        followers.push(follow(&session, b.clone(), resume, tx.clone()).await?);
+        followed.insert(b);
+    }
 
     let mut monitor = Monitor::new(config.clone(), OffsetDateTime::now_utc());
     let mut tick = tokio::time::interval(stale_check_period(&config));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut save = tokio::time::interval(STATE_PERIOD);
+    save.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut reported_dropped = 0;
     tokio::pin!(shutdown);
     loop {
         let alerts = tokio::select! {
             _ = &mut shutdown => break,
             msg = rx.recv() => match msg {
-                Some(msg) => handle(&mut monitor, msg),
-                // Every sender lives in a subscriber callback; they go only with the session.
+                Some(Inbound::Building(b)) => {
+                    if followed.insert(b.clone()) {
+                        let resume = positions.get(&b).cloned().unwrap_or_default();
+                        followers.push(follow(&session, b, resume, tx.clone()).await?);
+                    }
+                    Vec::new()
+                }
+                Some(Inbound::Corrected(building, d)) => {
+                    let h = &d.batch.header;
+                    positions
+                        .entry(building.clone())
+                        .or_default()
+                        .insert(h.sensor_id.clone(), h.sequence);
+                    let mut alerts =
+                        monitor.on_corrected(&building, &d.batch, OffsetDateTime::now_utc());
+                    if d.recovered {
+                        alerts.iter_mut().for_each(mark_late);
+                    }
+                    alerts
+                }
+                Some(Inbound::Tilt { key, payload }) => on_tilt(&mut monitor, &key, &payload),
+                // The sender here keeps the channel open.
                 None => break,
             },
             _ = tick.tick() => {
                 let now_dropped = dropped.load(Ordering::Relaxed);
                 if now_dropped > reported_dropped {
-                    tracing::warn!(dropped = now_dropped, "inbox full: messages dropped");
+                    tracing::warn!(dropped = now_dropped, "inbox full: tilt samples dropped");
                     reported_dropped = now_dropped;
                 }
                 monitor.check_stale(OffsetDateTime::now_utc())
             }
+            _ = save.tick() => {
+                if let Some(p) = &config.state_path {
+                    if let Err(e) = save_state(p, &positions) {
+                        tracing::warn!(path = %p.display(), cause = %e, "resume state not written");
+                    }
+                }
+                Vec::new()
+            }
         };
         for alert in alerts {
             publish(&session, &alert).await;
+        }
+    }
+    for f in &followers {
+        f.abort();
+    }
+    if let Some(p) = &config.state_path {
+        if let Err(e) = save_state(p, &positions) {
+            tracing::warn!(path = %p.display(), cause = %e, "resume state not written");
         }
     }
     drop(subscribers);
@@ -144,48 +261,42 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     Ok(())
 }
 
-fn handle(monitor: &mut Monitor, msg: Inbound) -> Vec<Alert> {
+/// How often staleness is checked: often enough to report within a quarter of the allowance.
+fn stale_check_period(config: &Config) -> Duration {
+    Duration::from_secs_f64((config.settings.stale_after_s / 4.0).clamp(0.05, 5.0))
+}
+
+/// An alert judged on data read back from the history says so.
+fn mark_late(alert: &mut Alert) {
+    alert.late = true;
+    alert.statement.push_str(
+        " Raised late: the data it judged was read back from the gateway's history after an \
+         outage or a partition.",
+    );
+}
+
+fn on_tilt(monitor: &mut Monitor, key: &str, payload: &[u8]) -> Vec<Alert> {
     let now = OffsetDateTime::now_utc();
-    let key = match Key::parse(&msg.key) {
-        Ok(k) => k,
+    let (building, sensor) = match Key::parse(key) {
+        Ok(Key::Tilt(b, s)) => (b, s),
+        Ok(other) => {
+            tracing::warn!(key = %other, "unexpected key on a subscription");
+            return Vec::new();
+        }
         Err(e) => {
-            tracing::warn!(key = %msg.key, cause = %e, "not a Triax key");
+            tracing::warn!(key, cause = %e, "not a Triax key");
             return Vec::new();
         }
     };
-    match (msg.source, key) {
-        (Source::Corrected, Key::Corrected(building, sensor)) => {
-            match CorrectedBatch::decode(&msg.payload) {
-                Ok(batch) if batch.header.sensor_id == sensor => {
-                    monitor.on_corrected(&building, &batch, now)
-                }
-                Ok(batch) => {
-                    tracing::warn!(key = %msg.key, batch_sensor = %batch.header.sensor_id,
-                        "corrected batch names another sensor than its key: ignored");
-                    Vec::new()
-                }
-                Err(e) => {
-                    tracing::warn!(key = %msg.key, cause = %e, "malformed corrected batch");
-                    Vec::new()
-                }
-            }
+    match from_json::<TiltSample>(payload) {
+        Ok(tilt) if tilt.sensor_id == sensor => monitor.on_tilt(&building, &tilt, now),
+        Ok(tilt) => {
+            tracing::warn!(key, sample_sensor = %tilt.sensor_id,
+                "tilt sample names another sensor than its key: ignored");
+            Vec::new()
         }
-        (Source::Tilt, Key::Tilt(building, sensor)) => {
-            match from_json::<TiltSample>(&msg.payload) {
-                Ok(tilt) if tilt.sensor_id == sensor => monitor.on_tilt(&building, &tilt, now),
-                Ok(tilt) => {
-                    tracing::warn!(key = %msg.key, sample_sensor = %tilt.sensor_id,
-                        "tilt sample names another sensor than its key: ignored");
-                    Vec::new()
-                }
-                Err(e) => {
-                    tracing::warn!(key = %msg.key, cause = %e, "malformed tilt sample");
-                    Vec::new()
-                }
-            }
-        }
-        (_, other) => {
-            tracing::warn!(key = %other, "unexpected key on a subscription");
+        Err(e) => {
+            tracing::warn!(key, cause = %e, "malformed tilt sample");
             Vec::new()
         }
     }
@@ -202,6 +313,7 @@ async fn publish(session: &zenoh::Session, alert: &Alert) {
         standard_uncertainty = alert.standard_uncertainty,
         threshold = alert.threshold,
         unit = %alert.unit,
+        late = alert.late,
         statement = %alert.statement,
         "alert"
     );

@@ -112,6 +112,7 @@ async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
     )
     .unwrap();
     config.zenoh = settings("tcp/127.0.0.1:0", vec![format!("tcp/127.0.0.1:{port}")]);
+    config.state_path = None;
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let service = tokio::spawn(triax_alert::run(config, async {
         let _ = stopped.await;

@@ -348,6 +348,10 @@ pub struct Alert {
     pub statement: String,
     #[serde(with = "time::serde::rfc3339")]
     pub at: OffsetDateTime,
+    /// Raised late: the data it judged came from the gateway's history, after an outage or a
+    /// partition kept it from the alerting service. Absent (false) for alerts on live data.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub late: bool,
 }
 
 impl JsonMessage for Alert {
@@ -480,6 +484,7 @@ mod tests {
             flagged_fraction: 0.0,
             statement: "interval 0.7..1.1 straddles 1.0".into(),
             at: t(),
+            late: true,
         });
     }
 

@@ -18,10 +18,13 @@
 //! - `restart_keeps_calibrations`: stop, start again on the same store, same version in force.
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
+//! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
 
+#[path = "gateway/alerting.rs"]
+mod alerting;
 #[path = "gateway/hardening.rs"]
 mod hardening;
 #[path = "gateway/history.rs"]
