@@ -976,6 +976,73 @@ mod tests {
         }
     }
 
+    /// A split-mode inclinometer whose record has a lower band edge: every filter the kernel
+    /// has (crossover, tilt low pass, detector high pass and low band), after a few batches.
+    fn busy_kernel() -> (SensorKernel, Corrector, triax_protocol::CalibrationRecord) {
+        let mut r = sample::record("k", 1);
+        r.dynamic.domain.frequency_min_hz = 0.5;
+        let c = Corrector::from_record(&r).unwrap();
+        let mut k = SensorKernel::new(SensorSettings {
+            mode: CorrectionMode::Split,
+            tilt: true,
+            ..SensorSettings::default()
+        });
+        for seq in 0..5 {
+            let samples = (0..50)
+                .map(|i| {
+                    let t = (seq * 50 + i) as f64 / 100.0;
+                    outputs_for(&r, [0.3 * (2.0 * PI * 1.7 * t).sin(), 0.1, 9.81])
+                })
+                .collect();
+            run(&mut k, Some(&c), &batch(seq, samples));
+        }
+        (k, c, r)
+    }
+
+    #[test]
+    fn a_restored_checkpoint_corrects_the_same_bytes() {
+        let (mut live, c, r) = busy_kernel();
+        let mut ck = Vec::new();
+        live.checkpoint(&mut ck);
+        let mut restored = SensorKernel::restore(&ck).expect("restores");
+        for seq in 5..40 {
+            let samples: Vec<[f32; 3]> = (0..50)
+                .map(|i| {
+                    let t = (seq * 50 + i) as f64 / 100.0;
+                    outputs_for(&r, [0.3 * (2.0 * PI * 1.7 * t).sin() + 0.2, 0.1, 9.81])
+                })
+                .collect();
+            let b = batch(seq, samples);
+            assert_eq!(
+                run(&mut live, Some(&c), &b),
+                run(&mut restored, Some(&c), &b)
+            );
+        }
+        assert!(SensorKernel::restore(&ck[1..]).is_none(), "no format byte");
+        assert!(SensorKernel::restore(&[]).is_none());
+        assert!(SensorKernel::restore(&[CHECKPOINT_FORMAT, 0xff, 0xff]).is_none());
+    }
+
+    /// The checkpoint's layout is pinned: a kernel whose state changes shape must bump
+    /// `CHECKPOINT_FORMAT`, or a replay would restore an older build's checkpoint as garbage.
+    #[test]
+    fn checkpoint_format_is_pinned() {
+        let (k, _, _) = busy_kernel();
+        let mut ck = Vec::new();
+        k.checkpoint(&mut ck);
+        let fnv = ck.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        });
+        assert_eq!(
+            (ck.len(), fnv),
+            (PINNED_CHECKPOINT.0, PINNED_CHECKPOINT.1),
+            "the kernel's checkpoint changed: bump CHECKPOINT_FORMAT, then pin the new layout"
+        );
+    }
+
+    /// Length and FNV-1a of `busy_kernel`'s checkpoint in format [`CHECKPOINT_FORMAT`].
+    const PINNED_CHECKPOINT: (usize, u64) = (424, 16_905_124_122_722_691_664);
+
     #[test]
     fn content_below_the_band_is_flagged_and_gravity_is_not() {
         // Dynamic band `min..5000` Hz, sampled at 100 Hz (`batch` is 100 Hz).

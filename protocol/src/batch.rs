@@ -410,35 +410,29 @@ impl<'a> RawBatchView<'a> {
         self.samples
     }
 
-    /// Appends the raw batch of `header` whose samples are `sample_bytes` (as
-    /// [`Self::sample_bytes`] gives them) to `out`: the payload a node sent, from its parts.
-    ///
-    /// # Panics
-    /// If `sample_bytes` is not 1..=[`MAX_SAMPLES`] whole samples: a programming error of the
-    /// caller, which read them from a valid batch.
-    pub fn encode_parts(
-        out: &mut Vec<u8>,
-        header: &BatchHeader,
+    /// The view of a batch kept in parts (a header and its samples as [`Self::sample_bytes`]
+    /// gave them), without encoding it: the same checks as [`Self::parse`] on what the parts
+    /// can get wrong.
+    pub fn from_parts(
+        header: BatchHeader,
         temperature_c: Option<f32>,
-        sample_bytes: &[u8],
-    ) {
-        let n = sample_bytes.len() / RAW_SAMPLE_BYTES;
-        assert!(
-            sample_bytes.len() == n * RAW_SAMPLE_BYTES && (1..=MAX_SAMPLES).contains(&n),
-            "a raw batch holds 1..={MAX_SAMPLES} whole samples, not {} bytes",
-            sample_bytes.len()
-        );
-        let header_flags = if temperature_c.is_some() {
-            RAW_HAS_TEMPERATURE
-        } else {
-            0
-        };
-        out.reserve(raw_len(header.sensor_id.as_str().len(), n, header_flags));
-        write_prefix(out, KIND_RAW, header_flags, header, n);
-        if let Some(t) = temperature_c {
-            out.extend_from_slice(&t.to_le_bytes());
+        samples: &'a [u8],
+    ) -> Result<Self, DecodeError> {
+        let n = samples.len() / RAW_SAMPLE_BYTES;
+        if !(1..=MAX_SAMPLES).contains(&n) {
+            return Err(DecodeError::BadSampleCount {
+                n_samples: n.min(u32::MAX as usize) as u32,
+            });
         }
-        out.extend_from_slice(sample_bytes);
+        check_len(n, n * RAW_SAMPLE_BYTES, samples.len())?;
+        if !(header.sample_rate_hz.is_finite() && header.sample_rate_hz > 0.0) {
+            return Err(DecodeError::BadSampleRate(header.sample_rate_hz));
+        }
+        Ok(RawBatchView {
+            header,
+            temperature_c,
+            samples,
+        })
     }
 
     /// Sample `i` (`i < len()`).

@@ -16,7 +16,9 @@
 //!   every sensor in a temporary store, with the default overload policy (drop-oldest
 //!   queues between Zenoh's receive thread and the correction workers);
 //! - `gateway-backpressure`: the same with `overload = "backpressure"`: corrected on Zenoh's
-//!   receive thread, no queue.
+//!   receive thread, no queue;
+//! - `gateway-no-history`: the default gateway with its history off: what keeping every batch
+//!   on disk costs, in the same run.
 //!
 //! For each:
 //!
@@ -185,6 +187,7 @@ enum System {
     KeyedRelay,
     Gateway,
     GatewayBackpressure,
+    GatewayNoHistory,
 }
 
 impl System {
@@ -194,6 +197,7 @@ impl System {
             System::KeyedRelay => "keyed-relay",
             System::Gateway => "gateway",
             System::GatewayBackpressure => "gateway-backpressure",
+            System::GatewayNoHistory => "gateway-no-history",
         }
     }
 }
@@ -379,7 +383,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
 
     let server = match system {
         System::Relay | System::KeyedRelay => Server::spawn(system, None, port)?,
-        System::Gateway | System::GatewayBackpressure => {
+        System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
             let n = args.sensors;
             let sp = store_path.clone();
             tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
@@ -401,9 +405,11 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
                 System::Relay | System::KeyedRelay => RawBatch::decode(&bytes)
                     .ok()
                     .map(|b| (b.header, b.samples.len())),
-                System::Gateway | System::GatewayBackpressure => CorrectedBatch::decode(&bytes)
-                    .ok()
-                    .map(|b| (b.header, b.samples.len())),
+                System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
+                    CorrectedBatch::decode(&bytes)
+                        .ok()
+                        .map(|b| (b.header, b.samples.len()))
+                }
             };
             if let Some((h, n)) = header {
                 r.samples.fetch_add(n as u64, Relaxed);
@@ -655,11 +661,13 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
             std::future::pending::<()>().await;
             Ok(())
         }
-        System::Gateway | System::GatewayBackpressure => {
+        System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
             let store = store.context("--store")?;
             let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
-            if system == System::GatewayBackpressure {
-                config.overload = Overload::Backpressure;
+            match system {
+                System::GatewayBackpressure => config.overload = Overload::Backpressure,
+                System::GatewayNoHistory => config.history = None,
+                _ => {}
             }
             let t0 = Instant::now();
             let gateway = Gateway::start(config).await?;
@@ -801,6 +809,7 @@ fn main() -> Result<()> {
         };
         let gw = run_system(System::Gateway, &paced).await?;
         let bp = run_system(System::GatewayBackpressure, &paced).await?;
+        let nh = run_system(System::GatewayNoHistory, &paced).await?;
         println!(
             "| system | unpaced: received samples/s | offered | without loss (RFC 2544) | CPU µs/batch at {:.0} samples/s: system / publisher + subscriber | context switches per batch | latency p50 / p99 (µs) |",
             args.cpu_samples_per_s
@@ -811,6 +820,7 @@ fn main() -> Result<()> {
             (System::KeyedRelay, &keyed),
             (System::Gateway, &gw),
             (System::GatewayBackpressure, &bp),
+            (System::GatewayNoHistory, &nh),
         ];
         for (system, r) in systems {
             let c = r.cpu;
@@ -858,6 +868,12 @@ fn main() -> Result<()> {
                 );
             }
         }
+        println!(
+            "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×",
+            gw.samples_per_s / nh.samples_per_s,
+            gw.zero_loss_samples_per_s / nh.zero_loss_samples_per_s,
+            gw.cpu.server_us / nh.cpu.server_us
+        );
         if args.rss_sensors > 0 {
             rss_check(args.rss_sensors).await?;
         }
