@@ -90,8 +90,8 @@ pub struct HistorySettings {
     pub segment_bytes: u64,
     /// Longest a corrected batch waits before it is on disk.
     pub flush_interval: Duration,
-    /// Batches waiting for the writer before further ones are not kept (counted).
-    pub queue_batches: usize,
+    /// Bytes of samples waiting for the writer before further batches are not kept (counted).
+    pub queue_bytes: usize,
 }
 
 impl HistorySettings {
@@ -281,7 +281,7 @@ pub struct FileHistory {
     pub max_gib: Option<f64>,
     pub segment_mib: Option<f64>,
     pub flush_interval_ms: Option<f64>,
-    pub queue_batches: Option<usize>,
+    pub queue_mib: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -487,13 +487,7 @@ fn history_settings(
         h.flush_interval_ms.unwrap_or(1000.0),
         10.0..=60_000.0,
     )?;
-    let queue_batches = h.queue_batches.unwrap_or(65_536);
-    if !(1..=10_000_000).contains(&queue_batches) {
-        return Err(ConfigError::invalid(
-            "history.queue_batches",
-            format!("{queue_batches} is outside 1..=10000000"),
-        ));
-    }
+    let queue_mib = within("queue_mib", h.queue_mib.unwrap_or(16.0), 0.0625..=4096.0)?;
     Ok(Some(HistorySettings {
         path: h.path.unwrap_or_else(|| {
             store_path
@@ -505,7 +499,7 @@ fn history_settings(
         max_bytes: (gib * (1u64 << 30) as f64) as u64,
         segment_bytes: (segment_mib * (1u64 << 20) as f64) as u64,
         flush_interval: Duration::from_secs_f64(flush_ms / 1000.0),
-        queue_batches,
+        queue_bytes: (queue_mib * (1u64 << 20) as f64) as usize,
     }))
 }
 

@@ -2,16 +2,18 @@
 //! over, the writer thread that keeps it, and the durability rule.
 //!
 //! The sample path never waits for the disk. A worker, once it has corrected a batch, offers
-//! the raw payload (a reference-counted Zenoh buffer, not a copy), the sequence verdict, the
-//! calibration version used and, when one is due, a checkpoint of the sensor's correction state,
-//! to a bounded queue ([`Sink::offer`]); when the queue is full the batch is not kept, and
-//! counted (`history_dropped_batches`). The writer thread takes the whole queue every
-//! [`DRAIN_INTERVAL`], gathers each sensor's batches into a block, and flushes: it writes and
-//! syncs (`fdatasync`) at least every `flush_interval` (one second by default), so a batch is
-//! durable at most one interval, plus one sync, after it was corrected. A history query first
-//! asks for a flush of everything queued so far ([`Sink::sync`]), so a consumer that noticed a
-//! gap finds the batches it missed even if they arrived a moment ago.
+//! its samples, the sequence verdict, the calibration version used and, when one is due, a
+//! checkpoint of the sensor's correction state, to a bounded queue ([`Sink::offer`]): one copy
+//! of the samples into a shared buffer, no allocation, and Zenoh's receive buffer is not held.
+//! When the queue is full the batch is not kept, and counted (`history.dropped_batches`). The
+//! writer thread takes the whole queue every [`DRAIN_INTERVAL`], gathers each sensor's batches
+//! into a block, and flushes: it writes and syncs (`fdatasync`) at least every `flush_interval`
+//! (one second by default), so a batch is durable at most one interval, plus one sync, after it
+//! was corrected. A history query first asks for a flush of everything queued so far
+//! ([`Sink::sync`]), so a consumer that noticed a gap finds the batches it missed even if they
+//! arrived a moment ago.
 
+use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
@@ -20,7 +22,6 @@ pub use triax_history::Verdict;
 use triax_history::{History, Kept, Writer};
 use triax_protocol::messages::HistoryStatus;
 use triax_protocol::RawBatchView;
-use zenoh::bytes::ZBytes;
 
 use crate::sensors::SensorEntry;
 
@@ -33,14 +34,31 @@ pub const CHECKPOINT_INTERVAL_NS: i64 = 60_000_000_000;
 /// ... or after this many batches, whatever the clock says.
 pub const CHECKPOINT_INTERVAL_BATCHES: u32 = 6000;
 
-/// One corrected batch, handed to the history.
-pub struct Item {
-    pub entry: Arc<SensorEntry>,
-    pub payload: ZBytes,
-    pub verdict: Verdict,
-    pub calibration_version: u64,
-    /// The correction state before this batch, when a checkpoint was due.
-    pub checkpoint: Option<Vec<u8>>,
+/// The batches waiting for the writer: their samples and checkpoints in one buffer, and what
+/// the history keeps of each beside it. The writer takes it whole and hands back an empty one.
+#[derive(Default)]
+struct Pending {
+    bytes: Vec<u8>,
+    batches: Vec<Waiting>,
+}
+
+/// One batch in [`Pending`]: its samples and checkpoint are ranges of the buffer.
+struct Waiting {
+    entry: Arc<SensorEntry>,
+    kept: Kept<Range<usize>>,
+    checkpoint: Option<Range<usize>>,
+}
+
+impl Pending {
+    fn clear(&mut self) {
+        self.bytes.clear();
+        self.batches.clear();
+        // After a spike (a disk that stalled), give the memory back.
+        if self.bytes.capacity() > 4 << 20 {
+            self.bytes.shrink_to(1 << 20);
+            self.batches.shrink_to(8192);
+        }
+    }
 }
 
 /// The history's counters, as status and metrics show them.
@@ -59,36 +77,70 @@ pub struct Sink {
     state: Mutex<SinkState>,
     wake: Condvar,
     settled: Condvar,
-    capacity: usize,
+    /// Most bytes of samples and checkpoints waiting.
+    capacity_bytes: usize,
     pub counters: SinkCounters,
     pub history: Arc<History>,
 }
 
 struct SinkState {
-    queue: Vec<Item>,
+    pending: Pending,
     /// A reader waits for everything offered up to this count to be durable.
     sync_to: u64,
     closed: bool,
 }
 
 impl Sink {
-    /// Offers a batch; false (and counted) when the queue is full or closed.
-    pub fn offer(&self, item: Item) -> bool {
+    /// Offers a corrected batch: `view` as received, the verdict and the calibration version
+    /// it was corrected with, and the correction state before it when a checkpoint was due.
+    /// False (and counted) when the queue is full or closed.
+    pub fn offer(
+        &self,
+        entry: &Arc<SensorEntry>,
+        view: &RawBatchView<'_>,
+        verdict: Verdict,
+        calibration_version: u64,
+        checkpoint: Option<&[u8]>,
+    ) -> bool {
         self.counters.offered.fetch_add(1, Relaxed);
+        let samples = view.sample_bytes();
         let mut s = self.lock();
-        if s.closed || s.queue.len() >= self.capacity {
+        let room = self.capacity_bytes.saturating_sub(s.pending.bytes.len());
+        if s.closed || samples.len() + checkpoint.map_or(0, <[u8]>::len) > room {
             drop(s);
             self.counters.dropped.fetch_add(1, Relaxed);
             self.counters.settled.fetch_add(1, Relaxed);
             return false;
         }
-        s.queue.push(item);
+        let p = &mut s.pending;
+        let checkpoint = checkpoint.map(|ck| {
+            let at = p.bytes.len();
+            p.bytes.extend_from_slice(ck);
+            at..p.bytes.len()
+        });
+        let at = p.bytes.len();
+        p.bytes.extend_from_slice(samples);
+        let h = &view.header;
+        p.batches.push(Waiting {
+            entry: entry.clone(),
+            kept: Kept {
+                arrival: 0,
+                sequence: h.sequence,
+                timestamp_ns: h.timestamp_ns,
+                sample_rate_hz: h.sample_rate_hz,
+                temperature_c: view.temperature_c,
+                calibration_version,
+                verdict,
+                samples: at..p.bytes.len(),
+            },
+            checkpoint,
+        });
         true
     }
 
     /// Batches waiting for the writer.
     pub fn queued(&self) -> usize {
-        self.lock().queue.len()
+        self.lock().pending.batches.len()
     }
 
     /// Waits, at most `timeout`, until every batch offered before the call is durable (or was
@@ -136,7 +188,7 @@ impl Sink {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, SinkState> {
-        // The state is a queue and two plain fields: consistent after any panic.
+        // The state is a buffer, a list and two plain fields: consistent after any panic.
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
@@ -149,21 +201,22 @@ pub struct Recorder {
 }
 
 impl Recorder {
-    /// Starts the writer thread over `writer`, with a queue of `capacity` batches.
+    /// Starts the writer thread over `writer`, with a queue of at most `capacity_bytes` of
+    /// samples and checkpoints.
     pub fn start(
         writer: Writer,
-        capacity: usize,
+        capacity_bytes: usize,
         flush_interval: Duration,
     ) -> std::io::Result<Recorder> {
         let sink = Arc::new(Sink {
             state: Mutex::new(SinkState {
-                queue: Vec::new(),
+                pending: Pending::default(),
                 sync_to: 0,
                 closed: false,
             }),
             wake: Condvar::new(),
             settled: Condvar::new(),
-            capacity: capacity.max(1),
+            capacity_bytes: capacity_bytes.max(1),
             counters: SinkCounters::default(),
             history: writer.history().clone(),
         });
@@ -203,29 +256,33 @@ impl Drop for Recorder {
 
 fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Duration) {
     let mut next_flush = Instant::now() + flush_interval;
-    let mut taken: Vec<Item> = Vec::new();
+    let mut taken = Pending::default();
     let mut unflushed = 0u64;
     let mut write_errors = 0u64;
     loop {
         let (sync_wanted, closing) = {
             let mut s = sink.lock();
-            if !s.closed && s.queue.is_empty() && s.sync_to <= sink.counters.settled.load(Relaxed) {
+            let idle = s.pending.batches.is_empty();
+            if !s.closed && idle && s.sync_to <= sink.counters.settled.load(Relaxed) {
                 s = sink
                     .wake
                     .wait_timeout(s, DRAIN_INTERVAL)
                     .unwrap_or_else(|p| p.into_inner())
                     .0;
             }
-            std::mem::swap(&mut s.queue, &mut taken);
+            std::mem::swap(&mut s.pending, &mut taken);
             (
                 s.sync_to > sink.counters.settled.load(Relaxed),
                 s.closed || stop.load(Relaxed),
             )
         };
-        for item in taken.drain(..) {
-            keep(&mut writer, item);
+        for w in &taken.batches {
+            let kept = w.kept.with_samples(&taken.bytes[w.kept.samples.clone()]);
+            let checkpoint = w.checkpoint.clone().map(|r| &taken.bytes[r]);
+            writer.append(&w.entry.id, kept, checkpoint);
             unflushed += 1;
         }
+        taken.clear();
         let now = Instant::now();
         if now >= next_flush || sync_wanted || closing {
             if let Err(e) = writer.flush() {
@@ -240,28 +297,8 @@ fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Durat
             sink.settled.notify_all();
             next_flush = now + flush_interval;
         }
-        if closing && sink.lock().queue.is_empty() {
+        if closing && sink.lock().pending.batches.is_empty() {
             return;
         }
     }
-}
-
-/// Adds one item to the writer's pending blocks.
-fn keep(writer: &mut Writer, item: Item) {
-    let bytes = item.payload.to_bytes();
-    // The worker parsed this payload before correcting it; it cannot fail here.
-    let Ok(view) = RawBatchView::parse(&bytes) else {
-        return;
-    };
-    let kept = Kept {
-        arrival: 0,
-        sequence: view.header.sequence,
-        timestamp_ns: view.header.timestamp_ns,
-        sample_rate_hz: view.header.sample_rate_hz,
-        temperature_c: view.temperature_c,
-        calibration_version: item.calibration_version,
-        verdict: item.verdict,
-        samples: view.sample_bytes(),
-    };
-    writer.append(&item.entry.id, kept, item.checkpoint.as_deref());
 }

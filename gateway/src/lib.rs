@@ -316,7 +316,7 @@ async fn open_history(config: &Config) -> Result<Option<history::Recorder>, Gate
     }
     let stats = o.history.stats();
     tracing::info!(path = %h.path.display(), segments = stats.segments, bytes = stats.bytes, "history open");
-    let recorder = history::Recorder::start(o.writer, h.queue_batches, h.flush_interval)
+    let recorder = history::Recorder::start(o.writer, h.queue_bytes, h.flush_interval)
         .map_err(|e| GatewayError::Task(format!("starting the history writer: {e}")))?;
     Ok(Some(recorder))
 }
@@ -461,7 +461,7 @@ impl Gateway {
         tracing::info!(building = %config.building, calibrations = loaded, store = %path.display(), "calibrations loaded");
         let recorder = open_history(&config).await?;
 
-        let session = zenoh::open(config.zenoh.to_config()?)
+        let session = zenoh::open(config.zenoh.to_publisher_config()?)
             .await
             .map_err(zenoh_err("open session"))?;
         let counters = Arc::new(GatewayCounters::default());

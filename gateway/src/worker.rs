@@ -278,13 +278,13 @@ impl Shard {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
         }
         if let Some(sink) = &shared.history {
-            sink.offer(history::Item {
-                entry: state.entry.clone(),
-                payload: sample.payload().clone(),
-                verdict: corrected.verdict,
-                calibration_version: corrected.calibration_version,
-                checkpoint: corrected.checkpoint,
-            });
+            sink.offer(
+                &state.entry,
+                &view,
+                corrected.verdict,
+                corrected.calibration_version,
+                corrected.checkpoint.as_deref(),
+            );
         }
         // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches on
         // its own link, and catches up from the history; it never holds up the gateway or the

@@ -4,7 +4,7 @@
 //! read).
 //!
 //! ```text
-//! block   = version:u8 (1)  id_len:u8 id  flags:u8  [ck_len:varint ck]  n:varint  record*n
+//! block   = version:u8 (1)  id_len:u8 id  flags:u8  [ck_len:varint ck]  n:u32  record*n
 //! record  = rflags:u8  arrival  sequence  timestamp  [rate:f64]  [version:varint]
 //!           [temperature:f32]  n_samples:varint  samples:12·n (3×f32 LE, as received)
 //! ```
@@ -74,13 +74,9 @@ pub struct Kept<S> {
     pub samples: S,
 }
 
-impl<S: AsRef<[u8]>> Kept<S> {
-    pub fn n_samples(&self) -> usize {
-        self.samples.as_ref().len() / 12
-    }
-
-    /// The same batch, borrowing its samples.
-    pub fn borrowed(&self) -> Kept<&[u8]> {
+impl<S> Kept<S> {
+    /// The same batch with `samples` in place of its own.
+    pub fn with_samples<T>(&self, samples: T) -> Kept<T> {
         Kept {
             arrival: self.arrival,
             sequence: self.sequence,
@@ -89,8 +85,19 @@ impl<S: AsRef<[u8]>> Kept<S> {
             temperature_c: self.temperature_c,
             calibration_version: self.calibration_version,
             verdict: self.verdict,
-            samples: self.samples.as_ref(),
+            samples,
         }
+    }
+}
+
+impl<S: AsRef<[u8]>> Kept<S> {
+    pub fn n_samples(&self) -> usize {
+        self.samples.as_ref().len() / 12
+    }
+
+    /// The same batch, borrowing its samples.
+    pub fn borrowed(&self) -> Kept<&[u8]> {
+        self.with_samples(self.samples.as_ref())
     }
 }
 
@@ -110,15 +117,21 @@ struct Prev {
     version: u64,
 }
 
-/// Builds one block in memory.
+/// Builds one block in memory, framed: room for the frame's header (length and CRC, filled in
+/// by [`finish`](Self::finish)) comes first, so the finished frame is written as it is, with no
+/// copy.
 #[derive(Debug)]
 pub struct BlockBuilder {
     buf: Vec<u8>,
+    /// Where the record count goes (a fixed four bytes, filled in by `finish`).
     n_at: usize,
-    n: u64,
+    n: u32,
     prev: Option<Prev>,
     pub summary: BlockSummary,
 }
+
+/// Bytes of a frame's header, before its block: the block's length and CRC-32.
+pub const FRAME_HEADER: usize = 8;
 
 /// What the index keeps of a block.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -138,7 +151,8 @@ impl BlockBuilder {
     /// batch) if given.
     pub fn new(sensor: &SensorId, checkpoint: Option<&[u8]>) -> BlockBuilder {
         let id = sensor.as_str().as_bytes();
-        let mut buf = Vec::with_capacity(256 + checkpoint.map_or(0, <[u8]>::len));
+        let mut buf = Vec::with_capacity(1024 + checkpoint.map_or(0, <[u8]>::len));
+        buf.extend_from_slice(&[0; FRAME_HEADER]);
         buf.push(BLOCK_VERSION);
         // Ids are at most 64 bytes.
         buf.push(id.len() as u8);
@@ -152,6 +166,7 @@ impl BlockBuilder {
             None => buf.push(0),
         }
         let n_at = buf.len();
+        buf.extend_from_slice(&[0; 4]);
         BlockBuilder {
             buf,
             n_at,
@@ -174,7 +189,7 @@ impl BlockBuilder {
         self.n == 0
     }
 
-    /// Bytes so far.
+    /// Bytes so far, frame header included.
     pub fn len(&self) -> usize {
         self.buf.len()
     }
@@ -240,16 +255,21 @@ impl BlockBuilder {
         s.max_ts = s.max_ts.max(k.timestamp_ns);
         s.min_seq = s.min_seq.min(k.sequence);
         s.max_seq = s.max_seq.max(k.sequence);
-        self.n += 1;
-        s.n_records = self.n.min(u64::from(u32::MAX)) as u32;
+        self.n = self.n.saturating_add(1);
+        s.n_records = self.n;
     }
 
-    /// The encoded block. The record count goes where `new` left room for it.
-    pub fn finish(self) -> (Vec<u8>, BlockSummary) {
-        let mut head = self.buf[..self.n_at].to_vec();
-        put_u64(&mut head, self.n);
-        head.extend_from_slice(&self.buf[self.n_at..]);
-        (head, self.summary)
+    /// The framed block: its frame header (length, CRC-32 of the block) and the record count
+    /// go where `new` left room for them.
+    pub fn finish(mut self) -> (Vec<u8>, BlockSummary) {
+        self.buf[self.n_at..self.n_at + 4].copy_from_slice(&self.n.to_le_bytes());
+        let block = &self.buf[FRAME_HEADER..];
+        // Blocks are bounded far below 4 GiB by the writer.
+        let len = (block.len() as u32).to_le_bytes();
+        let crc = crc32fast::hash(block).to_le_bytes();
+        self.buf[..4].copy_from_slice(&len);
+        self.buf[4..FRAME_HEADER].copy_from_slice(&crc);
+        (self.buf, self.summary)
     }
 }
 
@@ -298,7 +318,7 @@ impl<'a> Block<'a> {
         } else {
             None
         };
-        let n = r.u64()?;
+        let n = u32::from_le_bytes(r.array()?);
         // Every record takes at least six bytes: a count past that is damage, not a size.
         let mut kept = Vec::with_capacity((n as usize).min(bytes.len() / 6));
         let mut prev: Option<Prev> = None;
@@ -394,12 +414,12 @@ mod tests {
                 samples: &s,
             });
         }
-        let (bytes, summary) = b.finish();
+        let (frame, summary) = b.finish();
         // Header of the first record: flags, arrival (2), sequence, timestamp (9), rate (8),
         // version, count; then five bytes a batch.
-        let per_batch = (bytes.len() - 100 * 120) as f64 / 100.0;
+        let per_batch = (frame.len() - 100 * 120) as f64 / 100.0;
         assert!(per_batch < 5.6, "{per_batch} bytes of header per batch");
-        let block = Block::decode(&bytes).unwrap();
+        let block = Block::decode(&frame[FRAME_HEADER..]).unwrap();
         assert_eq!(block.checkpoint, Some(&b"state"[..]));
         assert_eq!(block.kept.len(), 100);
         assert_eq!(block.kept[99].arrival, 1198);
@@ -430,8 +450,8 @@ mod tests {
             for k in &all {
                 b.push(&k.borrowed());
             }
-            let (bytes, _) = b.finish();
-            let block = Block::decode(&bytes).unwrap();
+            let (frame, _) = b.finish();
+            let block = Block::decode(&frame[FRAME_HEADER..]).unwrap();
             prop_assert_eq!(block.checkpoint, ck.as_deref());
             prop_assert_eq!(block.kept.len(), all.len());
             for (got, want) in block.kept.iter().zip(&all) {

@@ -22,8 +22,7 @@ use triax_protocol::SensorId;
 use crate::block::{Block, BlockSummary};
 use crate::HistoryError;
 
-/// Bytes of a frame's header: length and CRC.
-pub const FRAME_HEADER: usize = 8;
+pub use crate::block::FRAME_HEADER;
 /// Bytes of an index entry.
 pub const ENTRY_BYTES: usize = 72;
 /// Largest block accepted when reading: a length past this is damage.
@@ -196,14 +195,6 @@ fn check_frame(frame: &[u8]) -> Option<&[u8]> {
     (len == body.len() && crc32fast::hash(body) == crc).then_some(body)
 }
 
-/// Appends the frame of `block` to `out`.
-pub fn frame(block: &[u8], out: &mut Vec<u8>) {
-    // Blocks are bounded well below 4 GiB by the writer.
-    out.extend_from_slice(&(block.len() as u32).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(block).to_le_bytes());
-    out.extend_from_slice(block);
-}
-
 /// A segment brought back to a consistent state: its index entries, and how much was cut.
 #[derive(Debug)]
 pub struct Recovered {
@@ -334,6 +325,25 @@ pub fn read_index(dir: &Path, id: u64) -> Result<Vec<IndexEntry>, HistoryError> 
         .collect())
 }
 
+/// Writes every buffer, in order, in as few system calls as the kernel allows.
+fn write_all_vectored(file: &mut File, bufs: &[Vec<u8>]) -> std::io::Result<()> {
+    // At most this many slices a call (the kernel's IOV_MAX is 1024).
+    const IOV: usize = 1024;
+    for chunk in bufs.chunks(IOV) {
+        let mut slices: Vec<std::io::IoSlice<'_>> =
+            chunk.iter().map(|b| std::io::IoSlice::new(b)).collect();
+        let mut rest = &mut slices[..];
+        while !rest.is_empty() {
+            let n = file.write_vectored(rest)?;
+            if n == 0 {
+                return Err(std::io::ErrorKind::WriteZero.into());
+            }
+            std::io::IoSlice::advance_slices(&mut rest, n);
+        }
+    }
+    Ok(())
+}
+
 /// The segment being written.
 #[derive(Debug)]
 pub struct SegmentWriter {
@@ -374,15 +384,14 @@ impl SegmentWriter {
         })
     }
 
-    /// Appends framed blocks and makes them durable, then indexes them. Returns their entries.
+    /// Appends framed blocks (as [`crate::block::BlockBuilder::finish`] made them) and makes
+    /// them durable, then indexes them. Returns their entries.
     pub fn append(
         &mut self,
-        frames: &[u8],
+        frames: &[Vec<u8>],
         blocks: &[(u64, u32, BlockSummary)],
     ) -> Result<Vec<IndexEntry>, HistoryError> {
-        self.log
-            .write_all(frames)
-            .map_err(io("append to a log", &self.log_path))?;
+        write_all_vectored(&mut self.log, frames).map_err(io("append to a log", &self.log_path))?;
         self.log
             .sync_data()
             .map_err(io("sync a log", &self.log_path))?;

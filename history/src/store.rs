@@ -638,17 +638,17 @@ impl Writer {
     }
 
     fn write_blocks(&mut self, blocks: Vec<(SensorId, BlockBuilder)>) -> Result<(), HistoryError> {
-        let mut frames = Vec::new();
+        let mut frames = Vec::with_capacity(blocks.len());
         let mut meta = Vec::with_capacity(blocks.len());
         for (sensor, b) in blocks {
-            let (bytes, summary) = b.finish();
-            let start = frames.len();
-            segment::frame(&bytes, &mut frames);
+            let (frame, summary) = b.finish();
+            // Blocks are closed at 1 MiB: the length fits.
             meta.push((
                 segment::sensor_hash(sensor.as_str()),
-                (frames.len() - start) as u32,
+                frame.len() as u32,
                 summary,
             ));
+            frames.push(frame);
         }
         if self.segment.is_none() {
             self.roll()?;

@@ -249,7 +249,46 @@ impl ZenohSettings {
         }
         Ok(c)
     }
+
+    /// [`to_config`](Self::to_config) for a session that publishes high-rate streams with drop
+    /// congestion control: its transmit queues set as [`PUBLISHER_TX_QUEUE_BATCHES`] says why,
+    /// unless a configuration file is given (whose settings then stand).
+    pub fn to_publisher_config(&self) -> Result<zenoh::Config, ZenohConfigError> {
+        let mut c = self.to_config()?;
+        if self.config_file.is_some() {
+            return Ok(c);
+        }
+        let queue = "transport/link/tx/queue";
+        for (key, value) in [
+            (format!("{queue}/size/data"), PUBLISHER_TX_QUEUE_BATCHES),
+            (format!("{queue}/size/data_low"), PUBLISHER_TX_QUEUE_BATCHES),
+            (
+                format!("{queue}/congestion_control/drop/wait_before_drop"),
+                PUBLISHER_WAIT_BEFORE_DROP_US,
+            ),
+        ] {
+            c.insert_json5(&key, &value.to_string())
+                .map_err(|e| ZenohConfigError {
+                    key,
+                    message: e.to_string(),
+                })?;
+        }
+        Ok(c)
+    }
 }
+
+/// Transmit-queue settings of a session that publishes high-rate streams with drop congestion
+/// control (the gateway), for [`ZenohSettings::to_publisher_config`].
+///
+/// Zenoh keeps, per link and priority, a queue of 2 batches of 64 KiB by default, and a
+/// droppable message waits up to 1 ms for room before it is dropped. For a publisher that must
+/// never be held up by one consumer, that wait is the problem: a stalled consumer's link is
+/// always full, so every put to it waits the whole millisecond, and the publisher is throttled to
+/// a thousand messages a second for everyone. So: the deepest queue Zenoh allows (16 batches,
+/// 1 MiB a link), which absorbs a healthy consumer's hiccups, and no wait at all, so that a full
+/// link costs its put nothing.
+pub const PUBLISHER_TX_QUEUE_BATCHES: u32 = 16;
+pub const PUBLISHER_WAIT_BEFORE_DROP_US: u32 = 0;
 
 /// A TCP port on 127.0.0.1 that was free a moment ago, for demos, tests and benches that start
 /// a Zenoh listener other sessions must connect to: Zenoh 1.10's stable API does not report the
@@ -291,6 +330,27 @@ mod tests {
                 .unwrap(),
             "\"peer\"",
             "a building needs no router"
+        );
+    }
+
+    #[test]
+    fn a_publisher_never_waits_on_a_full_link() {
+        let s = ZenohSettings::default();
+        let c = s.to_publisher_config().unwrap();
+        let q = "transport/link/tx/queue";
+        assert_eq!(c.get_json(&format!("{q}/size/data")).unwrap(), "16");
+        assert_eq!(
+            c.get_json(&format!("{q}/congestion_control/drop/wait_before_drop"))
+                .unwrap(),
+            "0"
+        );
+        assert_eq!(
+            s.to_config()
+                .unwrap()
+                .get_json(&format!("{q}/size/data"))
+                .unwrap(),
+            "2",
+            "Zenoh's default elsewhere"
         );
     }
 
