@@ -384,6 +384,12 @@ impl SegmentWriter {
         })
     }
 
+    /// Closes the segment: its pages leave the page cache (see [`crate::os::drop_cached`]),
+    /// so that a history larger than memory keeps only the segment being written hot.
+    pub fn close(self) {
+        crate::os::drop_cached(&self.log, 0, self.log_bytes);
+    }
+
     /// Appends framed blocks (as [`crate::block::BlockBuilder::finish`] made them) and makes
     /// them durable, then indexes them. Returns their entries.
     pub fn append(
