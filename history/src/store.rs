@@ -552,6 +552,9 @@ pub struct Writer {
     spare: Vec<Vec<u8>>,
 }
 
+/// Segments kept in the page cache: the one being written and the ones closed just before it.
+const HOT_SEGMENTS: usize = 3;
+
 /// Most memory kept in spare block buffers.
 const SPARE_BYTES: usize = 32 << 20;
 
@@ -706,11 +709,7 @@ impl Writer {
     /// Closes the segment being written and starts the next.
     fn roll(&mut self) -> Result<(), HistoryError> {
         let dir = self.history.config.dir.clone();
-        let closing = self.segment.take().map(|s| {
-            let id = s.id;
-            s.close();
-            id
-        });
+        let closing = self.segment.take().map(|s| s.id);
         if let Some(id) = closing {
             let ids: Vec<SensorId> = std::mem::take(&mut self.segment_sensors)
                 .into_iter()
@@ -719,6 +718,11 @@ impl Writer {
         }
         let next_id = {
             let segs = self.history.read();
+            // The newest segments stay in the page cache for the queries that want recent
+            // data; older ones leave it, and their pages take the next writes.
+            if let Some(old) = segs.iter().rev().nth(HOT_SEGMENTS) {
+                segment::drop_cached(&dir, old.id);
+            }
             segs.last().map_or(1, |s| s.id + 1)
         };
         let fresh = SegmentWriter::create(&dir, next_id)?;
