@@ -19,12 +19,15 @@
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
+//! - `catchup`: a registry that arrives after the gateway is caught up with within seconds.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
+#[path = "gateway/catchup.rs"]
+mod catchup;
 #[path = "gateway/hardening.rs"]
 mod hardening;
 #[path = "gateway/history.rs"]
