@@ -24,8 +24,12 @@ pub const DEFAULT_MAX_SENSORS: usize = 100_000;
 /// Default of [`Config::unknown_sensor_expiry`], seconds.
 pub const DEFAULT_UNKNOWN_SENSOR_EXPIRY_S: f64 = 300.0;
 
-/// Default of [`Config::declared_keys_max`].
-pub const DEFAULT_DECLARED_KEYS_MAX: usize = 1024;
+/// Default of `declared_keys_mib`: Zenoh routing state for about 23 000 keys, 11 000 sensors.
+pub const DEFAULT_DECLARED_KEYS_MIB: f64 = 64.0;
+
+/// What one declared key costs in Zenoh 1.10's routing state, measured (BENCHMARKS.md: the
+/// gateway's resident set with 2000 sensors, all keys declared and none).
+pub const DECLARED_KEY_BYTES: usize = 2900;
 
 /// Default metrics endpoint.
 pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9750";
@@ -175,16 +179,16 @@ pub struct Config {
     /// counters and correction state); calibrated sensors are never forgotten.
     pub unknown_sensor_expiry: Duration,
     /// Most keys declared to Zenoh: a sensor's raw key (its input) and its output keys
-    /// (corrected, tilt), taken in the order sensors come online; further keys are used
-    /// undeclared.
+    /// (corrected, tilt), for calibrated and established sensors in the order they come
+    /// online; further keys are used undeclared. Set in bytes (`declared_keys_mib`), at
+    /// [`DECLARED_KEY_BYTES`] a key.
     ///
     /// Why declare: Zenoh keeps the routes of a declared key, while the route of an undeclared
-    /// one is worked out again for every batch that uses it, a few microseconds each way,
-    /// unless the sending node declared the key itself. Why a bound: Zenoh 1.10 keeps about
-    /// 2 KiB of routing state per declared key, and each declaration scans every key already
-    /// declared, so ten thousand declared keys cost 20 MiB and several seconds of start-up
-    /// during which batches are dropped. Undeclared keys cost nothing at a sensor's one batch
-    /// a second, and a third of the throughput for a handful of sensors streaming flat out.
+    /// one is worked out again for every batch that uses it, by matching the key against every
+    /// declared one. So a gateway whose keys are partly declared is the worst case: at 1000
+    /// sensors with half their keys declared, a batch cost 73 µs of CPU, against 13–16 µs with
+    /// all declared or none (BENCHMARKS.md). Why a bound: each key costs its routing state, and
+    /// a network that names new sensors must not grow the gateway's memory without bound.
     pub declared_keys_max: usize,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
@@ -244,7 +248,7 @@ pub struct FileConfig {
     pub overload: Option<Overload>,
     pub max_sensors: Option<usize>,
     pub unknown_sensor_expiry_s: Option<f64>,
-    pub declared_keys_max: Option<usize>,
+    pub declared_keys_mib: Option<f64>,
     #[serde(default)]
     pub zenoh: ZenohSettings,
     #[serde(default)]
@@ -333,6 +337,15 @@ impl FileConfig {
         if max_sensors == 0 {
             return Err(ConfigError::invalid("max_sensors", "must be at least 1"));
         }
+        let declared_keys_mib = self.declared_keys_mib.unwrap_or(DEFAULT_DECLARED_KEYS_MIB);
+        if !(declared_keys_mib.is_finite() && (0.0..=65_536.0).contains(&declared_keys_mib)) {
+            return Err(ConfigError::invalid(
+                "declared_keys_mib",
+                format!("{declared_keys_mib} is outside 0..=65536"),
+            ));
+        }
+        let declared_keys_max =
+            (declared_keys_mib * (1u64 << 20) as f64 / DECLARED_KEY_BYTES as f64) as usize;
         let unknown_sensor_expiry = duration_in(
             "unknown_sensor_expiry_s",
             self.unknown_sensor_expiry_s
@@ -384,7 +397,7 @@ impl FileConfig {
             overload: self.overload.unwrap_or_default(),
             max_sensors,
             unknown_sensor_expiry,
-            declared_keys_max: self.declared_keys_max.unwrap_or(DEFAULT_DECLARED_KEYS_MAX),
+            declared_keys_max,
             zenoh,
             calibration,
             history,
@@ -479,7 +492,7 @@ fn history_settings(
     let gib = within("max_gib", h.max_gib.unwrap_or(20.0), 0.001..=1_000_000.0)?;
     let segment_mib = within(
         "segment_mib",
-        h.segment_mib.unwrap_or(64.0),
+        h.segment_mib.unwrap_or(32.0),
         0.0625..=4096.0,
     )?;
     let flush_ms = within(
@@ -773,7 +786,10 @@ mod tests {
         assert!(c.sensor("roof-incl-1").tilt);
         assert_eq!(c.zenoh.listen, ["tcp/0.0.0.0:7447"]);
         assert_eq!(c.defaults, SensorSettings::default());
-        assert_eq!(c.declared_keys_max, DEFAULT_DECLARED_KEYS_MAX);
+        assert_eq!(
+            c.declared_keys_max,
+            (DEFAULT_DECLARED_KEYS_MIB * 1048576.0) as usize / DECLARED_KEY_BYTES
+        );
     }
 
     #[test]

@@ -379,6 +379,8 @@ pub struct GatewayCounters {
     pub sensors_online: AtomicU64,
     /// Keys declared to Zenoh, raw and output (at most `declared_keys_max`).
     pub declared_keys: AtomicUsize,
+    /// Set once a key could not be declared for want of budget (logged once).
+    pub keys_budget_spent: AtomicBool,
     /// Payloads on the raw subscription whose key is not a concrete raw key of this building,
     /// by [`RawKeyRefusal`] (in the order of [`RawKeyRefusal::ALL`]).
     pub refused_keys: [AtomicU64; 3],

@@ -87,6 +87,13 @@ impl Shared {
             })
             .is_ok();
         if !taken {
+            if !self.counters.keys_budget_spent.swap(true, Relaxed) {
+                tracing::warn!(
+                    declared = self.declared_keys_max,
+                    "declared_keys_mib spent: further keys are used undeclared, and every batch \
+                     on them is matched against every declared key (raise the budget)"
+                );
+            }
             return KeyExpr::try_from(key.to_string()).map(SensorKey::Plain);
         }
         // Dropped on error, the place goes back to the budget.

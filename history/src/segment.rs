@@ -104,22 +104,44 @@ pub fn idx_path(dir: &Path, id: u64) -> PathBuf {
     dir.join(format!("{id:016}.idx"))
 }
 
-/// The ids of the sensors a closed segment holds, one per line.
-pub fn sensors_path(dir: &Path, id: u64) -> PathBuf {
-    dir.join(format!("{id:016}.sensors"))
+/// What opening needs of a closed segment, kept beside it so that opening reads this small file
+/// rather than the segment's whole index: its ranges and its sensors.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct SegmentMeta {
+    /// Range of the first-sample times of its batches (min > max when it holds none).
+    pub min_ts: i64,
+    pub max_ts: i64,
+    pub first_arrival: u64,
+    pub last_arrival: u64,
+    pub sensors: Vec<SensorId>,
 }
 
-/// The sensors a segment holds: from its `.sensors` file, or else from one block header per
-/// sensor (and the file is then written).
-pub fn sensors_of(
+pub fn meta_path(dir: &Path, id: u64) -> PathBuf {
+    dir.join(format!("{id:016}.meta"))
+}
+
+/// A closed segment's meta file; none if it is missing or unreadable (the caller rebuilds it).
+pub fn read_meta(dir: &Path, id: u64) -> Option<SegmentMeta> {
+    let bytes = std::fs::read(meta_path(dir, id)).ok()?;
+    serde_json::from_slice(&bytes).ok()
+}
+
+/// Writes a closed segment's meta file, whole or not at all.
+pub fn write_meta(dir: &Path, id: u64, meta: &SegmentMeta) -> Result<(), HistoryError> {
+    let path = meta_path(dir, id);
+    let tmp = path.with_extension("meta.tmp");
+    // Plain numbers and ids always serialise.
+    let body = serde_json::to_vec(meta).expect("segment meta serialises");
+    std::fs::write(&tmp, body).map_err(io("write a segment's meta", &tmp))?;
+    std::fs::rename(&tmp, &path).map_err(io("write a segment's meta", &path))
+}
+
+/// The sensors of a segment's blocks, from one block header per sensor.
+pub fn sensors_from_blocks(
     dir: &Path,
     id: u64,
     entries: &[IndexEntry],
 ) -> Result<Vec<SensorId>, HistoryError> {
-    let sp = sensors_path(dir, id);
-    if let Ok(text) = std::fs::read_to_string(&sp) {
-        return Ok(text.lines().filter_map(|l| SensorId::new(l).ok()).collect());
-    }
     let lp = log_path(dir, id);
     let log = File::open(&lp).map_err(io("open a log", &lp))?;
     let mut seen = std::collections::HashSet::new();
@@ -139,19 +161,9 @@ pub fn sensors_of(
             .and_then(|s| SensorId::new(s).ok());
         ids.extend(id);
     }
-    write_sensors(dir, id, &ids)?;
+    ids.sort();
+    ids.dedup();
     Ok(ids)
-}
-
-/// Writes a segment's `.sensors` file.
-pub fn write_sensors(dir: &Path, id: u64, ids: &[SensorId]) -> Result<(), HistoryError> {
-    let sp = sensors_path(dir, id);
-    let mut text = String::with_capacity(ids.len() * 12);
-    for s in ids {
-        text.push_str(s.as_str());
-        text.push('\n');
-    }
-    std::fs::write(&sp, text).map_err(io("write a sensor list", &sp))
 }
 
 /// The segment id of a log file name, if it is one.

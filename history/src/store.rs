@@ -29,13 +29,13 @@ pub struct HistoryConfig {
 }
 
 impl HistoryConfig {
-    /// 30 days, 20 GiB, 64 MiB or 1 h segments.
+    /// 30 days, 20 GiB, 32 MiB or 1 h segments.
     pub fn new(dir: impl Into<PathBuf>) -> HistoryConfig {
         HistoryConfig {
             dir: dir.into(),
             max_bytes: 20 << 30,
             retention: Duration::from_secs(30 * 86_400),
-            segment_bytes: 64 << 20,
+            segment_bytes: 32 << 20,
             segment_age: Duration::from_secs(3600),
         }
     }
@@ -111,6 +111,16 @@ impl Segment {
     fn is_empty(&self) -> bool {
         self.min_ts > self.max_ts
     }
+
+    fn meta(&self, sensors: Vec<SensorId>) -> segment::SegmentMeta {
+        segment::SegmentMeta {
+            min_ts: self.min_ts,
+            max_ts: self.max_ts,
+            first_arrival: self.first_arrival,
+            last_arrival: self.last_arrival,
+            sensors,
+        }
+    }
 }
 
 /// Closed segments' indexes most recently read, by segment: each grouped by sensor.
@@ -174,17 +184,34 @@ impl History {
         let (mut cut_bytes, mut rescanned_blocks) = (0, 0);
         for (i, &id) in ids.iter().enumerate() {
             let mut seg = Segment::empty(id, &dir);
-            // Only the newest segment can have been cut short: older ones were closed whole.
-            let entries = if i + 1 == ids.len() {
-                let r = segment::recover(&dir, id)?;
-                cut_bytes = r.cut_bytes;
-                rescanned_blocks = r.rescanned;
-                r.entries
-            } else {
-                segment::read_index(&dir, id)?
+            let newest = i + 1 == ids.len();
+            // A closed segment's meta file says what opening needs; only the newest segment
+            // can have been cut short (older ones were closed whole), and a segment closed by a
+            // crash has no meta file yet: those are read and their meta written.
+            let meta = match (newest, segment::read_meta(&dir, id)) {
+                (false, Some(meta)) => meta,
+                _ => {
+                    let entries = if newest {
+                        let r = segment::recover(&dir, id)?;
+                        cut_bytes = r.cut_bytes;
+                        rescanned_blocks = r.rescanned;
+                        r.entries
+                    } else {
+                        segment::read_index(&dir, id)?
+                    };
+                    entries.iter().for_each(|e| seg.absorb(e));
+                    let meta = seg.meta(segment::sensors_from_blocks(&dir, id, &entries)?);
+                    segment::write_meta(&dir, id, &meta)?;
+                    meta
+                }
             };
-            entries.iter().for_each(|e| seg.absorb(e));
-            sensors.extend(segment::sensors_of(&dir, id, &entries)?);
+            seg.min_ts = meta.min_ts;
+            seg.max_ts = meta.max_ts;
+            seg.first_arrival = meta.first_arrival;
+            seg.last_arrival = meta.last_arrival;
+            let size = |p: &Path| std::fs::metadata(p).map_or(0, |m| m.len());
+            seg.bytes = size(&seg.log_path) + size(&segment::idx_path(&dir, id));
+            sensors.extend(meta.sensors);
             seg.modified = std::fs::metadata(&seg.log_path)
                 .and_then(|m| m.modified())
                 .unwrap_or_else(|_| SystemTime::now());
@@ -405,7 +432,7 @@ impl History {
             let removed = [
                 segment::log_path(dir, id),
                 segment::idx_path(dir, id),
-                segment::sensors_path(dir, id),
+                segment::meta_path(dir, id),
             ]
             .iter()
             .map(std::fs::remove_file)
@@ -714,7 +741,15 @@ impl Writer {
             let ids: Vec<SensorId> = std::mem::take(&mut self.segment_sensors)
                 .into_iter()
                 .collect();
-            segment::write_sensors(&dir, id, &ids)?;
+            let meta = self
+                .history
+                .read()
+                .iter()
+                .find(|s| s.id == id)
+                .map(|s| s.meta(ids));
+            if let Some(meta) = meta {
+                segment::write_meta(&dir, id, &meta)?;
+            }
         }
         let next_id = {
             let segs = self.history.read();

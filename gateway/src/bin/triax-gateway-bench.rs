@@ -90,6 +90,15 @@ struct Args {
     /// Sensors in the memory check (0: skip it).
     #[arg(long, default_value_t = 10_000)]
     rss_sensors: usize,
+    /// The building profile: for each of these sensor counts, that many nodes each sending a
+    /// 10-sample batch every 100 ms (100 Hz), every node's publisher declaring its key; empty to
+    /// skip it (e.g. `--building-sensors 100,1000,5000`).
+    #[arg(long, value_delimiter = ',')]
+    building_sensors: Vec<usize>,
+    /// Skip the throughput and latency phases (run only the building profile and the memory
+    /// check).
+    #[arg(long)]
+    no_throughput: bool,
     /// Only these systems (comma-separated names, e.g. `gateway,gateway-no-history`); the
     /// comparisons that need a missing one are left out.
     #[arg(long, value_delimiter = ',', value_enum)]
@@ -528,6 +537,178 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     })
 }
 
+/// What the building profile measured of one system at one sensor count.
+struct BuildingResult {
+    sensors: usize,
+    offered_batches_per_s: f64,
+    delivered: f64,
+    server_us_per_batch: f64,
+    server_cores: f64,
+    switches_per_batch: f64,
+    rss_mib: f64,
+    bench_us_per_batch: f64,
+}
+
+/// Samples in a building profile batch.
+const BUILDING_BATCH: usize = 10;
+/// Batches a building profile node sends a second.
+const BUILDING_BATCHES_PER_S: f64 = 10.0;
+
+/// The building profile for one system: `n` nodes at 100 Hz in 10-sample batches, each node's
+/// key declared by its publisher, for `seconds`; the server's CPU and context switches per
+/// batch and its resident set at the end.
+async fn building_profile(system: System, n: usize, seconds: f64) -> Result<BuildingResult> {
+    let port = triax_net::free_loopback_port()?;
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let dir = tempfile::tempdir()?;
+    let store_path = dir.path().join("store");
+    let server = match system {
+        System::Relay | System::KeyedRelay => Server::spawn(system, None, port)?,
+        _ => {
+            let sp = store_path.clone();
+            tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
+            Server::spawn(system, Some(&store_path), port)?
+        }
+    };
+    let received = Arc::new(AtomicU64::new(0));
+    let sub_session = session(None, Some(&endpoint)).await?;
+    let r = received.clone();
+    let gateway = !matches!(system, System::Relay | System::KeyedRelay);
+    let _sub = sub_session
+        .declare_subscriber(keys::all_sensors(&building(), Stream::Corrected))
+        .callback(move |sample| {
+            let bytes = sample.payload().to_bytes();
+            let ok = if gateway {
+                CorrectedBatch::decode(&bytes).is_ok()
+            } else {
+                RawBatch::decode(&bytes).is_ok()
+            };
+            if ok {
+                r.fetch_add(1, Relaxed);
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let pub_session = session(None, Some(&endpoint)).await?;
+    let ids: Vec<SensorId> = (0..n).map(sensor_id).collect();
+    let mut publishers = Vec::with_capacity(n);
+    for id in &ids {
+        publishers.push(
+            pub_session
+                .declare_publisher(Key::Raw(building(), id.clone()).to_string())
+                .congestion_control(CongestionControl::Block)
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
+        );
+    }
+    let samples: Vec<[f32; 3]> = outputs().into_iter().take(BUILDING_BATCH).collect();
+    let mut seq = vec![0u64; n];
+    // Every node online (and, for the gateway, established: two batches each), then settled.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    for round in 0..3 {
+        for (i, p) in publishers.iter().enumerate() {
+            p.put(raw_batch(&ids[i], seq[i], &samples))
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            seq[i] += 1;
+        }
+        while received.load(Relaxed) < (round + 1) * n as u64 * 9 / 10 {
+            if Instant::now() > deadline {
+                bail!("{system:?} with {n} sensors: the warm-up did not come through");
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let rate = n as f64 * BUILDING_BATCHES_PER_S;
+    let (cpu0, bench0, sw0) = (
+        cpu_seconds(server.pid)?,
+        cpu_seconds(std::process::id())?,
+        context_switches(server.pid)?,
+    );
+    let got0 = received.load(Relaxed);
+    let t0 = Instant::now();
+    let mut sent = 0u64;
+    let mut next = 0usize;
+    while t0.elapsed().as_secs_f64() < seconds {
+        let due = (t0.elapsed().as_secs_f64() * rate) as u64;
+        while sent < due {
+            let i = next % n;
+            publishers[i]
+                .put(raw_batch(&ids[i], seq[i], &samples))
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            seq[i] += 1;
+            next += 1;
+            sent += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    let elapsed = t0.elapsed().as_secs_f64();
+    let (cpu1, bench1, sw1) = (
+        cpu_seconds(server.pid)?,
+        cpu_seconds(std::process::id())?,
+        context_switches(server.pid)?,
+    );
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let got = received.load(Relaxed) - got0;
+    let rss_mib = proc_status_kib(server.pid, "VmRSS:").unwrap_or(0) as f64 / 1024.0;
+    drop(publishers);
+    let _ = pub_session.close().await;
+    let _ = sub_session.close().await;
+    drop(server);
+    let batches = sent.max(1) as f64;
+    Ok(BuildingResult {
+        sensors: n,
+        offered_batches_per_s: sent as f64 / elapsed,
+        delivered: got as f64 / batches,
+        server_us_per_batch: (cpu1 - cpu0) / batches * 1e6,
+        server_cores: (cpu1 - cpu0) / elapsed,
+        switches_per_batch: (sw1 - sw0) as f64 / batches,
+        rss_mib,
+        bench_us_per_batch: (bench1 - bench0) / batches * 1e6,
+    })
+}
+
+/// The building profile's table, and each gateway against the keyed relay at the same load.
+fn report_building(results: &[(System, BuildingResult)]) {
+    println!(
+        "\n## Building profile: nodes at 100 Hz, {BUILDING_BATCH}-sample batches, {BUILDING_BATCHES_PER_S} batches/s each, keys declared by the nodes"
+    );
+    println!("| system | sensors | batches/s offered | delivered | CPU µs/batch | cores | context switches/batch | RSS MiB | publisher + subscriber µs/batch |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for (system, r) in results {
+        println!(
+            "| {} | {} | {:.0} | {:.4} | {:.2} | {:.3} | {:.2} | {:.1} | {:.2} |",
+            system.name(),
+            r.sensors,
+            r.offered_batches_per_s,
+            r.delivered,
+            r.server_us_per_batch,
+            r.server_cores,
+            r.switches_per_batch,
+            r.rss_mib,
+            r.bench_us_per_batch
+        );
+    }
+    for (system, r) in results {
+        if matches!(system, System::Relay | System::KeyedRelay) {
+            continue;
+        }
+        if let Some((_, base)) = results
+            .iter()
+            .find(|(s, b)| *s == System::KeyedRelay && b.sensors == r.sensors)
+        {
+            println!(
+                "- {} / keyed-relay at {} sensors: CPU per batch {:.2}×",
+                system.name(),
+                r.sensors,
+                r.server_us_per_batch / base.server_us_per_batch
+            );
+        }
+    }
+}
+
 fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
     let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     text.lines()
@@ -672,6 +853,13 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
                 System::GatewayBackpressure => config.overload = Overload::Backpressure,
                 System::GatewayNoHistory => config.history = None,
                 _ => {}
+            }
+            // Experiments with the key budget (inherited from the bench's environment).
+            if let Some(n) = std::env::var("TRIAX_BENCH_DECLARED_KEYS_MAX")
+                .ok()
+                .and_then(|v| v.parse().ok())
+            {
+                config.declared_keys_max = n;
             }
             let t0 = Instant::now();
             let gateway = Gateway::start(config).await?;
@@ -869,10 +1057,12 @@ fn main() -> Result<()> {
         if let Some(system) = args.serve {
             return serve(system, args.store.as_deref(), args.port.context("--port")?).await;
         }
-        println!(
-            "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, the system under test in its own process",
-            args.sensors, args.seconds
-        );
+        if !args.no_throughput {
+            println!(
+                "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, the system under test in its own process",
+                args.sensors, args.seconds
+            );
+        }
         let all = [
             System::Relay,
             System::KeyedRelay,
@@ -881,17 +1071,32 @@ fn main() -> Result<()> {
             System::GatewayNoHistory,
         ];
         let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
-        let mut results: Vec<(System, PhaseResult)> = Vec::new();
-        let mut paced = args.clone();
-        for system in all.into_iter().filter(|s| wanted(*s)) {
-            let r = run_system(system, &paced).await?;
-            if system == System::Relay && paced.paced_samples_per_s.is_none() {
-                // The gateways are offered the relay's capacity as well.
-                paced.paced_samples_per_s = Some(r.samples_per_s);
+        if !args.no_throughput {
+            let mut results: Vec<(System, PhaseResult)> = Vec::new();
+            let mut paced = args.clone();
+            for system in all.into_iter().filter(|s| wanted(*s)) {
+                let r = run_system(system, &paced).await?;
+                if system == System::Relay && paced.paced_samples_per_s.is_none() {
+                    // The gateways are offered the relay's capacity as well.
+                    paced.paced_samples_per_s = Some(r.samples_per_s);
+                }
+                results.push((system, r));
             }
-            results.push((system, r));
+            report(&args, &paced, &results);
         }
-        report(&args, &paced, &results);
+        if !args.building_sensors.is_empty() {
+            let mut results = Vec::new();
+            for &n in &args.building_sensors {
+                // The plain relay works out routes per message: the keyed relay is the baseline.
+                for system in all
+                    .into_iter()
+                    .filter(|s| *s != System::Relay && wanted(*s))
+                {
+                    results.push((system, building_profile(system, n, args.seconds).await?));
+                }
+            }
+            report_building(&results);
+        }
         if args.rss_sensors > 0 {
             rss_check(args.rss_sensors).await?;
         }
