@@ -606,11 +606,20 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
     // Every node online (and, for the gateway, established: two batches each), then settled.
     let deadline = Instant::now() + Duration::from_secs(60);
     for round in 0..3 {
+        // Spread over one batch period, as the nodes send: the live stream drops a burst that
+        // overfills a consumer's link.
+        let t0 = Instant::now();
         for (i, p) in publishers.iter().enumerate() {
             p.put(raw_batch(&ids[i], seq[i], &samples))
                 .await
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
             seq[i] += 1;
+            let due = Duration::from_secs_f64((i + 1) as f64 / n as f64 / BUILDING_BATCHES_PER_S);
+            if let Some(ahead) = due.checked_sub(t0.elapsed()) {
+                if ahead > Duration::from_millis(2) {
+                    tokio::time::sleep(ahead).await;
+                }
+            }
         }
         while received.load(Relaxed) < (round + 1) * n as u64 * 9 / 10 {
             if Instant::now() > deadline {

@@ -1,0 +1,275 @@
+//! `triax-alert` at fleet scale: 100 buildings × 100 sensors at 100 Hz in 10-sample batches
+//! (1 M samples/s, 100 000 batches/s) of corrected data, through a real `zenohd` router, to the
+//! alerting service in its own process (the `triax-alert` binary). Reports the service's CPU
+//! (cores) and resident set, and the latency from the publish of a batch that crosses a limit to
+//! the arrival of its `exceeded` alert, p50 and p99 over the injected events.
+//!
+//! ```text
+//! cargo bench -p triax-alert --bench fleet -- [--buildings 100] [--sensors 100] [--seconds 20]
+//! ```
+//!
+//! Needs `zenohd` 1.10 on PATH (`scripts/test` installs it). The publisher plays the buildings'
+//! gateways (it publishes corrected batches and each building's heartbeat), in this process.
+
+use std::io::Write;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
+use triax_protocol::messages::{Alert, AlertKind, AlertLevel, Heartbeat};
+use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId};
+
+struct Args {
+    buildings: usize,
+    sensors: usize,
+    seconds: f64,
+}
+
+fn args() -> Args {
+    let mut a = Args {
+        buildings: 100,
+        sensors: 100,
+        seconds: 20.0,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().and_then(|v| v.parse::<f64>().ok());
+        match flag.as_str() {
+            "--buildings" => a.buildings = value().expect("a number") as usize,
+            "--sensors" => a.sensors = value().expect("a number") as usize,
+            "--seconds" => a.seconds = value().expect("a number"),
+            // cargo bench passes `--bench`.
+            _ => {}
+        }
+    }
+    a
+}
+
+/// Killed when dropped.
+struct Reaped(Child);
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn cpu_seconds(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+fn rss_mib(pid: u32) -> f64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("VmRSS:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse::<f64>().ok())
+        })
+        .unwrap_or(0.0)
+        / 1024.0
+}
+
+fn batch(sensor: &SensorId, seq: u64, t0_ns: i64, amplitude: f32) -> Vec<u8> {
+    CorrectedBatch {
+        header: BatchHeader {
+            sensor_id: sensor.clone(),
+            sequence: seq,
+            timestamp_ns: t0_ns + seq as i64 * 100_000_000,
+            sample_rate_hz: 100.0,
+        },
+        batch_flags: 0,
+        info: CorrectionInfo {
+            calibration_version: 1,
+            mode: Mode::Dynamic,
+            coverage_factor: 2.0,
+        },
+        samples: (0..10)
+            .map(|i| {
+                let t = (seq * 10 + i) as f32 / 100.0;
+                CorrectedSample {
+                    accel_mps2: [amplitude * (2.0 * std::f32::consts::PI * 1.3 * t).sin(), 0.0, 9.81],
+                    uncertainty_mps2: [0.01; 3],
+                    flags: 0,
+                }
+            })
+            .collect(),
+    }
+    .encode()
+}
+
+async fn client(endpoint: &str) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"client\"".to_owned()),
+        ("connect/endpoints", format!("[\"{endpoint}\"]")),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        c.insert_json5(k, &v).expect("valid setting");
+    }
+    zenoh::open(c).await.expect("session")
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() {
+    let a = args();
+    let port = triax_net::free_loopback_port().expect("a port");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let _router = Reaped(
+        Command::new("zenohd")
+            .args(["--no-multicast-scouting", "--listen", &endpoint])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("zenohd on PATH (cargo install zenohd --version 1.10.2 --locked)"),
+    );
+    for _ in 0..100 {
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = dir.path().join("alert.toml");
+    let mut toml = String::from(
+        "window_s = 10.0\nstale_after_s = 30.0\nrepeat_interval_s = 0.0\nstate_path = \"\"\n\
+         [defaults]\npga_mps2 = 2.0\n",
+    );
+    let buildings: Vec<BuildingId> = (0..a.buildings)
+        .map(|b| BuildingId::new(format!("b{b:03}")).expect("id"))
+        .collect();
+    for b in &buildings {
+        toml.push_str(&format!("[buildings.{b}]\n"));
+    }
+    std::fs::File::create(&config)
+        .and_then(|mut f| f.write_all(toml.as_bytes()))
+        .expect("config");
+    let service = Reaped(
+        Command::new(env!("CARGO_BIN_EXE_triax-alert"))
+            .arg("--config")
+            .arg(&config)
+            .args(["--zenoh-mode", "client", "--connect", &endpoint, "--no-multicast-scouting"])
+            .env("RUST_LOG", "error")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("triax-alert"),
+    );
+    let pid = service.0.id();
+    let session = client(&endpoint).await;
+    let sensors: Vec<SensorId> = (0..a.sensors)
+        .map(|s| SensorId::new(format!("s{s:03}")).expect("id"))
+        .collect();
+    let mut publishers = Vec::new();
+    for b in &buildings {
+        for s in &sensors {
+            publishers.push((
+                s.clone(),
+                session
+                    .declare_publisher(Key::Corrected(b.clone(), s.clone()).to_string())
+                    .await
+                    .expect("publisher"),
+            ));
+        }
+    }
+    // Alerts, and when each injected event was published, by (building, sensor).
+    let injected: Arc<Mutex<std::collections::HashMap<String, Instant>>> = Arc::default();
+    let latencies: Arc<Mutex<Vec<f64>>> = Arc::default();
+    let alerts = Arc::new(AtomicU64::new(0));
+    let (inj, lat, n) = (injected.clone(), latencies.clone(), alerts.clone());
+    let _sub = session
+        .declare_subscriber("triax/*/alert/*")
+        .callback(move |s| {
+            let Ok(alert) = from_json::<Alert>(&s.payload().to_bytes()) else {
+                return;
+            };
+            n.fetch_add(1, Relaxed);
+            if alert.kind == AlertKind::PeakAcceleration && alert.level == AlertLevel::Exceeded {
+                let key = format!("{}/{}", alert.building, alert.sensor_id);
+                if let Some(at) = inj.lock().expect("lock").remove(&key) {
+                    lat.lock().expect("lock").push(at.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        })
+        .await
+        .expect("subscriber");
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let t0_ns = 1_800_000_000_000_000_000i64;
+    let rate = (a.buildings * a.sensors) as f64 * 10.0;
+    let total = publishers.len();
+    let mut seq = vec![0u64; total];
+    let (cpu0, start) = (cpu_seconds(pid), Instant::now());
+    let mut sent = 0u64;
+    let mut next = 0usize;
+    let mut next_event = 3.0;
+    let mut next_beat = 0.0;
+    let mut event_sensor = 7usize;
+    while start.elapsed().as_secs_f64() < a.seconds {
+        let now_s = start.elapsed().as_secs_f64();
+        if now_s >= next_beat {
+            for b in &buildings {
+                let beat = Heartbeat {
+                    format_version: 1,
+                    building: b.clone(),
+                    gateway: format!("gw-{b}"),
+                    sequence: (next_beat as u64),
+                    at: time::OffsetDateTime::now_utc(),
+                    sensors: Default::default(),
+                };
+                let _ = session.put(Key::Heartbeat(b.clone()).to_string(), to_json(&beat)).await;
+            }
+            next_beat += 1.0;
+        }
+        let due = (now_s * rate) as u64;
+        while sent < due {
+            let i = next % total;
+            let strong = now_s >= next_event && i == event_sensor;
+            let amplitude = if strong { 8.0 } else { 0.05 };
+            let (s, p) = &publishers[i];
+            if strong {
+                let b = &buildings[i / a.sensors];
+                injected
+                    .lock()
+                    .expect("lock")
+                    .insert(format!("{b}/{s}"), Instant::now());
+                next_event += 1.0;
+                event_sensor = (event_sensor * 7919 + 13) % total;
+            }
+            let _ = p.put(batch(s, seq[i], t0_ns, amplitude)).await;
+            seq[i] += 1;
+            next += 1;
+            sent += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    let cores = (cpu_seconds(pid) - cpu0) / elapsed;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let rss = rss_mib(pid);
+    let mut l = latencies.lock().expect("lock").clone();
+    l.sort_by(|x, y| x.total_cmp(y));
+    let pct = |p: f64| l.get(((l.len().max(1) - 1) as f64 * p) as usize).copied().unwrap_or(f64::NAN);
+    println!(
+        "| {} buildings × {} sensors | {:.0} batches/s offered ({:.2} M samples/s) | triax-alert {:.2} cores, RSS {:.1} MiB | alert latency p50 {:.0} ms, p99 {:.0} ms ({} of {} events) | {} alerts |",
+        a.buildings,
+        a.sensors,
+        sent as f64 / elapsed,
+        sent as f64 * 10.0 / elapsed / 1e6,
+        cores,
+        rss,
+        pct(0.5),
+        pct(0.99),
+        l.len(),
+        (a.seconds - 3.0).max(0.0) as u64,
+        alerts.load(Relaxed)
+    );
+    drop(service);
+}
