@@ -19,12 +19,16 @@
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
+//! - `console`: the operators' console in headless Chromium against a demo building; what it
+//!   refuses; the one-sensor status it reads the calibration record from.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
+#[path = "gateway/console.rs"]
+mod console;
 #[path = "gateway/hardening.rs"]
 mod hardening;
 #[path = "gateway/history.rs"]
