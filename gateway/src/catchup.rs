@@ -1,12 +1,18 @@
 //! Catch-up from the lab's registry: what was pushed while the gateway was offline reaches it
 //! when it comes back, with no operator action.
 //!
-//! At start and then every `calibration.catchup_interval_s`, the gateway queries
-//! `triax/<building>/calibration/registry` with a [`RegistryRequest`] listing the version in
-//! force for each sensor it has a calibration for. The registry replies once per signed record
-//! the gateway lacks; each goes through [`Updater::apply`] exactly like a push (trusted key,
-//! signature, valid record, newer version, durable before in force). A registry that does not
-//! answer costs nothing but a log line: the next round asks again.
+//! The gateway queries `triax/<building>/calibration/registry` with a [`RegistryRequest`]
+//! listing the version in force for each sensor it has a calibration for. The registry replies
+//! once per signed record the gateway lacks; each goes through [`Updater::apply`] exactly like a
+//! push (trusted key, signature, valid record, newer version, durable before in force).
+//!
+//! When: at start, until the registry has answered once, and then every
+//! `calibration.catchup_interval_s`. At start the registry may not be reachable yet (nodes, lab
+//! and gateway started together as peers, or the site link still coming up), and an empty
+//! answer cannot be told from no registry at all; so the gateway watches whether a registry's
+//! queryable matches the key (Zenoh's matching status) and asks as soon as one does, retrying a
+//! failed round after [`START_BACKOFF_MIN`], doubling up to [`START_BACKOFF_MAX`]. It logs once
+//! that the registry is not reachable, and again when it answers.
 //!
 //! The replies share one key, so the query asks for no consolidation (Zenoh would otherwise keep
 //! only the latest reply per key).
@@ -129,8 +135,95 @@ pub async fn catch_up(
     Ok(report)
 }
 
-/// Catches up at start and then every `interval` (only at start when `None`), until
-/// `shutdown`.
+/// First wait before asking a registry that did not answer at start again...
+pub const START_BACKOFF_MIN: Duration = Duration::from_millis(200);
+/// ... doubling up to this.
+pub const START_BACKOFF_MAX: Duration = Duration::from_secs(10);
+
+/// Asks until one round succeeds with a registry there to answer it: as soon as a registry's
+/// queryable matches, and again after a growing backoff while none does or a round fails.
+/// Returns the report of the round that succeeded; none if `shutdown` came first.
+async fn first_round(
+    session: &zenoh::Session,
+    updater: &Updater,
+    timeout: Duration,
+    shutdown: &mut Shutdown,
+) -> Option<CatchUpReport> {
+    let key = Key::CalibrationRegistry(updater.building().clone()).to_string();
+    let querier = match session.declare_querier(&key).await {
+        Ok(q) => Some(q),
+        Err(e) => {
+            tracing::warn!(cause = %e, "cannot watch for the lab's registry; asking blind");
+            None
+        }
+    };
+    let listener = match &querier {
+        Some(q) => q.matching_listener().await.ok(),
+        None => None,
+    };
+    let mut backoff = START_BACKOFF_MIN;
+    let mut said_unreachable = false;
+    loop {
+        if registry_matches(&querier).await {
+            match catch_up(session, updater, timeout).await {
+                Ok(r) => {
+                    if said_unreachable {
+                        tracing::info!(registry = %key, "the lab's registry answered");
+                    }
+                    return Some(r);
+                }
+                Err(e) => tracing::warn!(cause = %e, retry_in = ?backoff, "catch-up failed"),
+            }
+        } else if !said_unreachable {
+            tracing::warn!(registry = %key,
+                "the lab's registry is not reachable yet: catching up as soon as it is");
+            said_unreachable = true;
+        }
+        let arrived = async {
+            match &listener {
+                Some(l) => {
+                    let _ = l.recv_async().await;
+                }
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::time::sleep(backoff) => {}
+            _ = arrived => {}
+            _ = shutdown.recv() => return None,
+        }
+        backoff = (backoff * 2).min(START_BACKOFF_MAX);
+    }
+}
+
+/// Logs what a round did; true when the registry holds more than one round takes.
+fn log_round(updater: &Updater, round: &Result<CatchUpReport, CatchUpError>) -> bool {
+    match round {
+        Ok(r) if r.applied + r.refused + r.malformed + r.deferred > 0 => {
+            tracing::info!(
+                building = %updater.building(),
+                served = r.served,
+                applied = r.applied,
+                refused = r.refused,
+                malformed = r.malformed,
+                deferred = r.deferred,
+                "caught up with the lab's registry"
+            );
+            r.deferred > 0
+        }
+        Ok(r) => {
+            tracing::debug!(served = r.served, "registry has nothing newer");
+            false
+        }
+        Err(e) => {
+            tracing::warn!(cause = %e, "catch-up failed; will ask again");
+            false
+        }
+    }
+}
+
+/// Catches up at start (until the registry has answered once) and then every `interval` (only
+/// at start when `None`), until `shutdown`.
 pub(crate) fn spawn(
     session: zenoh::Session,
     updater: Arc<Updater>,
@@ -139,42 +232,31 @@ pub(crate) fn spawn(
     mut shutdown: Shutdown,
 ) -> JoinHandle<()> {
     tokio::spawn(async move {
+        let Some(first) = first_round(&session, &updater, timeout, &mut shutdown).await else {
+            return;
+        };
+        let mut more = log_round(&updater, &Ok(first));
         loop {
+            if !more {
+                let Some(interval) = interval else { return };
+                tokio::select! {
+                    _ = tokio::time::sleep(interval) => {}
+                    _ = shutdown.recv() => return,
+                }
+            }
             let round = tokio::select! {
                 r = catch_up(&session, &updater, timeout) => r,
                 _ = shutdown.recv() => return,
             };
-            let more = match round {
-                Ok(r) if r.applied + r.refused + r.malformed + r.deferred > 0 => {
-                    tracing::info!(
-                        building = %updater.building(),
-                        served = r.served,
-                        applied = r.applied,
-                        refused = r.refused,
-                        malformed = r.malformed,
-                        deferred = r.deferred,
-                        "caught up with the lab's registry"
-                    );
-                    r.deferred > 0
-                }
-                Ok(r) => {
-                    tracing::debug!(served = r.served, "registry has nothing newer");
-                    false
-                }
-                Err(e) => {
-                    tracing::warn!(cause = %e, "catch-up failed; will ask again");
-                    false
-                }
-            };
-            if more {
-                // The registry has more than one round holds: ask again at once.
-                continue;
-            }
-            let Some(interval) = interval else { return };
-            tokio::select! {
-                _ = tokio::time::sleep(interval) => {}
-                _ = shutdown.recv() => return,
-            }
+            more = log_round(&updater, &round);
         }
     })
+}
+
+/// Whether a registry's queryable matches `key`: that the registry is reachable.
+async fn registry_matches(querier: &Option<zenoh::query::Querier<'_>>) -> bool {
+    match querier {
+        Some(q) => q.matching_status().await.map_or(true, |m| m.matching()),
+        None => true,
+    }
 }

@@ -286,7 +286,7 @@ fn claim_store(store_path: &Path) -> Result<std::fs::File, GatewayError> {
         .write(true)
         .open(&path)
         .map_err(io)?;
-    match triax_history::lock::try_lock_exclusive(&file) {
+    match triax_history::os::try_lock_exclusive(&file) {
         Ok(true) => Ok(file),
         Ok(false) => Err(io(std::io::Error::other(
             "another gateway holds this store",

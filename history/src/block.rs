@@ -150,8 +150,18 @@ impl BlockBuilder {
     /// Starts a block for `sensor`, with `checkpoint` (the correction state before its first
     /// batch) if given.
     pub fn new(sensor: &SensorId, checkpoint: Option<&[u8]>) -> BlockBuilder {
+        BlockBuilder::in_buffer(Vec::new(), sensor, checkpoint)
+    }
+
+    /// As [`new`](Self::new), in a buffer whose memory is reused (its contents are dropped).
+    pub fn in_buffer(
+        mut buf: Vec<u8>,
+        sensor: &SensorId,
+        checkpoint: Option<&[u8]>,
+    ) -> BlockBuilder {
         let id = sensor.as_str().as_bytes();
-        let mut buf = Vec::with_capacity(1024 + checkpoint.map_or(0, <[u8]>::len));
+        buf.clear();
+        buf.reserve(1024 + checkpoint.map_or(0, <[u8]>::len));
         buf.extend_from_slice(&[0; FRAME_HEADER]);
         buf.push(BLOCK_VERSION);
         // Ids are at most 64 bytes.

@@ -29,7 +29,7 @@
 //! `history` module owns the writer thread and the replay.
 
 pub mod block;
-pub mod lock;
+pub mod os;
 pub mod segment;
 mod store;
 pub mod varint;

@@ -325,6 +325,14 @@ pub fn read_index(dir: &Path, id: u64) -> Result<Vec<IndexEntry>, HistoryError> 
         .collect())
 }
 
+/// Lets the page cache go of a closed segment's log (see [`crate::os::drop_cached`]).
+pub fn drop_cached(dir: &Path, id: u64) {
+    if let Ok(log) = File::open(log_path(dir, id)) {
+        let len = log.metadata().map_or(0, |m| m.len());
+        crate::os::drop_cached(&log, 0, len);
+    }
+}
+
 /// Writes every buffer, in order, in as few system calls as the kernel allows.
 fn write_all_vectored(file: &mut File, bufs: &[Vec<u8>]) -> std::io::Result<()> {
     // At most this many slices a call (the kernel's IOV_MAX is 1024).

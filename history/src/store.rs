@@ -158,7 +158,7 @@ impl History {
             .write(true)
             .open(dir.join("LOCK"))
             .map_err(|e| io("open the lock file", e))?;
-        if !crate::lock::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
+        if !crate::os::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
             return Err(HistoryError::Locked { path: dir.clone() });
         }
         let mut ids = Vec::new();
@@ -218,6 +218,7 @@ impl History {
             ready: Vec::new(),
             next_arrival,
             segment_sensors: BTreeSet::new(),
+            spare: Vec::new(),
         };
         Ok(Opened {
             history,
@@ -546,7 +547,16 @@ pub struct Writer {
     next_arrival: u64,
     /// Sensors of the segment being written, for its `.sensors` file.
     segment_sensors: BTreeSet<SensorId>,
+    /// Buffers of blocks already written, for the next ones: a block a second per sensor would
+    /// otherwise be an allocation (and, for large ones, a fresh mapping to fault in) each.
+    spare: Vec<Vec<u8>>,
 }
+
+/// Segments kept in the page cache: the one being written and the ones closed just before it.
+const HOT_SEGMENTS: usize = 3;
+
+/// Most memory kept in spare block buffers.
+const SPARE_BYTES: usize = 32 << 20;
 
 impl Writer {
     pub fn history(&self) -> &Arc<History> {
@@ -587,7 +597,8 @@ impl Writer {
         match self.pending.get_mut(sensor) {
             Some(b) if !closes(b) => b.push(&kept),
             other => {
-                let mut fresh = BlockBuilder::new(sensor, checkpoint);
+                let buf = self.spare.pop().unwrap_or_default();
+                let mut fresh = BlockBuilder::in_buffer(buf, sensor, checkpoint);
                 fresh.push(&kept);
                 match other {
                     Some(b) => {
@@ -655,7 +666,16 @@ impl Writer {
         }
         // Present after `roll`.
         let seg = self.segment.as_mut().expect("a segment is open");
-        match seg.append(&frames, &meta) {
+        let appended = seg.append(&frames, &meta);
+        let mut kept: usize = self.spare.iter().map(Vec::capacity).sum();
+        for mut f in frames {
+            if kept + f.capacity() <= SPARE_BYTES {
+                kept += f.capacity();
+                f.clear();
+                self.spare.push(f);
+            }
+        }
+        match appended {
             Ok(entries) => {
                 let id = seg.id;
                 let mut segs = self.history.write();
@@ -698,6 +718,11 @@ impl Writer {
         }
         let next_id = {
             let segs = self.history.read();
+            // The newest segments stay in the page cache for the queries that want recent
+            // data; older ones leave it, and their pages take the next writes.
+            if let Some(old) = segs.iter().rev().nth(HOT_SEGMENTS) {
+                segment::drop_cached(&dir, old.id);
+            }
             segs.last().map_or(1, |s| s.id + 1)
         };
         let fresh = SegmentWriter::create(&dir, next_id)?;

@@ -19,6 +19,7 @@
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
+//! - `catchup`: a registry that arrives after the gateway is caught up with within seconds.
 //! - `console`: the operators' console in headless Chromium against a demo building; what it
 //!   refuses; the one-sensor status it reads the calibration record from.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
@@ -27,6 +28,8 @@
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
+#[path = "gateway/catchup.rs"]
+mod catchup;
 #[path = "gateway/console.rs"]
 mod console;
 #[path = "gateway/hardening.rs"]

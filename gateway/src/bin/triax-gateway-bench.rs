@@ -90,6 +90,10 @@ struct Args {
     /// Sensors in the memory check (0: skip it).
     #[arg(long, default_value_t = 10_000)]
     rss_sensors: usize,
+    /// Only these systems (comma-separated names, e.g. `gateway,gateway-no-history`); the
+    /// comparisons that need a missing one are left out.
+    #[arg(long, value_delimiter = ',', value_enum)]
+    systems: Vec<System>,
     /// Internal: run as the system under test, in its own process.
     #[arg(long, hide = true, value_enum)]
     serve: Option<System>,
@@ -781,6 +785,75 @@ async fn rss_check(n: usize) -> Result<()> {
     Ok(())
 }
 
+/// The results table, then each gateway against each baseline run.
+fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
+    println!(
+        "| system | unpaced: received samples/s | offered | without loss (RFC 2544) | CPU µs/batch at {:.0} samples/s: system / publisher + subscriber | context switches per batch | latency p50 / p99 (µs) |",
+        args.cpu_samples_per_s
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for (system, r) in results {
+        let c = r.cpu;
+        println!(
+            "| {} | {:.0} | {:.0} | {:.0} | {:.2} / {:.2} (delivered {:.3}) | {:.2} | {:.0} / {:.0} ({} batches) |",
+            system.name(),
+            r.samples_per_s,
+            r.sent_samples_per_s,
+            r.zero_loss_samples_per_s,
+            c.server_us,
+            c.bench_us,
+            c.delivered,
+            c.server_switches,
+            r.p50_us,
+            r.p99_us,
+            r.n_latency
+        );
+    }
+    println!(
+        "\n(without loss: at most {:.1} % lost over {} s trials)",
+        ZERO_LOSS_MAX * 100.0,
+        args.trial_seconds
+    );
+    let get = |s: System| results.iter().find(|(x, _)| *x == s).map(|(_, r)| r);
+    let total = |c: CpuPerBatch| c.server_us + c.bench_us;
+    let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
+    for system in [System::Gateway, System::GatewayBackpressure] {
+        let Some(g) = get(system) else { continue };
+        let name = system.name();
+        if let Some(delivered) = g.paced_samples_per_s {
+            println!(
+                "\n{name}: at the relay's unpaced capacity, {delivered:.0} of {paced_rate:.0} samples/s offered delivered ({:.2})",
+                delivered / paced_rate,
+            );
+        }
+        for base_system in [System::Relay, System::KeyedRelay] {
+            let Some(base) = get(base_system) else {
+                continue;
+            };
+            println!(
+                "- {name} / {}: unpaced {:.2}, without loss {:.2}, CPU {:+.2} µs/batch in the system under test and {:+.2} in publisher + subscriber, capacity ratio from CPU (total / total) {:.2}; added latency p50 {:+.0} µs, p99 {:+.0} µs (at {} batches/s)",
+                base_system.name(),
+                g.samples_per_s / base.samples_per_s,
+                g.zero_loss_samples_per_s / base.zero_loss_samples_per_s,
+                g.cpu.server_us - base.cpu.server_us,
+                g.cpu.bench_us - base.cpu.bench_us,
+                total(base.cpu) / total(g.cpu),
+                g.p50_us - base.p50_us,
+                g.p99_us - base.p99_us,
+                args.latency_batches_per_s
+            );
+        }
+    }
+    if let (Some(gw), Some(nh)) = (get(System::Gateway), get(System::GatewayNoHistory)) {
+        println!(
+            "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×",
+            gw.samples_per_s / nh.samples_per_s,
+            gw.zero_loss_samples_per_s / nh.zero_loss_samples_per_s,
+            gw.cpu.server_us / nh.cpu.server_us
+        );
+    }
+}
+
 fn main() -> Result<()> {
     let args = Args::parse();
     if args.serve.is_some() {
@@ -800,80 +873,25 @@ fn main() -> Result<()> {
             "## Throughput and latency: {} sensors, {SAMPLES_PER_BATCH}-sample batches, {} s phases, loopback TCP, the system under test in its own process",
             args.sensors, args.seconds
         );
-        let relay = run_system(System::Relay, &args).await?;
-        let keyed = run_system(System::KeyedRelay, &args).await?;
-        let paced = Args {
-            paced_samples_per_s: Some(args.paced_samples_per_s.unwrap_or(relay.samples_per_s)),
-            serve: None,
-            ..args.clone()
-        };
-        let gw = run_system(System::Gateway, &paced).await?;
-        let bp = run_system(System::GatewayBackpressure, &paced).await?;
-        let nh = run_system(System::GatewayNoHistory, &paced).await?;
-        println!(
-            "| system | unpaced: received samples/s | offered | without loss (RFC 2544) | CPU µs/batch at {:.0} samples/s: system / publisher + subscriber | context switches per batch | latency p50 / p99 (µs) |",
-            args.cpu_samples_per_s
-        );
-        println!("|---|---|---|---|---|---|---|");
-        let systems = [
-            (System::Relay, &relay),
-            (System::KeyedRelay, &keyed),
-            (System::Gateway, &gw),
-            (System::GatewayBackpressure, &bp),
-            (System::GatewayNoHistory, &nh),
+        let all = [
+            System::Relay,
+            System::KeyedRelay,
+            System::Gateway,
+            System::GatewayBackpressure,
+            System::GatewayNoHistory,
         ];
-        for (system, r) in systems {
-            let c = r.cpu;
-            println!(
-                "| {} | {:.0} | {:.0} | {:.0} | {:.2} / {:.2} (delivered {:.3}) | {:.2} | {:.0} / {:.0} ({} batches) |",
-                system.name(),
-                r.samples_per_s,
-                r.sent_samples_per_s,
-                r.zero_loss_samples_per_s,
-                c.server_us,
-                c.bench_us,
-                c.delivered,
-                c.server_switches,
-                r.p50_us,
-                r.p99_us,
-                r.n_latency
-            );
-        }
-        println!(
-            "\n(without loss: at most {:.1} % lost over {} s trials)",
-            ZERO_LOSS_MAX * 100.0,
-            args.trial_seconds
-        );
-        let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
-        let total = |c: CpuPerBatch| c.server_us + c.bench_us;
-        for (system, g) in [(System::Gateway, &gw), (System::GatewayBackpressure, &bp)] {
-            let name = system.name();
-            let delivered = g.paced_samples_per_s.unwrap_or(f64::NAN);
-            println!(
-                "\n{name}: at the relay's unpaced capacity, {delivered:.0} of {paced_rate:.0} samples/s offered delivered ({:.2}); added latency over the relay p50 {:+.0} µs, p99 {:+.0} µs (at {} batches/s)",
-                delivered / paced_rate,
-                g.p50_us - relay.p50_us,
-                g.p99_us - relay.p99_us,
-                args.latency_batches_per_s
-            );
-            for (base_system, base) in [(System::Relay, &relay), (System::KeyedRelay, &keyed)] {
-                println!(
-                    "- {name} / {}: unpaced {:.2}, without loss {:.2}, CPU {:+.2} µs/batch in the system under test and {:+.2} in publisher + subscriber, capacity ratio from CPU (total / total) {:.2}",
-                    base_system.name(),
-                    g.samples_per_s / base.samples_per_s,
-                    g.zero_loss_samples_per_s / base.zero_loss_samples_per_s,
-                    g.cpu.server_us - base.cpu.server_us,
-                    g.cpu.bench_us - base.cpu.bench_us,
-                    total(base.cpu) / total(g.cpu)
-                );
+        let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
+        let mut results: Vec<(System, PhaseResult)> = Vec::new();
+        let mut paced = args.clone();
+        for system in all.into_iter().filter(|s| wanted(*s)) {
+            let r = run_system(system, &paced).await?;
+            if system == System::Relay && paced.paced_samples_per_s.is_none() {
+                // The gateways are offered the relay's capacity as well.
+                paced.paced_samples_per_s = Some(r.samples_per_s);
             }
+            results.push((system, r));
         }
-        println!(
-            "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×",
-            gw.samples_per_s / nh.samples_per_s,
-            gw.zero_loss_samples_per_s / nh.zero_loss_samples_per_s,
-            gw.cpu.server_us / nh.cpu.server_us
-        );
+        report(&args, &paced, &results);
         if args.rss_sensors > 0 {
             rss_check(args.rss_sensors).await?;
         }

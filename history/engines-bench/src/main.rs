@@ -315,41 +315,20 @@ fn kill_and_reopen(kind: &str, dir: &Path, sensors: usize, after: Duration) -> (
     }
 }
 
-/// Writes about `gib` GiB of history in 100-sample batches, kills the writer, and times the open.
+/// A child writes about `gib` GiB of history in 100-sample batches and is killed: the time to
+/// open what it left.
 fn open_big(gib: u64) -> (f64, u64) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let sensors = 100;
-    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-    let big: Vec<Vec<u8>> = (0..sensors)
-        .map(|s| (0..10).flat_map(|k| samples(&mut rng, s, k)).collect())
-        .collect();
-    {
-        let opened = History::open(HistoryConfig::new(dir.path())).expect("open");
-        let mut writer = opened.writer;
-        let ids: Vec<SensorId> = (0..sensors).map(id).collect();
-        let mut seq = 0u64;
-        while dir_bytes(dir.path()) < gib << 30 {
-            for _ in 0..100 {
-                for (s, sid) in ids.iter().enumerate() {
-                    let kept = Kept {
-                        arrival: 0,
-                        sequence: seq,
-                        timestamp_ns: T0_NS + seq as i64 * 1_000_000_000,
-                        sample_rate_hz: RATE_HZ,
-                        temperature_c: None,
-                        calibration_version: 1,
-                        verdict: Verdict::InOrder,
-                        samples: &big[s][..],
-                    };
-                    writer.append(sid, kept, (seq % 60 == 0).then_some(&[0u8; 400][..]));
-                }
-                seq += 1;
-            }
-            writer.flush().expect("flush");
-        }
-        // Dropped without a last flush or close: what a kill leaves.
-        std::mem::forget(writer);
-    }
+    let mut c = Command::new(std::env::current_exe().expect("exe"))
+        .args(["--child-big".into(), dir.path().display().to_string(), gib.to_string()])
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("child");
+    let mut line = String::new();
+    let stdout = c.stdout.as_mut().expect("piped");
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(stdout), &mut line).expect("read");
+    c.kill().expect("kill");
+    c.wait().expect("wait");
     let bytes = dir_bytes(dir.path());
     let start = Instant::now();
     let opened = History::open(HistoryConfig::new(dir.path())).expect("open");
@@ -358,9 +337,63 @@ fn open_big(gib: u64) -> (f64, u64) {
     (ms, bytes)
 }
 
+/// The child of [`open_big`]: writes until `gib` GiB are on disk, says so, and waits.
+fn child_big(dir: &Path, gib: u64) {
+    let sensors = 100;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+    let big: Vec<Vec<u8>> = (0..sensors)
+        .map(|s| (0..10).flat_map(|k| samples(&mut rng, s, k)).collect())
+        .collect();
+    let opened = History::open(HistoryConfig::new(dir)).expect("open");
+    let mut writer = opened.writer;
+    let ids: Vec<SensorId> = (0..sensors).map(id).collect();
+    let mut seq = 0u64;
+    while dir_bytes(dir) < gib << 30 {
+        for _ in 0..100 {
+            for (s, sid) in ids.iter().enumerate() {
+                let kept = Kept {
+                    arrival: 0,
+                    sequence: seq,
+                    timestamp_ns: T0_NS + seq as i64 * 1_000_000_000,
+                    sample_rate_hz: RATE_HZ,
+                    temperature_c: None,
+                    calibration_version: 1,
+                    verdict: Verdict::InOrder,
+                    samples: &big[s][..],
+                };
+                writer.append(sid, kept, (seq % 60 == 0).then_some(&[0u8; 400][..]));
+            }
+            seq += 1;
+        }
+        writer.flush().expect("flush");
+    }
+    // Unflushed batches, as a gateway has when it is killed.
+    for sid in &ids {
+        let kept = Kept {
+            arrival: 0,
+            sequence: seq,
+            timestamp_ns: T0_NS + seq as i64 * 1_000_000_000,
+            sample_rate_hz: RATE_HZ,
+            temperature_c: None,
+            calibration_version: 1,
+            verdict: Verdict::InOrder,
+            samples: &big[0][..],
+        };
+        writer.append(sid, kept, None);
+    }
+    println!("written");
+    std::thread::sleep(Duration::from_secs(3600));
+}
+
 fn main() {
     let mut raw = std::env::args().skip(1);
     if let Some(flag) = raw.next() {
+        if flag == "--child-big" {
+            let dir = raw.next().expect("dir");
+            let gib = raw.next().and_then(|s| s.parse().ok()).expect("gib");
+            child_big(Path::new(&dir), gib);
+            return;
+        }
         if let Some(kind) = flag.strip_prefix("--child-") {
             let dir = raw.next().expect("dir");
             let sensors = raw.next().and_then(|s| s.parse().ok()).expect("sensors");
