@@ -15,7 +15,7 @@ use time::OffsetDateTime;
 use triax_protocol::batch::Mode;
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::{
-    Alert, AlertKind, AlertLevel, GatewayStatus, Heartbeat, HistoryStatus, SensorStatus,
+    Alert, AlertLevel, GatewayStatus, Heartbeat, HistoryStatus, SensorStatus,
 };
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
@@ -75,7 +75,6 @@ struct State {
 pub struct Fleet {
     options: FleetOptions,
     state: Mutex<State>,
-    started: Instant,
 }
 
 impl Fleet {
@@ -87,7 +86,6 @@ impl Fleet {
         Fleet {
             options,
             state: Mutex::new(state),
-            started: Instant::now(),
         }
     }
 
@@ -109,10 +107,6 @@ impl Fleet {
             s.buildings.insert(b.clone(), BuildingState::default());
         }
         s.buildings.get_mut(b)
-    }
-
-    pub fn watches(&self, b: &BuildingId) -> bool {
-        self.options.buildings.is_empty() || self.options.buildings.contains(b)
     }
 
     /// A payload that did not decode, or whose key and content disagree.
@@ -237,6 +231,7 @@ impl Fleet {
                         sensor_view(
                             s,
                             st.reported_at,
+                            status_age.unwrap_or_default(),
                             wall,
                             self.options.expiry_warning,
                             b.latest_alerts.get(&s.sensor_id),
@@ -288,11 +283,6 @@ impl Fleet {
         s.buildings.get(b).map_or(GatewayState::Unknown, |st| {
             self.state_of(st, Instant::now())
         })
-    }
-
-    /// Seconds since the console started (for logs and tests).
-    pub fn uptime(&self) -> Duration {
-        self.started.elapsed()
     }
 }
 
@@ -395,11 +385,14 @@ fn alert_states(a: Option<&AlertEntry>) -> Vec<SensorState> {
     }
 }
 
-/// A sensor's row from its gateway's status (`reported_at` by the gateway's clock) and the
-/// console's clock (`now`, for calibration validity, which is absolute time).
+/// A sensor's row from its gateway's status (`reported_at` by the gateway's clock, received
+/// `status_age` ago) and the console's clock (`now`, for calibration validity, which is
+/// absolute time). A sensor's age is the gateway's view plus the status's own age, so that a
+/// gateway gone silent does not leave its sensors looking fresh.
 pub fn sensor_view(
     s: &SensorStatus,
     reported_at: OffsetDateTime,
+    status_age: Duration,
     now: OffsetDateTime,
     expiry_warning: Duration,
     alert: Option<&AlertEntry>,
@@ -416,7 +409,7 @@ pub fn sensor_view(
     } else if expires_in.is_some_and(|d| d.as_seconds_f64() <= expiry_warning.as_secs_f64()) {
         states.push(SensorState::Expiring);
     }
-    let age = s.last_seen.map(|t| reported_at - t);
+    let age = s.last_seen.map(|t| reported_at - t + status_age);
     if age.is_none_or(|a| a.as_seconds_f64() > SILENT_AFTER.as_secs_f64()) {
         states.push(SensorState::Silent);
     }
@@ -487,14 +480,6 @@ pub struct Snapshot {
     /// Buildings heard of beyond [`MAX_BUILDINGS`].
     pub ignored_buildings: u64,
     pub expiry_warning_days: f64,
-}
-
-/// Whether an alert kind is about acceleration, for a unit-aware display.
-pub fn is_acceleration(kind: AlertKind) -> bool {
-    matches!(
-        kind,
-        AlertKind::PeakAcceleration | AlertKind::RmsAcceleration
-    )
 }
 
 /// The Zenoh side: subscriptions to heartbeats and alerts (kept while the returned handles
@@ -657,37 +642,50 @@ mod tests {
 
     #[test]
     fn states_from_status() {
-        let v = sensor_view(&status(Some(1)), t(1), t(1), WARN, None);
+        let v = sensor_view(&status(Some(1)), t(1), Duration::ZERO, t(1), WARN, None);
         assert_eq!(v.states, [SensorState::Ok]);
-        let v = sensor_view(&status(None), t(1), t(1), WARN, None);
+        let v = sensor_view(&status(None), t(1), Duration::ZERO, t(1), WARN, None);
         assert_eq!(v.states, [SensorState::Uncalibrated]);
 
         let mut s = status(Some(1));
         s.gaps = 2;
         s.rejects = 1;
-        let v = sensor_view(&s, t(60), t(1), WARN, None);
+        let v = sensor_view(&s, t(60), Duration::ZERO, t(1), WARN, None);
         assert_eq!(
             v.states,
             [SensorState::Silent, SensorState::Gaps, SensorState::Rejects],
             "silent by the gateway's clock: 60 s since the last batch"
         );
         assert_eq!(v.last_seen_age_s, Some(60.0));
+        let v = sensor_view(&s, t(1), Duration::from_secs(30), t(1), WARN, None);
+        assert_eq!(
+            (v.states[0], v.last_seen_age_s),
+            (SensorState::Silent, Some(31.0)),
+            "a status 30 s old: its gateway went silent"
+        );
     }
 
     #[test]
     fn validity_warns_before_expiry_and_says_expired_after() {
         let mut s = status(Some(1));
         s.valid_until = Some(t(10 * 86_400));
-        let v = sensor_view(&s, t(0), t(0), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
         assert_eq!(v.states, [SensorState::Expiring]);
         assert!((v.expires_in_days.unwrap() - 10.0).abs() < 1e-9);
-        let v = sensor_view(&s, t(0), t(0), Duration::from_secs(86_400), None);
+        let v = sensor_view(
+            &s,
+            t(0),
+            Duration::ZERO,
+            t(0),
+            Duration::from_secs(86_400),
+            None,
+        );
         assert_eq!(v.states, [SensorState::Ok], "outside a one-day warning");
-        let v = sensor_view(&s, t(0), t(10 * 86_400), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(10 * 86_400), WARN, None);
         assert_eq!(v.states, [SensorState::Expired]);
         s.valid_from = Some(t(5));
         s.valid_until = None;
-        let v = sensor_view(&s, t(0), t(0), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
         assert_eq!(v.states, [SensorState::NotYetValid]);
     }
 
