@@ -3,7 +3,7 @@
 //! The building is the demo's: the six sensors of `triax_gateway::demo::fleet` (four
 //! accelerometers, one of which loses batches and one of which sends truncated payloads, a
 //! split-mode inclinometer with a tilt stream, and an uncalibrated node), their records in the
-//! gateway's store, nodes publishing at 100 Hz in real time, and alerts published as
+//! gateway's store (one of them made to expire in ten days), nodes publishing at 100 Hz in real time, and alerts published as
 //! `triax-alert` does, one of them hostile. Headless Chromium (Debian's
 //! `chromium` and `chromium-driver`, installed by `scripts/test`) is driven over the W3C
 //! WebDriver protocol; screenshots go to `target/console-screenshots/`.
@@ -331,7 +331,14 @@ impl Demo {
         let dir = tempfile::tempdir().unwrap();
         let store = dir.path().join("store");
         let sims = fleet(4, 2015);
-        let records: Vec<_> = sims.iter().filter_map(|s| s.record.clone()).collect();
+        let mut records: Vec<_> = sims.iter().filter_map(|s| s.record.clone()).collect();
+        // One record runs out in ten days: the fleet view must warn.
+        for r in records
+            .iter_mut()
+            .filter(|r| r.sensor_id.as_str() == "acc-03")
+        {
+            r.valid_until = Some(time::OffsetDateTime::now_utc() + time::Duration::days(10));
+        }
         seed_store(&store, &records);
         let mut config = config("demo", &store);
         for s in &sims {
@@ -499,9 +506,12 @@ async fn console_in_a_browser() {
     assert_eq!(state("acc-01"), ["gaps"], "{states}");
     // A truncated payload is lost, so the batch after it follows a gap.
     assert_eq!(state("acc-02"), ["gaps", "rejects"], "{states}");
-    for ok in ["acc-03", "incl-01"] {
-        assert_eq!(state(ok), ["ok"], "{ok}: {states}");
-    }
+    assert_eq!(state("acc-03"), ["expiring"], "{states}");
+    let warning = browser.js(
+        "return document.querySelector('tr.sensor[data-sensor=\"acc-03\"]').children[8].textContent",
+    );
+    assert!(warning.as_str().unwrap().contains("in 10.0 d"), "{warning}");
+    assert_eq!(state("incl-01"), ["ok"], "{states}");
     let building = browser.js(
         "const b = document.querySelector('section.building[data-building=demo]');
          return [b.dataset.state, b.querySelector('h2').textContent];",
