@@ -57,7 +57,8 @@
   let drawPending = false;
 
   function parseRoute() {
-    const h = decodeURI(location.hash || '#/');
+    let h;
+    try { h = decodeURI(location.hash || '#/'); } catch (e) { h = '#/'; }
     const [path, query] = h.slice(1).split('?');
     const params = new URLSearchParams(query || '');
     const parts = path.split('/').filter(Boolean);
