@@ -361,6 +361,16 @@ impl Corrector {
         self.version
     }
 
+    /// Start of the record's validity, ns since the Unix epoch.
+    pub fn valid_from_ns(&self) -> i128 {
+        self.valid_from_ns
+    }
+
+    /// End of the record's validity, ns since the Unix epoch; none: until superseded.
+    pub fn valid_until_ns(&self) -> Option<i128> {
+        self.valid_until_ns
+    }
+
     pub fn set(&self, kind: SetKind) -> &SetCorrector {
         match kind {
             SetKind::Static => &self.static_set,

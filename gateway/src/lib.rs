@@ -378,6 +378,7 @@ async fn serve_status(
         .declare_queryable(Key::Status(ctx.config.building.clone()).to_string())
         .await
         .map_err(zenoh_err("declare the status queryable"))?;
+    let ctx = Arc::new(ctx);
     Ok(tokio::spawn(async move {
         loop {
             let query = tokio::select! {
@@ -386,7 +387,14 @@ async fn serve_status(
             };
             let replied = match status::StatusQuery::parse(query.parameters().iter()) {
                 Ok(q) => {
-                    let body = to_json(&ctx.status(&q));
+                    // A one-sensor answer reads the store.
+                    let c = ctx.clone();
+                    let Ok(body) =
+                        tokio::task::spawn_blocking(move || to_json(&c.status(&q))).await
+                    else {
+                        tracing::error!("status answer panicked");
+                        continue;
+                    };
                     let key = Key::Status(ctx.config.building.clone()).to_string();
                     query.reply(key, body).await
                 }
@@ -482,6 +490,7 @@ impl Gateway {
             counters: counters.clone(),
             history: shared.history.clone(),
             started_at,
+            store: Some(store.clone()),
         };
         tasks.push(serve_status(&session, status_ctx, shutdown.clone()).await?);
         if let Some(sink) = &shared.history {

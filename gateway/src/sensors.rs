@@ -114,7 +114,9 @@ impl SensorEntry {
     pub fn status(&self) -> SensorStatus {
         let c = &self.counters;
         let last = c.last_seen_ns.load(Relaxed);
-        let version = self.calibration_version();
+        let corrector = self.corrector.load();
+        let version = corrector.as_ref().map(|c| c.version());
+        let at = |ns: i128| OffsetDateTime::from_unix_timestamp_nanos(ns).ok();
         SensorStatus {
             sensor_id: self.id.clone(),
             last_seen: (last != 0)
@@ -133,6 +135,12 @@ impl SensorEntry {
             } else {
                 Mode::None
             },
+            valid_from: corrector.as_ref().and_then(|c| at(c.valid_from_ns())),
+            valid_until: corrector
+                .as_ref()
+                .and_then(|c| c.valid_until_ns())
+                .and_then(at),
+            calibration_record: None,
         }
     }
 }

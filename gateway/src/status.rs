@@ -11,13 +11,19 @@
 //!   the counters alone).
 //!
 //! Anything else is refused with a reply error that names the parameter.
+//!
+//! A one-sensor answer also carries the calibration record in force, read from the store: the
+//! certificate an operator's console shows. The status path may therefore touch the store, and
+//! runs on a blocking thread; the sample path never does.
 
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
 use time::OffsetDateTime;
+use triax_calibration_store::Store;
 use triax_protocol::keys::RawKeyRefusal;
 use triax_protocol::messages::GatewayStatus;
+use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{SensorId, JSON_FORMAT_VERSION};
 
 use crate::{Config, GatewayCounters, SensorTable};
@@ -81,16 +87,28 @@ pub struct StatusContext {
     pub counters: Arc<GatewayCounters>,
     pub history: Option<Arc<crate::history::Sink>>,
     pub started_at: OffsetDateTime,
+    /// Where a one-sensor answer reads the record in force; none: answers carry no record.
+    pub store: Option<Arc<Store>>,
 }
 
 impl StatusContext {
+    /// The answer to `query`. May read the store (a one-sensor query): call it from a blocking
+    /// thread.
     pub fn status(&self, query: &StatusQuery) -> GatewayStatus {
         let c = &self.counters;
         let (total, sensors, next_offset) = match &query.sensor {
             // One lookup: no need to list and sort every sensor.
             Some(id) => (
                 self.table.len(),
-                self.table.get(id).iter().map(|e| e.status()).collect(),
+                self.table
+                    .get(id)
+                    .iter()
+                    .map(|e| {
+                        let mut s = e.status();
+                        s.calibration_record = self.record(id, s.calibration_version);
+                        s
+                    })
+                    .collect(),
                 None,
             ),
             None => {
@@ -126,6 +144,19 @@ impl StatusContext {
             sensors,
         }
     }
+
+    /// The stored record of `version` (the one in force); none if there is no store, no
+    /// version, or the entry cannot be read (logged: the answer still carries the counters).
+    fn record(&self, id: &SensorId, version: Option<u64>) -> Option<Box<CalibrationRecord>> {
+        let (store, version) = (self.store.as_ref()?, version?);
+        match store.get(id, version) {
+            Ok(r) => r.map(Box::new),
+            Err(e) => {
+                tracing::warn!(sensor = %id, version, cause = %e, "status: record in force unreadable");
+                None
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -148,6 +179,7 @@ mod tests {
             counters: Arc::default(),
             history: None,
             started_at: OffsetDateTime::UNIX_EPOCH,
+            store: None,
         }
     }
 

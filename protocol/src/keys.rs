@@ -353,6 +353,17 @@ pub fn all_registries() -> String {
     format!("{ROOT}/*/calibration/registry")
 }
 
+/// Key expression for the status queryable of every building (what a console asks to find
+/// the gateways).
+pub fn all_statuses() -> String {
+    format!("{ROOT}/*/status")
+}
+
+/// Key expression for the heartbeat of every building.
+pub fn all_heartbeats() -> String {
+    format!("{ROOT}/*/heartbeat")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -485,5 +496,7 @@ mod tests {
             "triax/hq/calibration/push/*"
         );
         assert_eq!(all_registries(), "triax/*/calibration/registry");
+        assert_eq!(all_statuses(), "triax/*/status");
+        assert_eq!(all_heartbeats(), "triax/*/heartbeat");
     }
 }

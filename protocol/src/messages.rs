@@ -160,6 +160,24 @@ pub struct SensorStatus {
     /// Version in force; none when uncalibrated.
     pub calibration_version: Option<u64>,
     pub mode: Mode,
+    /// Validity of the record in force (absent when uncalibrated; `valid_until` also when the
+    /// record is valid until superseded), so that a console can warn before expiry.
+    #[serde(
+        default,
+        with = "time::serde::rfc3339::option",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub valid_from: Option<OffsetDateTime>,
+    #[serde(
+        default,
+        with = "time::serde::rfc3339::option",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub valid_until: Option<OffsetDateTime>,
+    /// The record in force, only in the answer to a one-sensor query (`sensor=<id>`): the
+    /// certificate an operator reads (lab, certificate, validity, domain).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_record: Option<Box<CalibrationRecord>>,
 }
 
 /// A gateway's status, answered on `triax/<building>/status`.
@@ -455,6 +473,9 @@ mod tests {
                 flagged_samples: 100,
                 calibration_version: Some(4),
                 mode: Mode::Dynamic,
+                valid_from: Some(t()),
+                valid_until: None,
+                calibration_record: Some(Box::new(sample::record("acc-1", 4))),
             }],
         });
         round_trip(&TiltSample {

@@ -20,6 +20,8 @@
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
 //! - `catchup`: a registry that arrives after the gateway is caught up with within seconds.
+//! - `console`: the operators' console in headless Chromium against a demo building; what it
+//!   refuses; the one-sensor status it reads the calibration record from.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
@@ -28,6 +30,8 @@
 mod alerting;
 #[path = "gateway/catchup.rs"]
 mod catchup;
+#[path = "gateway/console.rs"]
+mod console;
 #[path = "gateway/hardening.rs"]
 mod hardening;
 #[path = "gateway/history.rs"]

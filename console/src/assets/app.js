@@ -1,0 +1,504 @@
+// Triax console, the page: three views chosen by the URL fragment (#/ fleet, #/alerts,
+// #/sensor/<building>/<sensor>[?at=<ns>&span=<s>]), fed by one Server-Sent Events stream and a
+// few JSON requests to the console's own server. Plots are plain canvas over data the server
+// has already decimated (one bucket per pixel column).
+//
+// Every string from the network is put into the page as text (textContent / text nodes), never
+// as HTML: alert statements, lab names and certificate text are free text. The server's
+// Content-Security-Policy forbids inline scripts as a second line of defence.
+'use strict';
+(() => {
+  const FLAGS = [
+    ['uncalibrated', '#b42318'], ['calibration_expired', '#d92d20'], ['outside_amplitude', '#dc6803'],
+    ['outside_frequency', '#9e77ed'], ['sequence_gap', '#475467'], ['non_finite_input', '#000000'],
+    ['clipped', '#f04438'], ['duplicate', '#0ba5ec'],
+  ];
+  const AXES = ['x', 'y', 'z'];
+  const AXIS_COLORS = ['#175cd3', '#1d7a3a', '#9a3412'];
+  const SPANS_S = [10, 30, 120, 600, 3600];
+  const LIVE_MAX_SPAN_S = 600;
+
+  // ---- DOM helpers: text only -------------------------------------------------------------
+  function el(tag, attrs, ...children) {
+    const e = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (v === undefined || v === null || v === false) continue;
+      if (k === 'class') e.className = v;
+      else if (k === 'text') e.textContent = String(v);
+      else if (k === 'onclick' || k === 'onchange') e.addEventListener(k.slice(2), v);
+      else e.setAttribute(k, String(v));
+    }
+    for (const c of children.flat(Infinity)) {
+      if (c === undefined || c === null || c === false) continue;
+      e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+    }
+    return e;
+  }
+  const $ = (id) => document.getElementById(id);
+  const fmtTime = (ms) => Number.isFinite(ms) ? new Date(ms).toISOString().replace('T', ' ').slice(0, 19) + 'Z' : '—';
+  const fmtAge = (s) => s === null || s === undefined ? '—' : s < 1 ? 'now' : s < 120 ? `${s.toFixed(0)} s ago` : s < 7200 ? `${(s / 60).toFixed(0)} min ago` : `${(s / 3600).toFixed(1)} h ago`;
+  const fmtNum = (x, d = 4) => x === null || x === undefined || !Number.isFinite(x) ? '—' : Number(x).toPrecision(d);
+  const fmtBytes = (b) => b >= 1 << 30 ? `${(b / (1 << 30)).toFixed(2)} GiB` : b >= 1 << 20 ? `${(b / (1 << 20)).toFixed(1)} MiB` : `${(b / 1024).toFixed(0)} KiB`;
+  const nsToMs = (ns) => ns / 1e6;
+  const msToNs = (ms) => (BigInt(Math.round(ms)) * 1000000n).toString();
+  const sensorHref = (b, s, atNs, spanS) => `#/sensor/${encodeURIComponent(b)}/${encodeURIComponent(s)}` +
+    (atNs !== undefined ? `?at=${atNs}&span=${spanS || 60}` : '');
+  const badge = (cls, text, title) => el('span', { class: `badge ${cls}`, title }, text ?? cls.replace(/_/g, ' '));
+  const flagNames = (bits) => FLAGS.filter((_, i) => bits & (1 << i)).map(([n]) => n);
+
+  // ---- State ------------------------------------------------------------------------------
+  let fleet = null;          // last fleet snapshot
+  let route = null;          // current route
+  let source = null;         // EventSource
+  let live = null;           // live data of the sensor view
+  let tilt = [];             // tilt samples of the sensor view
+  let historyView = null;    // history data of the sensor view
+  let detail = null;         // /api/sensor answer
+  let drawPending = false;
+
+  function parseRoute() {
+    let h;
+    try { h = decodeURI(location.hash || '#/'); } catch (e) { h = '#/'; }
+    const [path, query] = h.slice(1).split('?');
+    const params = new URLSearchParams(query || '');
+    const parts = path.split('/').filter(Boolean);
+    if (parts[0] === 'alerts') return { view: 'alerts' };
+    if (parts[0] === 'sensor' && parts.length === 3) {
+      const at = params.get('at');
+      const span = Number(params.get('span')) || 30;
+      return { view: 'sensor', building: parts[1], sensor: parts[2], at: at ? Number(at) : null, span };
+    }
+    return { view: 'fleet' };
+  }
+
+  // ---- Live connection --------------------------------------------------------------------
+  function connect(query) {
+    if (source) source.close();
+    const url = '/events' + (query ? '?' + query : '');
+    source = new EventSource(url);
+    $('conn').dataset.state = 'connecting';
+    $('conn').textContent = 'connecting…';
+    source.onopen = () => { $('conn').dataset.state = 'open'; $('conn').textContent = 'live'; };
+    source.onerror = () => { $('conn').dataset.state = 'reconnecting'; $('conn').textContent = 'console unreachable, retrying…'; };
+    source.addEventListener('fleet', (e) => { fleet = JSON.parse(e.data); onFleet(); });
+    source.addEventListener('live', (e) => onLive(JSON.parse(e.data)));
+    source.addEventListener('tilt', (e) => onTilt(JSON.parse(e.data)));
+    source.addEventListener('problem', (e) => { const p = $('status-line'); if (p) p.textContent = JSON.parse(e.data).error; });
+  }
+
+  function onFleet() {
+    $('clock').textContent = fmtTime(Date.parse(fleet.now));
+    $('alert-count').textContent = fleet.alerts_total ? `(${fleet.alerts_total})` : '';
+    if (route.view === 'fleet') renderFleet();
+    else if (route.view === 'alerts') renderAlerts();
+    else if (route.view === 'sensor') renderSensorHeader();
+  }
+
+  // ---- Fleet view -------------------------------------------------------------------------
+  function renderFleet() {
+    const view = $('view');
+    if (!fleet) { view.replaceChildren(el('p', {}, 'Waiting for the console…')); return; }
+    const sections = fleet.buildings.map(renderBuilding);
+    if (!sections.length) sections.push(el('p', { class: 'notice' }, 'No building heard yet: no gateway has answered a status query or sent a heartbeat.'));
+    const extra = [];
+    if (fleet.malformed_messages) extra.push(el('p', { class: 'notice' }, `${fleet.malformed_messages} messages skipped (did not decode or contradicted their key).`));
+    view.replaceChildren(el('div', { id: 'fleet', 'data-buildings': fleet.buildings.length }, sections, extra));
+  }
+
+  function renderBuilding(b) {
+    const heard = b.last_heard_s === null ? 'never heard' : `last heard ${fmtAge(b.last_heard_s)}`;
+    const h = b.history;
+    const meta = el('div', { class: 'meta' },
+      el('span', {}, `gateway ${b.gateway ?? '?'}`),
+      el('span', {}, heard),
+      b.started_at && el('span', {}, `started ${fmtTime(Date.parse(b.started_at))}`),
+      b.total_sensors !== null && el('span', {}, `${b.total_sensors} sensors`),
+      b.malformed !== null && el('span', {}, `${b.malformed} malformed payloads`),
+      b.dropped !== null && el('span', {}, `${b.dropped} dropped`),
+      h && el('span', {}, `history ${fmtBytes(h.bytes)} of ${fmtBytes(h.max_bytes)}` + (h.oldest_ns ? ` since ${fmtTime(nsToMs(h.oldest_ns))}` : '')),
+      b.status_error && el('span', { class: 'notice' }, b.status_error));
+    const rows = b.sensors.map((s) => renderSensorRow(b, s));
+    const table = el('table', {},
+      el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', {}, t)))),
+      el('tbody', {}, rows));
+    const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
+    const more = b.total_sensors && b.total_sensors > b.sensors.length ? el('p', { class: 'meta' }, `Showing ${b.sensors.length} of ${b.total_sensors} sensors (the first status page).`) : null;
+    return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state },
+      el('h2', {}, `Building ${b.building} `, badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer')),
+      meta, table, more);
+  }
+
+  function renderSensorRow(b, s) {
+    const a = s.latest_alert;
+    const validity = s.valid_until ? [fmtTime(Date.parse(s.valid_until)), s.expires_in_days !== null && s.expires_in_days < fleet.expiry_warning_days ? el('span', { class: s.expires_in_days <= 0 ? 'warning' : 'notice' }, s.expires_in_days <= 0 ? ' expired' : ` in ${s.expires_in_days.toFixed(1)} d`) : null]
+      : s.calibration_version ? 'until superseded' : '—';
+    return el('tr', { class: 'sensor', 'data-building': b.building, 'data-sensor': s.sensor_id, 'data-states': s.states.join(' ') },
+      el('td', {}, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id)),
+      el('td', {}, s.states.map((st) => badge(st))),
+      el('td', {}, s.last_seen ? fmtAge(s.last_seen_age_s) : 'never'),
+      el('td', { class: 'num' }, s.samples),
+      el('td', { class: 'num' }, s.gaps ? `${s.gaps} (${s.missing_batches})` : '0'),
+      el('td', { class: 'num' }, s.rejects),
+      el('td', {}, s.mode),
+      el('td', {}, s.calibration_version ? `v${s.calibration_version}` : 'none'),
+      el('td', {}, validity),
+      el('td', {}, a ? [badge(a.level), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
+  }
+
+  const alertAtNs = (a) => msToNs(Date.parse(a.at));
+  const windowSpan = (a) => Math.min(3600, Math.max(30, Math.ceil((a.window_s || 10) * 3)));
+
+  // ---- Alerts view ------------------------------------------------------------------------
+  function renderAlerts() {
+    const view = $('view');
+    if (!fleet) return;
+    const rows = fleet.alerts.map((a) => {
+      const k = a.coverage_factor;
+      const u = a.standard_uncertainty;
+      return el('tr', { class: 'alert', 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': a.level },
+        el('td', {}, fmtTime(Date.parse(a.at))),
+        el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, `${a.building} / ${a.sensor_id}`)),
+        el('td', {}, badge(a.level), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
+        el('td', {}, a.kind.replace(/_/g, ' ')),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${a.unit}`),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${a.unit}`),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `[${fmtNum(a.value - k * u)}, ${fmtNum(a.value + k * u)}]`),
+        el('td', { class: 'num' }, `${fmtNum(a.window_s, 3)} s`),
+        el('td', { class: 'num' }, `${(100 * a.flagged_fraction).toFixed(0)} %`),
+        el('td', { class: 'statement' }, a.statement));
+    });
+    view.replaceChildren(el('section', { class: 'card', id: 'alerts' },
+      el('h2', {}, 'Alerts'),
+      el('p', { class: 'meta' }, `Guard band: exceeded when value − k·u is above the threshold, possible when the interval [value − k·u, value + k·u] contains it. ${fleet.alerts_total} received since the console started; the latest ${fleet.alerts.length} shown.`),
+      el('table', {},
+        el('thead', {}, el('tr', {}, ['At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement'].map((t) => el('th', {}, t)))),
+        el('tbody', {}, rows))));
+  }
+
+  // ---- Sensor view ------------------------------------------------------------------------
+  function plotWidth() {
+    return Math.max(50, Math.min(4000, Math.round(($('view').clientWidth || 1000) - 4)));
+  }
+
+  function renderSensor() {
+    const r = route;
+    live = null; tilt = []; historyView = null; detail = null;
+    const isLive = r.at === null;
+    const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
+    const spanSel = el('select', { id: 'span', onchange: (e) => navigate({ span: Number(e.target.value) }) },
+      SPANS_S.filter((s) => !isLive || s <= LIVE_MAX_SPAN_S).map((s) => el('option', { value: s, selected: s === spanS ? 'selected' : null }, s < 120 ? `${s} s` : `${s / 60} min`)));
+    const atMs = isLive ? Date.now() : r.at / 1e6;
+    const atInput = el('input', { id: 'at', type: 'datetime-local', step: '1', value: new Date(atMs).toISOString().slice(0, 19) });
+    const controls = el('div', { class: 'controls' },
+      el('button', { id: 'btn-live', class: isLive ? 'active' : '', onclick: () => navigate({ at: null }) }, 'Live'),
+      el('button', { id: 'btn-back', onclick: () => step(-1), title: 'one span back' }, '◀'),
+      el('label', {}, 'at (UTC) ', atInput),
+      el('button', { id: 'btn-go', onclick: () => { const ms = Date.parse(atInput.value + 'Z'); if (Number.isFinite(ms)) navigate({ at: msToNs(ms) }); } }, 'Look back'),
+      el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward', disabled: isLive ? 'disabled' : null }, '▶'),
+      el('label', {}, 'span ', spanSel));
+    const plots = el('div', { id: 'plot', 'data-source': isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
+      AXES.map((ax) => el('div', { class: 'plot' }, el('canvas', { id: `canvas-${ax}`, width: 1000, height: 170 }), el('span', { class: 'title', id: `title-${ax}` }, `a${ax}`))),
+      el('div', { class: 'plot', id: 'tilt-plot', hidden: 'hidden' }, el('canvas', { id: 'canvas-tilt', width: 1000, height: 170 }), el('span', { class: 'title' }, 'tilt: roll (blue), pitch (green), degrees, ±k·u shaded')),
+      el('div', { class: 'legend', id: 'legend' }));
+    $('view').replaceChildren(el('section', { class: 'card', id: 'sensor', 'data-building': r.building, 'data-sensor': r.sensor },
+      el('h2', {}, el('a', { href: '#/' }, r.building), ' / ', r.sensor),
+      el('div', { id: 'sensor-header', class: 'meta' }),
+      controls,
+      el('div', { id: 'status-line', class: 'meta' }, isLive ? 'waiting for the live stream…' : 'reading the history…'),
+      plots),
+    el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
+    el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
+    renderSensorHeader();
+    loadDetail();
+    const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
+    if (isLive) connect(q.toString());
+    else { connect(''); loadHistory(r.at, spanS); }
+  }
+
+  function navigate(change) {
+    const r = { ...route, ...change };
+    location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span);
+  }
+
+  function step(dir) {
+    const r = route;
+    const atNs = r.at === null ? Date.now() * 1e6 : r.at;
+    navigate({ at: msToNs(atNs / 1e6 + dir * r.span * 1000) });
+  }
+
+  function windowOf(atNs, spanS) {
+    const atMs = atNs / 1e6;
+    return [atMs - 0.75 * spanS * 1000, atMs + 0.25 * spanS * 1000];
+  }
+
+  async function loadHistory(atNs, spanS) {
+    const [fromMs, toMs] = windowOf(atNs, spanS);
+    const q = new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), width: String(plotWidth()) });
+    const myRoute = route;
+    let body;
+    try {
+      const resp = await fetch('/api/history?' + q);
+      body = resp.ok ? await resp.json() : { error: await resp.text() };
+    } catch (e) { body = { error: String(e) }; }
+    if (route !== myRoute) return;
+    historyView = { ...body, fromMs, toMs };
+    const v = body.view;
+    const line = $('status-line');
+    if (body.error) line.textContent = `history: ${body.error}`;
+    else line.textContent = `history: ${body.batches_read} batches read, ${v.batches} in view` + (v.calibration_versions.length > 1 ? `, calibration versions ${v.calibration_versions.join(', ')} (recalibrated in this range)` : '');
+    scheduleDraw();
+  }
+
+  async function loadDetail() {
+    const myRoute = route;
+    try {
+      const q = new URLSearchParams({ building: route.building, sensor: route.sensor });
+      const resp = await fetch('/api/sensor?' + q);
+      detail = resp.ok ? await resp.json() : { error: await resp.text() };
+    } catch (e) { detail = { error: String(e) }; }
+    if (route === myRoute) renderRecord();
+  }
+
+  function renderRecord() {
+    const box = $('record');
+    if (!box) return;
+    if (!detail || detail.error) { box.replaceChildren(el('p', { class: 'notice' }, detail ? detail.error : '')); return; }
+    const st = detail.status;
+    const rec = st.calibration_record;
+    if (!st.calibration_version) { box.replaceChildren(el('p', { class: 'warning' }, 'None: the sensor is uncalibrated; its values are raw outputs, not m/s².')); return; }
+    if (!rec) { box.replaceChildren(el('p', {}, `Version ${st.calibration_version}; the gateway did not send the record.`)); return; }
+    const set = st.mode === 'static' ? 'static' : 'dynamic';
+    const dom = (s) => s && s.domain ? `|a| ≤ ${s.domain.amplitude_max_mps2} m/s², ${s.domain.frequency_min_hz}–${s.domain.frequency_max_hz} Hz` : '—';
+    const now = Date.now();
+    const until = rec.valid_until ? Date.parse(rec.valid_until) : null;
+    const untilText = until === null ? 'until superseded' : fmtTime(until);
+    const untilNote = until === null ? null : until <= now ? el('span', { class: 'warning' }, ' (expired)') :
+      fleet && (until - now) / 86400000 < fleet.expiry_warning_days ? el('span', { class: 'notice' }, ` (expires in ${((until - now) / 86400000).toFixed(1)} days)`) : null;
+    const rows = [
+      ['Certificate', rec.certificate.id], ['Laboratory', rec.lab.name], ['Accreditation', rec.lab.accreditation],
+      ['Approved by', rec.lab.approved_by], ['Version', rec.version], ['Issued', fmtTime(Date.parse(rec.issued_at))],
+      ['Valid from', fmtTime(Date.parse(rec.valid_from))], ['Valid until', [untilText, untilNote]],
+      ['Mode in use', st.mode], ['Static set domain', dom(rec.static)], ['Dynamic set domain', dom(rec.dynamic)],
+      [`Method (${set})`, rec[set] && rec[set].method], [`Reference (${set})`, rec[set] && rec[set].reference],
+      ['Coverage factor', rec[set] && rec[set].coverage_factor], ['Sensor', [rec.sensor.model, rec.sensor.serial].filter(Boolean).join(' ') || null],
+      ['Output unit', rec.sensor.output_unit], ['Notes', rec.certificate.notes],
+    ].filter(([, v]) => v !== undefined && v !== null && v !== '');
+    box.replaceChildren(el('dl', { class: 'record' }, rows.map(([k, v]) => [el('dt', {}, k), el('dd', {}, v)])));
+  }
+
+  function sensorRow() {
+    if (!fleet || !route || route.view !== 'sensor') return null;
+    const b = fleet.buildings.find((x) => x.building === route.building);
+    return b ? { b, s: b.sensors.find((x) => x.sensor_id === route.sensor) } : null;
+  }
+
+  function renderSensorHeader() {
+    const box = $('sensor-header');
+    if (!box) return;
+    const found = sensorRow();
+    const items = [];
+    if (found) {
+      items.push(badge(found.b.state === 'up' ? 'up' : 'down', found.b.state === 'up' ? 'gateway up' : 'gateway DOWN'));
+      if (found.s) items.push(...found.s.states.map((st) => badge(st)), ` last batch ${fmtAge(found.s.last_seen_age_s)}, ${found.s.samples} samples, ${found.s.gaps} gaps`);
+    }
+    const c = (live && live.correction) || (historyView && historyView.view && historyView.view.correction);
+    if (c) items.push(` · mode ${c.mode}, calibration ${c.calibration_version ? 'v' + c.calibration_version : 'none'}, k = ${c.coverage_factor}, ${c.sample_rate_hz} Hz`);
+    box.replaceChildren(...items);
+    const list = $('sensor-alerts');
+    if (list && fleet) {
+      const mine = fleet.alerts.filter((a) => a.building === route.building && a.sensor_id === route.sensor);
+      list.replaceChildren(mine.length ? el('table', {}, el('tbody', {}, mine.map((a) => el('tr', { class: 'alert', 'data-level': a.level },
+        el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))),
+        el('td', {}, badge(a.level)), el('td', {}, a.kind.replace(/_/g, ' ')),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(a.coverage_factor * a.standard_uncertainty, 2)} ${a.unit} vs ${fmtNum(a.threshold)}`),
+        el('td', { class: 'statement' }, a.statement))))) : el('p', { class: 'meta' }, 'None received since the console started.'));
+    }
+  }
+
+  function onLive(frame) {
+    if (!route || route.view !== 'sensor' || route.at !== null || frame.sensor_id !== route.sensor || frame.building !== route.building) return;
+    const v = frame.view;
+    if (!live || live.bucket_ns !== v.bucket_ns) live = { bucket_ns: v.bucket_ns, buckets: new Map(), gaps: new Map(), frames: 0 };
+    for (const b of v.buckets) live.buckets.set(b[0], b);
+    for (const g of v.gaps) live.gaps.set(`${g.start_ns}:${g.cause}`, g);
+    live.end_ns = v.end_ns;
+    live.span_ns = frame.span_ns;
+    live.correction = v.correction || live.correction;
+    live.frames += 1;
+    live.received_at = Date.now();
+    const lo = (v.end_ns - frame.span_ns) / v.bucket_ns - 1;
+    for (const k of live.buckets.keys()) if (k < lo) live.buckets.delete(k);
+    for (const [k, g] of live.gaps) if (g.end_ns < v.end_ns - frame.span_ns) live.gaps.delete(k);
+    const p = $('plot');
+    p.dataset.frames = live.frames;
+    p.dataset.endNs = String(v.end_ns);
+    p.dataset.buckets = live.buckets.size;
+    p.dataset.gaps = live.gaps.size;
+    $('status-line').textContent = `live: latest sample ${fmtTime(nsToMs(v.end_ns))}` + (frame.malformed ? `, ${frame.malformed} undecodable payloads skipped` : '');
+    renderSensorHeader();
+    scheduleDraw();
+  }
+
+  function onTilt(points) {
+    if (!route || route.view !== 'sensor' || !points.length || points[0].sensor_id !== route.sensor) return;
+    tilt.push(...points);
+    if (tilt.length > 1200) tilt.splice(0, tilt.length - 1200);
+    $('plot').dataset.tiltPoints = tilt.length;
+    scheduleDraw();
+  }
+
+  function scheduleDraw() {
+    if (drawPending) return;
+    drawPending = true;
+    requestAnimationFrame(() => { drawPending = false; drawSensor(); });
+  }
+
+  // ---- Plotting ---------------------------------------------------------------------------
+  function drawSensor() {
+    if (!route || route.view !== 'sensor') return;
+    let buckets, gaps, x0, x1, correction, marker = null;
+    if (route.at === null) {
+      if (!live) return;
+      buckets = [...live.buckets.values()].sort((a, b) => a[0] - b[0]);
+      gaps = [...live.gaps.values()];
+      x1 = nsToMs(live.end_ns); x0 = x1 - nsToMs(live.span_ns);
+      correction = live.correction;
+      if (Date.now() - live.received_at > 3000) $('status-line').textContent = `live: no new data for ${((Date.now() - live.received_at) / 1000).toFixed(0)} s (latest sample ${fmtTime(x1)})`;
+    } else {
+      if (!historyView || !historyView.view) return;
+      buckets = historyView.view.buckets; gaps = historyView.view.gaps;
+      x0 = historyView.fromMs; x1 = historyView.toMs; correction = historyView.view.correction;
+      marker = route.at / 1e6;
+      $('plot').dataset.buckets = buckets.length;
+      $('plot').dataset.gaps = gaps.length;
+    }
+    const bucketMs = (route.at === null ? live.bucket_ns : historyView.view.bucket_ns) / 1e6;
+    const uncal = correction && correction.mode === 'none';
+    let present = 0;
+    for (const b of buckets) present |= b[2];
+    AXES.forEach((ax, i) => {
+      $(`title-${ax}`).textContent = uncal ? `${ax}: raw output, NOT m/s² (uncalibrated)` : `a${ax} (m/s²) with ±k·u`;
+      drawSeries($(`canvas-${ax}`), {
+        x0, x1, marker, gaps, present,
+        series: [{ color: AXIS_COLORS[i], points: buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }],
+      });
+    });
+    const tp = $('tilt-plot');
+    if (tilt.length && route.at === null) {
+      tp.hidden = false;
+      drawSeries($('canvas-tilt'), {
+        x0, x1, marker: null, gaps: [], present: 0,
+        series: [['roll', AXIS_COLORS[0]], ['pitch', AXIS_COLORS[1]]].map(([n, color]) => ({
+          color, points: tilt.map((t) => { const v = t[`${n}_deg`], u = t.coverage_factor * t[`${n}_uncertainty_deg`]; return { t: nsToMs(t.timestamp_ns), min: v, max: v, lo: v - u, hi: v + u, flags: t.flags, gap: false }; }),
+        })),
+      });
+    } else tp.hidden = true;
+    const legend = [el('span', {}, `band: ±k·u, k = ${correction ? correction.coverage_factor : '?'}`), el('i', { style: null, class: 'gap-swatch' }), 'gap'];
+    const flagItems = FLAGS.map(([n, c], i) => present & (1 << i) ? [el('i', { 'data-color': c }), n.replace(/_/g, ' ')] : null);
+    $('legend').replaceChildren(...legend, ...flagItems.flat().filter(Boolean));
+    for (const i of $('legend').querySelectorAll('i[data-color]')) i.style.background = i.dataset.color;
+    const gs = $('legend').querySelector('.gap-swatch'); if (gs) gs.style.background = 'rgba(180,35,24,.15)';
+  }
+
+  function niceTicks(lo, hi, n) {
+    const span = hi - lo;
+    const step0 = span / n;
+    const mag = Math.pow(10, Math.floor(Math.log10(step0)));
+    const step = [1, 2, 5, 10].map((m) => m * mag).find((s) => s >= step0) || step0;
+    const out = [];
+    for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) out.push(v);
+    return out;
+  }
+
+  function drawSeries(canvas, o) {
+    const dpr = window.devicePixelRatio || 1;
+    const w = Math.max(50, canvas.clientWidth), h = canvas.clientHeight || 170;
+    if (canvas.width !== Math.round(w * dpr)) { canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr); }
+    const g = canvas.getContext('2d');
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    g.clearRect(0, 0, w, h);
+    const left = 62, right = 8, top = 20, lanes = FLAGS.filter((_, i) => o.present & (1 << i)).length, bottom = 18 + lanes * 4;
+    const pw = w - left - right, ph = h - top - bottom;
+    let lo = Infinity, hi = -Infinity;
+    for (const s of o.series) for (const p of s.points) {
+      if (p.t < o.x0 || p.t > o.x1) continue;
+      for (const v of [p.min, p.max, p.lo, p.hi]) if (v !== null && Number.isFinite(v)) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+    }
+    if (!Number.isFinite(lo)) { lo = -1; hi = 1; }
+    if (hi - lo < 1e-6) { lo -= 1e-3; hi += 1e-3; }
+    const pad = (hi - lo) * 0.06; lo -= pad; hi += pad;
+    const X = (t) => left + (t - o.x0) / (o.x1 - o.x0) * pw;
+    const Y = (v) => top + (hi - v) / (hi - lo) * ph;
+    g.font = '11px system-ui, sans-serif'; g.fillStyle = '#5f6b76'; g.strokeStyle = '#eef0f3'; g.lineWidth = 1;
+    for (const v of niceTicks(lo, hi, 4)) { const y = Y(v); g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke(); g.fillText(fmtNum(v, 4), 4, y + 4); }
+    const spanMs = o.x1 - o.x0;
+    const tStep = [100, 200, 500, 1000, 2000, 5000, 10000, 15000, 30000, 60000, 120000, 300000, 600000, 900000, 1800000].find((s) => spanMs / s <= 8) || 3600000;
+    for (let t = Math.ceil(o.x0 / tStep) * tStep; t <= o.x1; t += tStep) {
+      const x = X(t); g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
+      const d = new Date(t).toISOString();
+      g.fillText(tStep < 1000 ? d.slice(14, 23) : d.slice(11, 19), x - 24, h - 4 - lanes * 4);
+    }
+    g.fillStyle = 'rgba(180,35,24,.15)';
+    for (const gap of o.gaps) {
+      const a = X(nsToMs(gap.start_ns)), b = Math.max(X(nsToMs(gap.end_ns)), a + 2);
+      g.fillRect(a, top, b - a, ph);
+    }
+    for (const s of o.series) {
+      // Band, broken at gaps.
+      g.fillStyle = s.color + '33';
+      let run = [];
+      const flush = () => {
+        if (run.length) {
+          g.beginPath();
+          run.forEach((p, i) => (i ? g.lineTo(X(p.t), Y(p.hi)) : g.moveTo(X(p.t), Y(p.hi))));
+          for (let i = run.length - 1; i >= 0; i--) g.lineTo(X(run[i].t), Y(run[i].lo));
+          g.closePath(); g.fill();
+        }
+        run = [];
+      };
+      for (const p of s.points) {
+        if (p.gap || p.lo === null || p.hi === null) flush();
+        if (p.lo !== null && p.hi !== null) run.push(p);
+      }
+      flush();
+      // Values: the min/max envelope, broken at gaps.
+      g.strokeStyle = s.color; g.lineWidth = 1.2; g.beginPath();
+      let prev = null;
+      for (const p of s.points) {
+        if (p.min === null || p.max === null) { prev = null; continue; }
+        const x = X(p.t);
+        if (!prev || p.gap) g.moveTo(x, Y(p.min));
+        const rising = prev === null || prev <= p.min;
+        g.lineTo(x, Y(rising ? p.min : p.max)); g.lineTo(x, Y(rising ? p.max : p.min));
+        prev = rising ? p.max : p.min;
+      }
+      g.stroke();
+    }
+    // Flag lanes under the plot, one per flag present.
+    let lane = 0;
+    FLAGS.forEach(([, color], bit) => {
+      if (!(o.present & (1 << bit))) return;
+      g.fillStyle = color;
+      const y = top + ph + 2 + lane * 4;
+      for (const s of o.series) for (const p of s.points) if (p.flags & (1 << bit)) g.fillRect(X(p.t) - 1, y, 3, 3);
+      lane++;
+    });
+    if (o.marker !== null) {
+      g.strokeStyle = '#b42318'; g.setLineDash([4, 3]); g.beginPath(); g.moveTo(X(o.marker), top); g.lineTo(X(o.marker), top + ph); g.stroke(); g.setLineDash([]);
+    }
+    g.strokeStyle = '#d9dee3'; g.strokeRect(left, top, pw, ph);
+  }
+
+  // ---- Routing ----------------------------------------------------------------------------
+  function render() {
+    route = parseRoute();
+    if (route.view === 'sensor') { renderSensor(); return; }
+    if (!source || source.url.includes('sensor=')) connect('');
+    if (route.view === 'alerts') renderAlerts(); else renderFleet();
+  }
+
+  window.addEventListener('hashchange', render);
+  window.addEventListener('resize', () => scheduleDraw());
+  setInterval(() => { if (route && route.view === 'sensor' && route.at === null) scheduleDraw(); }, 1000);
+  render();
+})();

@@ -1,0 +1,759 @@
+//! What the console knows of the fleet: the buildings and their gateways (heartbeats, status
+//! answers), each sensor's last status, and the latest alerts; and the Zenoh side that keeps it
+//! current (subscriptions to heartbeats and alerts, a status poll).
+//!
+//! The console only reads: it subscribes and queries, and never puts. Everything it keeps is
+//! bounded: buildings ([`MAX_BUILDINGS`]), alerts ([`MAX_ALERTS`]), the sensors listed per
+//! building (one status page, at most 5000 sensors).
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use time::OffsetDateTime;
+use triax_protocol::batch::Mode;
+use triax_protocol::keys::{self, Stream};
+use triax_protocol::messages::{
+    Alert, AlertLevel, GatewayStatus, Heartbeat, HistoryStatus, SensorStatus,
+};
+use triax_protocol::{from_json, BuildingId, Key, SensorId};
+use zenoh::query::ConsolidationMode;
+
+/// Most buildings tracked; further ids heard are counted and ignored.
+pub const MAX_BUILDINGS: usize = 1000;
+/// Alerts kept, newest first.
+pub const MAX_ALERTS: usize = 1000;
+/// Alerts in each fleet snapshot (the rest at `/api/alerts`).
+pub const ALERTS_IN_SNAPSHOT: usize = 100;
+/// Sensors per status page asked for (the gateway's own cap).
+pub const STATUS_PAGE: usize = 5000;
+/// A gateway is up while its last heartbeat is younger than this (heartbeats are 1 s apart).
+pub const HEARTBEAT_FRESH: Duration = Duration::from_secs(3);
+/// A sensor whose last batch is older than this, by its gateway's clock, is silent.
+pub const SILENT_AFTER: Duration = Duration::from_secs(10);
+
+/// How the fleet is watched.
+#[derive(Debug, Clone)]
+pub struct FleetOptions {
+    /// Buildings to watch; empty: every building heard of (heartbeats, status answers, alerts).
+    pub buildings: Vec<BuildingId>,
+    /// Time between status polls.
+    pub status_interval: Duration,
+    /// Warn this long before a calibration's `valid_until`.
+    pub expiry_warning: Duration,
+}
+
+/// What the console holds of one alert.
+#[derive(Debug, Clone, Serialize)]
+pub struct AlertEntry {
+    #[serde(flatten)]
+    pub alert: Alert,
+    #[serde(with = "time::serde::rfc3339")]
+    pub received_at: OffsetDateTime,
+}
+
+#[derive(Debug, Default)]
+struct BuildingState {
+    gateway: Option<String>,
+    heartbeat: Option<(Instant, Heartbeat)>,
+    status: Option<(Instant, GatewayStatus)>,
+    status_error: Option<String>,
+    latest_alerts: BTreeMap<SensorId, AlertEntry>,
+}
+
+#[derive(Debug, Default)]
+struct State {
+    buildings: BTreeMap<BuildingId, BuildingState>,
+    alerts: VecDeque<AlertEntry>,
+    alerts_total: u64,
+    malformed_messages: u64,
+    ignored_buildings: u64,
+}
+
+/// The fleet as the console sees it. Zenoh callbacks write it; page requests read snapshots.
+pub struct Fleet {
+    options: FleetOptions,
+    state: Mutex<State>,
+}
+
+impl Fleet {
+    pub fn new(options: FleetOptions) -> Fleet {
+        let mut state = State::default();
+        for b in &options.buildings {
+            state.buildings.insert(b.clone(), BuildingState::default());
+        }
+        Fleet {
+            options,
+            state: Mutex::new(state),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // Updates are field writes that cannot panic halfway.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The building's entry, if it is watched (or may be discovered) and there is room.
+    fn building<'a>(&self, s: &'a mut State, b: &BuildingId) -> Option<&'a mut BuildingState> {
+        if !s.buildings.contains_key(b) {
+            if !self.options.buildings.is_empty() {
+                return None;
+            }
+            if s.buildings.len() >= MAX_BUILDINGS {
+                s.ignored_buildings += 1;
+                return None;
+            }
+            s.buildings.insert(b.clone(), BuildingState::default());
+        }
+        s.buildings.get_mut(b)
+    }
+
+    /// A payload that did not decode, or whose key and content disagree.
+    pub fn malformed(&self, key: &str, why: &str) {
+        tracing::debug!(key, why, "message skipped");
+        self.lock().malformed_messages += 1;
+    }
+
+    pub fn heartbeat(&self, key: &str, payload: &[u8]) {
+        let hb = match (Key::parse(key), from_json::<Heartbeat>(payload)) {
+            (Ok(Key::Heartbeat(b)), Ok(hb)) if hb.building == b => hb,
+            (_, Err(e)) => return self.malformed(key, &e.to_string()),
+            _ => return self.malformed(key, "key and heartbeat disagree"),
+        };
+        let mut s = self.lock();
+        if let Some(st) = self.building(&mut s, &hb.building.clone()) {
+            st.gateway = Some(hb.gateway.clone());
+            st.heartbeat = Some((Instant::now(), hb));
+        }
+    }
+
+    pub fn status(&self, status: GatewayStatus) {
+        let mut s = self.lock();
+        if let Some(st) = self.building(&mut s, &status.building.clone()) {
+            st.gateway = Some(status.gateway.clone());
+            st.status_error = None;
+            st.status = Some((Instant::now(), status));
+        }
+    }
+
+    pub fn status_error(&self, building: &BuildingId, message: String) {
+        let mut s = self.lock();
+        if let Some(st) = self.building(&mut s, building) {
+            st.status_error = Some(message);
+        }
+    }
+
+    pub fn alert(&self, key: &str, payload: &[u8]) {
+        let alert = match (Key::parse(key), from_json::<Alert>(payload)) {
+            (Ok(Key::Alert(b, s)), Ok(a)) if a.building == b && a.sensor_id == s => a,
+            (_, Err(e)) => return self.malformed(key, &e.to_string()),
+            _ => return self.malformed(key, "key and alert disagree"),
+        };
+        let entry = AlertEntry {
+            alert,
+            received_at: OffsetDateTime::now_utc(),
+        };
+        let mut s = self.lock();
+        let Some(st) = self.building(&mut s, &entry.alert.building.clone()) else {
+            return;
+        };
+        // Bounded by the sensors that alerted, themselves bounded by the ids' alphabet only:
+        // keep the map no larger than the alert log.
+        if st.latest_alerts.len() >= MAX_ALERTS
+            && !st.latest_alerts.contains_key(&entry.alert.sensor_id)
+        {
+            if let Some(oldest) = st
+                .latest_alerts
+                .iter()
+                .min_by_key(|(_, e)| e.received_at)
+                .map(|(k, _)| k.clone())
+            {
+                st.latest_alerts.remove(&oldest);
+            }
+        }
+        st.latest_alerts
+            .insert(entry.alert.sensor_id.clone(), entry.clone());
+        s.alerts.push_front(entry);
+        s.alerts.truncate(MAX_ALERTS);
+        s.alerts_total += 1;
+    }
+
+    /// Buildings whose status is polled one by one (the watched list), or none to poll with a
+    /// wildcard.
+    pub fn configured_buildings(&self) -> &[BuildingId] {
+        &self.options.buildings
+    }
+
+    /// Every alert kept, newest first.
+    pub fn alerts(&self) -> Vec<AlertEntry> {
+        self.lock().alerts.iter().cloned().collect()
+    }
+
+    /// What the fleet view shows, now.
+    pub fn snapshot(&self) -> Snapshot {
+        let now = Instant::now();
+        let wall = OffsetDateTime::now_utc();
+        let s = self.lock();
+        let buildings = s
+            .buildings
+            .iter()
+            .map(|(id, b)| self.building_view(id, b, now, wall))
+            .collect();
+        Snapshot {
+            now: wall,
+            buildings,
+            alerts: s.alerts.iter().take(ALERTS_IN_SNAPSHOT).cloned().collect(),
+            alerts_total: s.alerts_total,
+            malformed_messages: s.malformed_messages,
+            ignored_buildings: s.ignored_buildings,
+            expiry_warning_days: self.options.expiry_warning.as_secs_f64() / 86_400.0,
+        }
+    }
+
+    fn building_view(
+        &self,
+        id: &BuildingId,
+        b: &BuildingState,
+        now: Instant,
+        wall: OffsetDateTime,
+    ) -> BuildingView {
+        let heartbeat_age = b.heartbeat.as_ref().map(|(t, _)| now - *t);
+        let status_age = b.status.as_ref().map(|(t, _)| now - *t);
+        let state = self.state_of(b, now);
+        let last_heard = [heartbeat_age, status_age].into_iter().flatten().min();
+        let status = b.status.as_ref().map(|(_, s)| s);
+        let mut sensors: Vec<SensorView> = status
+            .map(|st| {
+                st.sensors
+                    .iter()
+                    .map(|s| {
+                        sensor_view(
+                            s,
+                            st.reported_at,
+                            status_age.unwrap_or_default(),
+                            wall,
+                            self.options.expiry_warning,
+                            b.latest_alerts.get(&s.sensor_id),
+                        )
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        // Sensors that alerted but are not in the status (yet): still shown.
+        for (sid, a) in &b.latest_alerts {
+            if !sensors.iter().any(|s| &s.sensor_id == sid) {
+                sensors.push(SensorView::alert_only(sid.clone(), a));
+            }
+        }
+        sensors.sort_by(|a, b| a.sensor_id.cmp(&b.sensor_id));
+        BuildingView {
+            building: id.clone(),
+            gateway: b.gateway.clone(),
+            state,
+            last_heard_s: last_heard.map(|d| d.as_secs_f64()),
+            heartbeat_sequence: b.heartbeat.as_ref().map(|(_, h)| h.sequence),
+            status_error: b.status_error.clone(),
+            started_at: status.map(|s| s.started_at),
+            reported_at: status.map(|s| s.reported_at),
+            malformed: status.map(|s| s.malformed),
+            dropped: status.map(|s| s.dropped),
+            history: status.and_then(|s| s.history.clone()),
+            total_sensors: status.map(|s| s.total_sensors),
+            sensors,
+        }
+    }
+
+    fn state_of(&self, b: &BuildingState, now: Instant) -> GatewayState {
+        let heartbeat_age = b.heartbeat.as_ref().map(|(t, _)| now - *t);
+        let status_age = b.status.as_ref().map(|(t, _)| now - *t);
+        // Without heartbeats (an older gateway), a status answer within two polls will do.
+        let status_fresh = 2 * self.options.status_interval + Duration::from_secs(1);
+        match (heartbeat_age, status_age) {
+            (Some(h), _) if h <= HEARTBEAT_FRESH => GatewayState::Up,
+            (None, Some(s)) if s <= status_fresh => GatewayState::Up,
+            (None, None) => GatewayState::Unknown,
+            _ => GatewayState::Down,
+        }
+    }
+
+    /// Whether the building's gateway is heard now.
+    pub fn gateway_state(&self, b: &BuildingId) -> GatewayState {
+        let s = self.lock();
+        s.buildings.get(b).map_or(GatewayState::Unknown, |st| {
+            self.state_of(st, Instant::now())
+        })
+    }
+}
+
+/// Up: heard within the limits; down: heard before, not lately; unknown: never heard.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GatewayState {
+    Up,
+    Down,
+    Unknown,
+}
+
+/// Conditions an operator should see on a sensor, worst first in the page.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SensorState {
+    /// An alert at level `exceeded`.
+    Exceeded,
+    /// No calibration: raw outputs flagged `uncalibrated`.
+    Uncalibrated,
+    /// Past the record's `valid_until`.
+    Expired,
+    /// Before the record's `valid_from`.
+    NotYetValid,
+    /// Within the warning period before `valid_until`.
+    Expiring,
+    /// No batch for [`SILENT_AFTER`] by the gateway's clock.
+    Silent,
+    /// An alert at level `possible` or `stale`.
+    Alert,
+    /// Batches lost before the gateway (sequence gaps).
+    Gaps,
+    /// Malformed payloads on the sensor's key.
+    Rejects,
+    /// None of the above.
+    Ok,
+}
+
+/// One sensor's row.
+#[derive(Debug, Clone, Serialize)]
+pub struct SensorView {
+    pub sensor_id: SensorId,
+    pub states: Vec<SensorState>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub last_seen: Option<OffsetDateTime>,
+    /// Age of the last batch by the gateway's clock, at its last status answer.
+    pub last_seen_age_s: Option<f64>,
+    pub batches: u64,
+    pub samples: u64,
+    pub gaps: u64,
+    pub missing_batches: u64,
+    pub rejects: u64,
+    pub flagged_samples: u64,
+    pub mode: Mode,
+    pub calibration_version: Option<u64>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub valid_from: Option<OffsetDateTime>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub valid_until: Option<OffsetDateTime>,
+    /// Days until `valid_until` (negative: expired).
+    pub expires_in_days: Option<f64>,
+    pub latest_alert: Option<AlertEntry>,
+    /// Listed in the gateway's status (false: known from an alert only).
+    pub in_status: bool,
+}
+
+impl SensorView {
+    fn alert_only(sensor_id: SensorId, a: &AlertEntry) -> SensorView {
+        let mut states = alert_states(Some(a));
+        if states.is_empty() {
+            states.push(SensorState::Ok);
+        }
+        SensorView {
+            sensor_id,
+            states,
+            last_seen: None,
+            last_seen_age_s: None,
+            batches: 0,
+            samples: 0,
+            gaps: 0,
+            missing_batches: 0,
+            rejects: 0,
+            flagged_samples: 0,
+            mode: Mode::None,
+            calibration_version: None,
+            valid_from: None,
+            valid_until: None,
+            expires_in_days: None,
+            latest_alert: Some(a.clone()),
+            in_status: false,
+        }
+    }
+}
+
+fn alert_states(a: Option<&AlertEntry>) -> Vec<SensorState> {
+    match a.map(|a| a.alert.level) {
+        Some(AlertLevel::Exceeded) => vec![SensorState::Exceeded],
+        Some(AlertLevel::Possible | AlertLevel::Stale) => vec![SensorState::Alert],
+        None => vec![],
+    }
+}
+
+/// A sensor's row from its gateway's status (`reported_at` by the gateway's clock, received
+/// `status_age` ago) and the console's clock (`now`, for calibration validity, which is
+/// absolute time). A sensor's age is the gateway's view plus the status's own age, so that a
+/// gateway gone silent does not leave its sensors looking fresh.
+pub fn sensor_view(
+    s: &SensorStatus,
+    reported_at: OffsetDateTime,
+    status_age: Duration,
+    now: OffsetDateTime,
+    expiry_warning: Duration,
+    alert: Option<&AlertEntry>,
+) -> SensorView {
+    let mut states = alert_states(alert);
+    let days = |d: time::Duration| d.as_seconds_f64() / 86_400.0;
+    let expires_in = s.valid_until.map(|u| u - now);
+    if s.calibration_version.is_none() {
+        states.push(SensorState::Uncalibrated);
+    } else if expires_in.is_some_and(|d| d <= time::Duration::ZERO) {
+        states.push(SensorState::Expired);
+    } else if s.valid_from.is_some_and(|f| f > now) {
+        states.push(SensorState::NotYetValid);
+    } else if expires_in.is_some_and(|d| d.as_seconds_f64() <= expiry_warning.as_secs_f64()) {
+        states.push(SensorState::Expiring);
+    }
+    let age = s.last_seen.map(|t| reported_at - t + status_age);
+    if age.is_none_or(|a| a.as_seconds_f64() > SILENT_AFTER.as_secs_f64()) {
+        states.push(SensorState::Silent);
+    }
+    if s.gaps > 0 {
+        states.push(SensorState::Gaps);
+    }
+    if s.rejects > 0 {
+        states.push(SensorState::Rejects);
+    }
+    if states.is_empty() {
+        states.push(SensorState::Ok);
+    }
+    states.sort();
+    SensorView {
+        sensor_id: s.sensor_id.clone(),
+        states,
+        last_seen: s.last_seen,
+        last_seen_age_s: age.map(|a| a.as_seconds_f64().max(0.0)),
+        batches: s.batches,
+        samples: s.samples,
+        gaps: s.gaps,
+        missing_batches: s.missing_batches,
+        rejects: s.rejects,
+        flagged_samples: s.flagged_samples,
+        mode: s.mode,
+        calibration_version: s.calibration_version,
+        valid_from: s.valid_from,
+        valid_until: s.valid_until,
+        expires_in_days: expires_in.map(days),
+        latest_alert: alert.cloned(),
+        in_status: true,
+    }
+}
+
+/// One building in the fleet view.
+#[derive(Debug, Clone, Serialize)]
+pub struct BuildingView {
+    pub building: BuildingId,
+    pub gateway: Option<String>,
+    pub state: GatewayState,
+    /// Seconds since the gateway was last heard (heartbeat or status).
+    pub last_heard_s: Option<f64>,
+    pub heartbeat_sequence: Option<u64>,
+    /// Why the last status poll got no answer from this building.
+    pub status_error: Option<String>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub started_at: Option<OffsetDateTime>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub reported_at: Option<OffsetDateTime>,
+    pub malformed: Option<u64>,
+    pub dropped: Option<u64>,
+    pub history: Option<HistoryStatus>,
+    pub total_sensors: Option<u64>,
+    pub sensors: Vec<SensorView>,
+}
+
+/// The fleet view.
+#[derive(Debug, Clone, Serialize)]
+pub struct Snapshot {
+    #[serde(with = "time::serde::rfc3339")]
+    pub now: OffsetDateTime,
+    pub buildings: Vec<BuildingView>,
+    /// The latest alerts, newest first.
+    pub alerts: Vec<AlertEntry>,
+    pub alerts_total: u64,
+    /// Heartbeats, alerts and status answers that did not decode or contradicted their key.
+    pub malformed_messages: u64,
+    /// Buildings heard of beyond [`MAX_BUILDINGS`].
+    pub ignored_buildings: u64,
+    pub expiry_warning_days: f64,
+}
+
+/// The Zenoh side: subscriptions to heartbeats and alerts (kept while the returned handles
+/// live) and the status poll (runs until `stop` fires).
+pub struct FleetWatch {
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+}
+
+/// Subscribes to the heartbeats and alerts of the watched buildings (or of every building).
+pub async fn watch(session: &zenoh::Session, fleet: &Arc<Fleet>) -> zenoh::Result<FleetWatch> {
+    let mut key_exprs = Vec::new();
+    if fleet.configured_buildings().is_empty() {
+        key_exprs.push((keys::all_heartbeats(), true));
+        key_exprs.push((keys::all_buildings(Stream::Alert), false));
+    } else {
+        for b in fleet.configured_buildings() {
+            key_exprs.push((Key::Heartbeat(b.clone()).to_string(), true));
+            key_exprs.push((keys::all_sensors(b, Stream::Alert), false));
+        }
+    }
+    let mut subscribers = Vec::new();
+    for (ke, heartbeat) in key_exprs {
+        let f = fleet.clone();
+        let sub = session
+            .declare_subscriber(ke)
+            .callback(move |sample| {
+                let payload = sample.payload().to_bytes();
+                let key = sample.key_expr().as_str();
+                if heartbeat {
+                    f.heartbeat(key, &payload);
+                } else {
+                    f.alert(key, &payload);
+                }
+            })
+            .await?;
+        subscribers.push(sub);
+    }
+    Ok(FleetWatch {
+        _subscribers: subscribers,
+    })
+}
+
+/// Polls the gateways' status every `status_interval` until `stop` completes.
+pub async fn poll_status(
+    session: zenoh::Session,
+    fleet: Arc<Fleet>,
+    interval: Duration,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) {
+    let mut tick = tokio::time::interval(interval);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return,
+        }
+        let timeout = interval.max(Duration::from_millis(500));
+        let params = format!("limit={STATUS_PAGE}");
+        if fleet.configured_buildings().is_empty() {
+            poll_once(
+                &session,
+                &fleet,
+                &keys::all_statuses(),
+                &params,
+                timeout,
+                None,
+            )
+            .await;
+        } else {
+            for b in fleet.configured_buildings() {
+                let key = Key::Status(b.clone()).to_string();
+                poll_once(&session, &fleet, &key, &params, timeout, Some(b)).await;
+            }
+        }
+    }
+}
+
+async fn poll_once(
+    session: &zenoh::Session,
+    fleet: &Fleet,
+    key: &str,
+    params: &str,
+    timeout: Duration,
+    building: Option<&BuildingId>,
+) {
+    let replies = match session
+        .get(format!("{key}?{params}"))
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+        .await
+    {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::warn!(key, cause = %e, "status query failed");
+            return;
+        }
+    };
+    let mut answered = false;
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.result() {
+            Ok(sample) => {
+                let payload = sample.payload().to_bytes();
+                match from_json::<GatewayStatus>(&payload) {
+                    Ok(st)
+                        if Key::Status(st.building.clone()).to_string()
+                            == sample.key_expr().as_str() =>
+                    {
+                        answered = true;
+                        fleet.status(st)
+                    }
+                    Ok(_) => fleet.malformed(sample.key_expr().as_str(), "key and status disagree"),
+                    Err(e) => fleet.malformed(sample.key_expr().as_str(), &e.to_string()),
+                }
+            }
+            Err(e) => {
+                let text = String::from_utf8_lossy(&e.payload().to_bytes()).into_owned();
+                if let Some(b) = building {
+                    fleet.status_error(b, format!("status query refused: {text}"));
+                }
+            }
+        }
+    }
+    if let (Some(b), false) = (building, answered) {
+        fleet.status_error(b, "no status answer".into());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(s: i64) -> OffsetDateTime {
+        OffsetDateTime::from_unix_timestamp(1_800_000_000 + s).unwrap()
+    }
+
+    fn status(version: Option<u64>) -> SensorStatus {
+        SensorStatus {
+            sensor_id: SensorId::new("acc-01").unwrap(),
+            last_seen: Some(t(0)),
+            batches: 10,
+            samples: 500,
+            gaps: 0,
+            missing_batches: 0,
+            duplicates: 0,
+            rejects: 0,
+            flagged_samples: 0,
+            calibration_version: version,
+            mode: if version.is_some() {
+                Mode::Dynamic
+            } else {
+                Mode::None
+            },
+            valid_from: version.map(|_| t(-86_400)),
+            valid_until: None,
+            calibration_record: None,
+        }
+    }
+
+    const WARN: Duration = Duration::from_secs(30 * 86_400);
+
+    #[test]
+    fn states_from_status() {
+        let v = sensor_view(&status(Some(1)), t(1), Duration::ZERO, t(1), WARN, None);
+        assert_eq!(v.states, [SensorState::Ok]);
+        let v = sensor_view(&status(None), t(1), Duration::ZERO, t(1), WARN, None);
+        assert_eq!(v.states, [SensorState::Uncalibrated]);
+
+        let mut s = status(Some(1));
+        s.gaps = 2;
+        s.rejects = 1;
+        let v = sensor_view(&s, t(60), Duration::ZERO, t(1), WARN, None);
+        assert_eq!(
+            v.states,
+            [SensorState::Silent, SensorState::Gaps, SensorState::Rejects],
+            "silent by the gateway's clock: 60 s since the last batch"
+        );
+        assert_eq!(v.last_seen_age_s, Some(60.0));
+        let v = sensor_view(&s, t(1), Duration::from_secs(30), t(1), WARN, None);
+        assert_eq!(
+            (v.states[0], v.last_seen_age_s),
+            (SensorState::Silent, Some(31.0)),
+            "a status 30 s old: its gateway went silent"
+        );
+    }
+
+    #[test]
+    fn validity_warns_before_expiry_and_says_expired_after() {
+        let mut s = status(Some(1));
+        s.valid_until = Some(t(10 * 86_400));
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
+        assert_eq!(v.states, [SensorState::Expiring]);
+        assert!((v.expires_in_days.unwrap() - 10.0).abs() < 1e-9);
+        let v = sensor_view(
+            &s,
+            t(0),
+            Duration::ZERO,
+            t(0),
+            Duration::from_secs(86_400),
+            None,
+        );
+        assert_eq!(v.states, [SensorState::Ok], "outside a one-day warning");
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(10 * 86_400), WARN, None);
+        assert_eq!(v.states, [SensorState::Expired]);
+        s.valid_from = Some(t(5));
+        s.valid_until = None;
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
+        assert_eq!(v.states, [SensorState::NotYetValid]);
+    }
+
+    fn alert_json(b: &str, s: &str, level: &str, statement: &str) -> Vec<u8> {
+        serde_json::to_vec(&serde_json::json!({
+            "format_version": 1, "building": b, "sensor_id": s, "kind": "peak_acceleration",
+            "level": level, "value": 1.2, "standard_uncertainty": 0.05, "coverage_factor": 2.0,
+            "threshold": 1.0, "unit": "m/s^2", "window_s": 4.0, "flagged_fraction": 0.0,
+            "statement": statement, "at": "2027-01-15T08:00:00Z"
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn alerts_are_checked_against_their_key_and_bounded() {
+        let f = Fleet::new(FleetOptions {
+            buildings: vec![],
+            status_interval: Duration::from_secs(2),
+            expiry_warning: WARN,
+        });
+        f.alert(
+            "triax/hq/alert/acc-01",
+            &alert_json("hq", "acc-01", "exceeded", "<b>x</b>"),
+        );
+        f.alert(
+            "triax/hq/alert/acc-02",
+            &alert_json("hq", "acc-01", "exceeded", "wrong key"),
+        );
+        f.alert("triax/hq/alert/acc-01", b"{not json");
+        f.alert(
+            "triax/hq/alert/acc-01",
+            &alert_json("hq", "acc-01", "panic", "bad level"),
+        );
+        let snap = f.snapshot();
+        assert_eq!(snap.alerts_total, 1);
+        assert_eq!(snap.malformed_messages, 3);
+        assert_eq!(
+            snap.alerts[0].alert.statement, "<b>x</b>",
+            "kept verbatim; the page escapes"
+        );
+        let b = &snap.buildings[0];
+        assert_eq!(b.state, GatewayState::Unknown);
+        assert_eq!(b.sensors[0].states, [SensorState::Exceeded]);
+        assert!(!b.sensors[0].in_status);
+        for i in 0..(MAX_ALERTS + 10) {
+            f.alert(
+                "triax/hq/alert/acc-01",
+                &alert_json("hq", "acc-01", "possible", &i.to_string()),
+            );
+        }
+        assert_eq!(f.alerts().len(), MAX_ALERTS);
+        assert_eq!(f.alerts()[0].alert.statement, (MAX_ALERTS + 9).to_string());
+    }
+
+    #[test]
+    fn a_watched_list_ignores_other_buildings() {
+        let f = Fleet::new(FleetOptions {
+            buildings: vec![BuildingId::new("hq").unwrap()],
+            status_interval: Duration::from_secs(2),
+            expiry_warning: WARN,
+        });
+        f.alert(
+            "triax/other/alert/x",
+            &alert_json("other", "x", "exceeded", "s"),
+        );
+        let snap = f.snapshot();
+        assert_eq!(snap.buildings.len(), 1);
+        assert_eq!(snap.buildings[0].building.as_str(), "hq");
+        assert!(snap.buildings[0].sensors.is_empty());
+    }
+}

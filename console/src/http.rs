@@ -1,0 +1,341 @@
+//! The HTTP the console speaks: one request per connection, `GET` and `HEAD` only, no bodies.
+//!
+//! Hand-rolled on tokio, as the gateway's metrics endpoint is: the console answers a handful of
+//! fixed paths and one Server-Sent Events stream, which HTTP/1.1 carries as a response that
+//! never ends. Requests are read up to [`MAX_REQUEST_BYTES`] and [`REQUEST_TIMEOUT`]; every
+//! response closes the connection and carries headers that keep the page to its own scripts
+//! (a Content-Security-Policy with no inline script), so that even a string that slipped past
+//! escaping could not run.
+
+use std::time::Duration;
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// Longest request head read.
+pub const MAX_REQUEST_BYTES: usize = 8 * 1024;
+/// Time a client gets to send its request.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
+/// Time a client gets to take one response write (a page that stops reading is dropped).
+pub const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Headers on every response.
+const COMMON_HEADERS: &str = "Cache-Control: no-store\r\n\
+X-Content-Type-Options: nosniff\r\n\
+X-Frame-Options: DENY\r\n\
+Referrer-Policy: no-referrer\r\n\
+Content-Security-Policy: default-src 'none'; script-src 'self'; style-src 'self'; \
+connect-src 'self'; img-src 'self' data:; base-uri 'none'; form-action 'none'; \
+frame-ancestors 'none'\r\n\
+Connection: close\r\n";
+
+/// A request the console will answer.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Request {
+    /// `HEAD` asks for the headers only.
+    pub head_only: bool,
+    pub path: String,
+    /// Query parameters in order, percent-decoded.
+    pub query: Vec<(String, String)>,
+    /// The `Host` header, if any.
+    pub host: Option<String>,
+}
+
+/// A request refused before routing: the status to answer and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Refusal {
+    pub status: u16,
+    pub message: String,
+}
+
+impl Refusal {
+    pub fn new(status: u16, message: impl Into<String>) -> Refusal {
+        Refusal {
+            status,
+            message: message.into(),
+        }
+    }
+}
+
+/// Reads and parses one request head. `Ok(None)`: the client closed or was too slow, nothing
+/// to answer.
+pub async fn read_request(stream: &mut TcpStream) -> Result<Option<Request>, Refusal> {
+    let mut buf = Vec::with_capacity(1024);
+    let read = async {
+        let mut chunk = [0u8; 1024];
+        loop {
+            if let Some(end) = find_head_end(&buf) {
+                return Ok(Some(end));
+            }
+            if buf.len() >= MAX_REQUEST_BYTES {
+                return Err(Refusal::new(
+                    431,
+                    format!("request head longer than {MAX_REQUEST_BYTES} bytes"),
+                ));
+            }
+            match stream.read(&mut chunk).await {
+                Ok(0) | Err(_) => return Ok(None),
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            }
+        }
+    };
+    let end = match tokio::time::timeout(REQUEST_TIMEOUT, read).await {
+        Err(_) => return Ok(None),
+        Ok(r) => r?,
+    };
+    let Some(end) = end else { return Ok(None) };
+    parse_head(&buf[..end.min(MAX_REQUEST_BYTES)]).map(Some)
+}
+
+fn find_head_end(buf: &[u8]) -> Option<usize> {
+    buf.windows(4).position(|w| w == b"\r\n\r\n")
+}
+
+/// Parses a request head (without the blank line that ends it).
+pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
+    let text = std::str::from_utf8(head)
+        .map_err(|_| Refusal::new(400, "the request head is not UTF-8"))?;
+    let mut lines = text.split("\r\n");
+    let line = lines.next().unwrap_or_default();
+    let mut parts = line.split(' ');
+    let (Some(method), Some(target), Some(version), None) =
+        (parts.next(), parts.next(), parts.next(), parts.next())
+    else {
+        return Err(Refusal::new(400, "malformed request line"));
+    };
+    if version != "HTTP/1.1" && version != "HTTP/1.0" {
+        return Err(Refusal::new(
+            505,
+            format!("unsupported version {version:?}"),
+        ));
+    }
+    let head_only = match method {
+        "GET" => false,
+        "HEAD" => true,
+        _ => {
+            return Err(Refusal::new(
+                405,
+                format!("method {method:?} not allowed: the console only reads (GET, HEAD)"),
+            ))
+        }
+    };
+    let mut host = None;
+    for h in lines {
+        let Some((name, value)) = h.split_once(':') else {
+            return Err(Refusal::new(400, "malformed header line"));
+        };
+        let value = value.trim();
+        if name.eq_ignore_ascii_case("host") {
+            host = Some(value.to_owned());
+        } else if (name.eq_ignore_ascii_case("content-length") && value != "0")
+            || name.eq_ignore_ascii_case("transfer-encoding")
+        {
+            return Err(Refusal::new(400, "request bodies are not accepted"));
+        }
+    }
+    if !target.starts_with('/') {
+        return Err(Refusal::new(400, "the request target is not a path"));
+    }
+    let (path, query) = target.split_once('?').unwrap_or((target, ""));
+    let mut params = Vec::new();
+    for pair in query.split('&').filter(|p| !p.is_empty()) {
+        let (k, v) = pair.split_once('=').unwrap_or((pair, ""));
+        let k = percent_decode(k)?;
+        let v = percent_decode(v)?;
+        if params.iter().any(|(n, _): &(String, String)| *n == k) {
+            return Err(Refusal::new(400, format!("parameter {k:?} given twice")));
+        }
+        params.push((k, v));
+    }
+    Ok(Request {
+        head_only,
+        path: percent_decode(path)?,
+        query: params,
+        host,
+    })
+}
+
+fn percent_decode(s: &str) -> Result<String, Refusal> {
+    let bad = || Refusal::new(400, format!("bad percent-encoding in {s:?}"));
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        match b[i] {
+            b'%' => {
+                let hex = b.get(i + 1..i + 3).ok_or_else(bad)?;
+                let hex = std::str::from_utf8(hex).map_err(|_| bad())?;
+                out.push(u8::from_str_radix(hex, 16).map_err(|_| bad())?);
+                i += 3;
+            }
+            b'+' => {
+                out.push(b' ');
+                i += 1;
+            }
+            c => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8(out).map_err(|_| bad())
+}
+
+/// Whether a `Host` header names this machine's loopback: what a page served from 127.0.0.1
+/// sends. Anything else is a DNS-rebinding attempt (a hostile site's name resolved to
+/// 127.0.0.1) or a request meant for someone else.
+pub fn is_loopback_host(host: &str) -> bool {
+    let name = if let Some(rest) = host.strip_prefix('[') {
+        rest.split_once(']').map_or(rest, |(n, _)| n)
+    } else {
+        host.rsplit_once(':').map_or(host, |(n, _)| n)
+    };
+    name.eq_ignore_ascii_case("localhost")
+        || name
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+fn reason(status: u16) -> &'static str {
+    match status {
+        200 => "OK",
+        400 => "Bad Request",
+        403 => "Forbidden",
+        404 => "Not Found",
+        405 => "Method Not Allowed",
+        408 => "Request Timeout",
+        431 => "Request Header Fields Too Large",
+        502 => "Bad Gateway",
+        503 => "Service Unavailable",
+        505 => "HTTP Version Not Supported",
+        _ => "Error",
+    }
+}
+
+/// Writes one whole response.
+pub async fn respond(
+    stream: &mut TcpStream,
+    status: u16,
+    content_type: &str,
+    body: &[u8],
+    head_only: bool,
+) -> std::io::Result<()> {
+    let head = format!(
+        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n{COMMON_HEADERS}{}\r\n",
+        reason(status),
+        body.len(),
+        if status == 405 { "Allow: GET, HEAD\r\n" } else { "" },
+    );
+    let write = async {
+        stream.write_all(head.as_bytes()).await?;
+        if !head_only {
+            stream.write_all(body).await?;
+        }
+        stream.flush().await
+    };
+    tokio::time::timeout(WRITE_TIMEOUT, write)
+        .await
+        .unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into()))
+}
+
+/// A plain-text error response.
+pub async fn respond_error(stream: &mut TcpStream, r: &Refusal) -> std::io::Result<()> {
+    let body = format!("{}\n", r.message);
+    respond(
+        stream,
+        r.status,
+        "text/plain; charset=utf-8",
+        body.as_bytes(),
+        false,
+    )
+    .await
+}
+
+/// Starts a Server-Sent Events response; the body follows as events until the connection ends.
+pub async fn start_events(stream: &mut TcpStream) -> std::io::Result<()> {
+    let head = format!(
+        "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\n{COMMON_HEADERS}\r\nretry: 2000\n\n"
+    );
+    write_timed(stream, head.as_bytes()).await
+}
+
+/// One event: `event: <name>` and its data on one line (JSON has no raw newline).
+pub async fn send_event(stream: &mut TcpStream, name: &str, data: &str) -> std::io::Result<()> {
+    debug_assert!(!data.contains('\n'));
+    let text = format!("event: {name}\ndata: {data}\n\n");
+    write_timed(stream, text.as_bytes()).await
+}
+
+async fn write_timed(stream: &mut TcpStream, bytes: &[u8]) -> std::io::Result<()> {
+    tokio::time::timeout(WRITE_TIMEOUT, stream.write_all(bytes))
+        .await
+        .unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_get_with_a_query() {
+        let r = parse_head(
+            b"GET /api/history?building=hq&sensor=acc-01&from_ns=5&note=a%20b+c HTTP/1.1\r\nHost: 127.0.0.1:9760\r\nAccept: */*",
+        )
+        .unwrap();
+        assert!(!r.head_only);
+        assert_eq!(r.path, "/api/history");
+        assert_eq!(r.host.as_deref(), Some("127.0.0.1:9760"));
+        assert_eq!(
+            r.query,
+            [
+                ("building".into(), "hq".into()),
+                ("sensor".into(), "acc-01".into()),
+                ("from_ns".into(), "5".into()),
+                ("note".into(), "a b c".into())
+            ]
+        );
+    }
+
+    #[test]
+    fn what_is_refused_and_why() {
+        let status = |h: &[u8]| parse_head(h).unwrap_err().status;
+        assert_eq!(status(b"POST / HTTP/1.1\r\nHost: x"), 405);
+        assert_eq!(status(b"DELETE / HTTP/1.1"), 405);
+        assert_eq!(status(b"GET / HTTP/2\r\nHost: x"), 505);
+        assert_eq!(status(b"GET /"), 400);
+        assert_eq!(status(b"GET  / HTTP/1.1"), 400);
+        assert_eq!(status(b"GET http://evil/ HTTP/1.1"), 400);
+        assert_eq!(status(b"GET / HTTP/1.1\r\nContent-Length: 5"), 400);
+        assert_eq!(status(b"GET / HTTP/1.1\r\nTransfer-Encoding: chunked"), 400);
+        assert_eq!(status(b"GET / HTTP/1.1\r\nno colon"), 400);
+        assert_eq!(status(b"GET /?a=1&a=2 HTTP/1.1"), 400);
+        assert_eq!(status(b"GET /?a=%zz HTTP/1.1"), 400);
+        assert_eq!(status(b"GET /?a=%ff HTTP/1.1"), 400, "not UTF-8");
+        assert_eq!(status(b"GET /?a=% HTTP/1.1"), 400);
+        assert_eq!(status(&[b'G', b'E', b'T', b' ', 0xff, b' ']), 400);
+        assert!(parse_head(b"HEAD / HTTP/1.0").unwrap().head_only);
+    }
+
+    #[test]
+    fn loopback_hosts() {
+        for ok in [
+            "127.0.0.1:9760",
+            "localhost:1",
+            "LOCALHOST",
+            "[::1]:9760",
+            "127.8.9.1",
+            "[::1]",
+        ] {
+            assert!(is_loopback_host(ok), "{ok}");
+        }
+        for bad in [
+            "evil.example:9760",
+            "10.0.0.1:9760",
+            "[fe80::1]:1",
+            "",
+            "localhost.evil",
+        ] {
+            assert!(!is_loopback_host(bad), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,220 @@
+//! The operators' console: the fleet at a glance, each sensor's corrected stream with its
+//! uncertainty band, and the alerts, in a browser.
+//!
+//! The console joins Zenoh like any client and only reads: it subscribes to the gateways'
+//! heartbeats and to the alerts, polls the gateways' status, and, for a sensor someone is
+//! looking at, subscribes to its corrected and tilt streams and queries its history. It never
+//! puts. It serves one page, by default on 127.0.0.1, that draws what the server has already
+//! decimated (min/max per pixel column, see [`buckets`]), pushed as Server-Sent Events.
+//!
+//! ```no_run
+//! # async fn run() -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+//! let session = zenoh::open(zenoh::Config::default()).await?;
+//! let listener = tokio::net::TcpListener::bind("127.0.0.1:9760").await?;
+//! let options = triax_console::ConsoleOptions::default();
+//! triax_console::serve(session, listener, options, tokio::signal::ctrl_c()).await?;
+//! # Ok(()) }
+//! ```
+//!
+//! Module map: [`server`] (routes), [`http`] (requests, responses, events), [`fleet`] (what is
+//! known of the buildings, gateways, sensors and alerts), [`live`] (the streams being watched),
+//! [`buckets`] (decimation); the page itself is in `src/assets/`.
+
+pub mod buckets;
+pub mod fleet;
+pub mod http;
+pub mod live;
+pub mod server;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio::sync::{watch, Semaphore};
+use triax_protocol::BuildingId;
+
+use crate::fleet::{Fleet, FleetOptions};
+use crate::live::Feeds;
+use crate::server::Context;
+
+/// Default address of the page.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:9760";
+
+/// How the console runs.
+#[derive(Debug, Clone)]
+pub struct ConsoleOptions {
+    /// Buildings to watch; empty: every building that answers a status query or sends a
+    /// heartbeat or an alert.
+    pub buildings: Vec<BuildingId>,
+    /// Time between status polls of the gateways.
+    pub status_interval: Duration,
+    /// Warn this long before a calibration record's `valid_until`.
+    pub expiry_warning: Duration,
+    /// Serve on a non-loopback address, and answer requests for any host name. The console
+    /// has no authentication: whoever reaches the port sees the fleet.
+    pub allow_remote: bool,
+    /// Connections served at once; more are closed at once.
+    pub max_connections: usize,
+    /// Live event streams (open pages) at once; more get 503.
+    pub max_streams: usize,
+    /// History views read at once; more get 503.
+    pub max_history_queries: usize,
+    /// How long one history page may take.
+    pub history_timeout: Duration,
+}
+
+impl Default for ConsoleOptions {
+    fn default() -> Self {
+        ConsoleOptions {
+            buildings: Vec::new(),
+            status_interval: Duration::from_secs(2),
+            expiry_warning: Duration::from_secs(30 * 86_400),
+            allow_remote: false,
+            max_connections: 64,
+            max_streams: 16,
+            max_history_queries: 2,
+            history_timeout: Duration::from_secs(20),
+        }
+    }
+}
+
+/// Why the console could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ConsoleError {
+    #[error(
+        "refusing to serve on {addr}, which is not a loopback address: the console has no \
+         authentication (allow it explicitly to serve anyway)"
+    )]
+    NotLoopback { addr: SocketAddr },
+    #[error("console listener: {0}")]
+    Listener(#[source] std::io::Error),
+    #[error("zenoh: {action}: {message}")]
+    Zenoh {
+        action: &'static str,
+        message: String,
+    },
+    #[error("option `{field}`: {reason}")]
+    Option { field: &'static str, reason: String },
+}
+
+/// The page's address for a listener bound to `addr`.
+pub fn url(addr: SocketAddr) -> String {
+    format!("http://{addr}/")
+}
+
+/// Serves the console on `listener` until `shutdown` completes.
+///
+/// Refuses a listener on a non-loopback address unless `options.allow_remote`.
+pub async fn serve(
+    session: zenoh::Session,
+    listener: TcpListener,
+    options: ConsoleOptions,
+    shutdown: impl std::future::Future,
+) -> Result<(), ConsoleError> {
+    let addr = listener.local_addr().map_err(ConsoleError::Listener)?;
+    if !addr.ip().is_loopback() && !options.allow_remote {
+        return Err(ConsoleError::NotLoopback { addr });
+    }
+    for (field, n) in [
+        ("max_connections", options.max_connections),
+        ("max_streams", options.max_streams),
+        ("max_history_queries", options.max_history_queries),
+    ] {
+        if n == 0 {
+            return Err(ConsoleError::Option {
+                field,
+                reason: "must be at least 1".into(),
+            });
+        }
+    }
+    if options.status_interval.is_zero() {
+        return Err(ConsoleError::Option {
+            field: "status_interval",
+            reason: "must be positive".into(),
+        });
+    }
+    let fleet = Arc::new(Fleet::new(FleetOptions {
+        buildings: options.buildings.clone(),
+        status_interval: options.status_interval,
+        expiry_warning: options.expiry_warning,
+    }));
+    let _watch = fleet::watch(&session, &fleet)
+        .await
+        .map_err(|e| ConsoleError::Zenoh {
+            action: "subscribe to heartbeats and alerts",
+            message: e.to_string(),
+        })?;
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let poller = tokio::spawn(fleet::poll_status(
+        session.clone(),
+        fleet.clone(),
+        options.status_interval,
+        stop_rx.clone(),
+    ));
+    let (json_tx, json_rx) = watch::channel::<Arc<str>>(Arc::from("null"));
+    let serialiser = tokio::spawn(serialise_fleet(fleet.clone(), json_tx, stop_rx.clone()));
+    let connections = Arc::new(Semaphore::new(options.max_connections));
+    let ctx = Arc::new(Context {
+        session: session.clone(),
+        fleet,
+        feeds: Feeds::new(session, options.history_timeout),
+        fleet_json: json_rx,
+        streams: Arc::new(Semaphore::new(options.max_streams)),
+        history_queries: Arc::new(Semaphore::new(options.max_history_queries)),
+        stop: stop_rx,
+        options,
+    });
+    tracing::info!(url = %url(addr), "console serving");
+    tokio::pin!(shutdown);
+    loop {
+        let (stream, peer) = tokio::select! {
+            _ = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok(a) => a,
+                Err(e) => {
+                    // Out of descriptors, most likely: wait rather than spin.
+                    tracing::warn!(cause = %e, "accept failed");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+        };
+        match connections.clone().try_acquire_owned() {
+            Ok(permit) => {
+                tokio::spawn(server::handle(ctx.clone(), stream, permit));
+            }
+            Err(_) => tracing::debug!(%peer, "connection closed: too many at once"),
+        }
+    }
+    let _ = stop_tx.send(true);
+    // Let open streams see the stop and close.
+    let all = u32::try_from(ctx.options.max_connections).unwrap_or(u32::MAX);
+    let _ = tokio::time::timeout(Duration::from_secs(3), connections.acquire_many(all)).await;
+    poller.abort();
+    serialiser.abort();
+    Ok(())
+}
+
+/// Serialises the fleet view once a second for every open page (none open: nothing done).
+async fn serialise_fleet(
+    fleet: Arc<Fleet>,
+    tx: watch::Sender<Arc<str>>,
+    mut stop: watch::Receiver<bool>,
+) {
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return,
+        }
+        if tx.receiver_count() > 1 {
+            match serde_json::to_string(&fleet.snapshot()) {
+                Ok(s) => {
+                    let _ = tx.send(Arc::from(s));
+                }
+                Err(e) => tracing::error!(cause = %e, "fleet view does not serialise"),
+            }
+        }
+    }
+}

@@ -1,0 +1,112 @@
+//! `triax-console`: the operators' console. Parses flags, joins Zenoh, binds the page's address
+//! and hands over to [`triax_console::serve`] until Ctrl-C.
+//!
+//! ```text
+//! triax-console                                         # every building found, page on 127.0.0.1:9760
+//! triax-console --connect tcp/site-router:7447 --zenoh-mode client --buildings hq,annex
+//! triax-console --listen 0.0.0.0:9760 --allow-remote    # no authentication: see the warning
+//! ```
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use triax_console::{ConsoleOptions, DEFAULT_LISTEN};
+use triax_net::ZenohArgs;
+use triax_protocol::BuildingId;
+
+/// The operators' console: the fleet, each sensor's corrected stream with its uncertainty band,
+/// and the alerts, in a browser. Reads only; never publishes.
+#[derive(Debug, Parser)]
+#[command(name = "triax-console", version)]
+// Here `--listen` is the page's address; Zenoh's own listen endpoint is `--zenoh-listen`.
+#[command(mut_arg("listen", |a| a
+    .long("zenoh-listen")
+    .env("TRIAX_CONSOLE_ZENOH_LISTEN")
+    .help("Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeat or comma-separate); usually none")))]
+struct Cli {
+    #[command(flatten)]
+    zenoh: ZenohArgs,
+    /// Address of the page (HTTP). A non-loopback address needs --allow-remote.
+    #[arg(id = "http_listen", long = "listen", value_name = "ADDR", env = "TRIAX_CONSOLE_LISTEN", default_value = DEFAULT_LISTEN)]
+    http_listen: SocketAddr,
+    /// Serve on a non-loopback address. The console has NO authentication: anyone who reaches
+    /// the port sees every building it sees.
+    #[arg(long)]
+    allow_remote: bool,
+    /// Buildings to watch (comma-separated); default: every building whose gateway answers a
+    /// status query or sends a heartbeat or an alert.
+    #[arg(long, env = "TRIAX_CONSOLE_BUILDINGS", value_delimiter = ',')]
+    buildings: Vec<BuildingId>,
+    /// Seconds between status polls of the gateways.
+    #[arg(long, default_value_t = 2.0)]
+    status_interval_s: f64,
+    /// Warn this many days before a calibration record's valid_until.
+    #[arg(long, default_value_t = 30.0)]
+    expiry_warning_days: f64,
+    /// Log filter (tracing env-filter syntax).
+    #[arg(long, env = "TRIAX_LOG", default_value = "info")]
+    log: String,
+}
+
+fn seconds(flag: &str, s: f64) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(s)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .with_context(|| format!("{flag} {s} is not a positive number"))
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(&cli.log)
+                .context("--log is not a valid filter")?,
+        )
+        .init();
+    let options = ConsoleOptions {
+        buildings: cli.buildings.clone(),
+        status_interval: seconds("--status-interval-s", cli.status_interval_s)?,
+        expiry_warning: seconds("--expiry-warning-days", cli.expiry_warning_days * 86_400.0)?,
+        allow_remote: cli.allow_remote,
+        ..ConsoleOptions::default()
+    };
+    if !cli.http_listen.ip().is_loopback() {
+        if !cli.allow_remote {
+            anyhow::bail!(
+                "--listen {} is not a loopback address; the console has no authentication. \
+                 Add --allow-remote to serve it anyway, or reach it through an SSH tunnel.",
+                cli.http_listen
+            );
+        }
+        eprintln!(
+            "WARNING: the console serves on {} with NO AUTHENTICATION: anyone who can reach this \
+             port sees every building, sensor and alert it sees. Put it behind a firewall, a VPN \
+             or an authenticating proxy.",
+            cli.http_listen
+        );
+    }
+    let settings = cli.zenoh.settings();
+    settings.validate().context("command-line Zenoh options")?;
+    let config = settings.to_config().context("Zenoh configuration")?;
+    let listener = tokio::net::TcpListener::bind(cli.http_listen)
+        .await
+        .with_context(|| format!("binding --listen {}", cli.http_listen))?;
+    let addr = listener.local_addr().context("the page's address")?;
+    let session = zenoh::open(config)
+        .await
+        .map_err(|e| anyhow::anyhow!("joining Zenoh: {e}"))?;
+    println!("triax-console: {}", triax_console::url(addr));
+    triax_console::serve(session.clone(), listener, options, async {
+        // If the signal handler cannot be installed, run until killed rather than not at all.
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    })
+    .await
+    .context("console")?;
+    let _ = session.close().await;
+    Ok(())
+}

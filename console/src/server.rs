@@ -1,0 +1,472 @@
+//! The console's routes: the page, its JSON, the history view and the live event stream.
+//!
+//! | path | answer |
+//! |---|---|
+//! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
+//! | `/app.js`, `/app.css` | its script and style, embedded in the binary |
+//! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
+//! | `/api/alerts` | every alert kept, newest first |
+//! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
+//! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
+//! | `/events[?building=&sensor=&span_s=&width=]` | Server-Sent Events: `fleet` every second; with a sensor, `live` and `tilt` |
+//!
+//! Anything else is 404; an unknown or malformed parameter is 400 naming it.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpStream;
+use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
+use triax_client::HistoryRequest;
+use triax_protocol::messages::GatewayStatus;
+use triax_protocol::{from_json, BuildingId, Key, SensorId};
+
+use crate::buckets::{Aggregator, View, MAX_BUCKETS};
+use crate::fleet::{Fleet, GatewayState};
+use crate::http::{self, Refusal, Request};
+use crate::live::{Feeds, KEEP_NS};
+use crate::ConsoleOptions;
+
+const INDEX_HTML: &str = include_str!("assets/index.html");
+const APP_JS: &str = include_str!("assets/app.js");
+const APP_CSS: &str = include_str!("assets/app.css");
+
+/// Longest range one history view reads.
+pub const MAX_HISTORY_SPAN_NS: i64 = 3600 * 1_000_000_000;
+/// History read before the range, for a batch that straddles its start and for gap detection.
+const HISTORY_LEAD_NS: i64 = 60 * 1_000_000_000;
+/// Time between live frames.
+const LIVE_PERIOD: Duration = Duration::from_millis(250);
+/// Each live frame repeats this much of the stream, so a late batch still reaches the page.
+const RESEND_NS: i64 = 2_000_000_000;
+/// Plot widths accepted, in buckets (pixel columns).
+const WIDTH_RANGE: std::ops::RangeInclusive<i64> = 50..=4000;
+
+/// What every connection shares.
+pub struct Context {
+    pub session: zenoh::Session,
+    pub fleet: Arc<Fleet>,
+    pub feeds: Feeds,
+    pub fleet_json: watch::Receiver<Arc<str>>,
+    pub options: ConsoleOptions,
+    pub streams: Arc<Semaphore>,
+    pub history_queries: Arc<Semaphore>,
+    pub stop: watch::Receiver<bool>,
+}
+
+/// Answers one connection.
+pub async fn handle(ctx: Arc<Context>, mut stream: TcpStream, _permit: OwnedSemaphorePermit) {
+    let req = match http::read_request(&mut stream).await {
+        Ok(Some(r)) => r,
+        Ok(None) => return,
+        Err(refusal) => {
+            let _ = http::respond_error(&mut stream, &refusal).await;
+            return;
+        }
+    };
+    if !ctx.options.allow_remote && !req.host.as_deref().is_some_and(http::is_loopback_host) {
+        let r = Refusal::new(
+            403,
+            "the console answers only requests addressed to a loopback name (Host: 127.0.0.1, localhost or [::1])",
+        );
+        let _ = http::respond_error(&mut stream, &r).await;
+        return;
+    }
+    if let Err(refusal) = route(&ctx, &mut stream, &req).await {
+        let _ = http::respond_error(&mut stream, &refusal).await;
+    }
+}
+
+async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Result<(), Refusal> {
+    let p = Params(&req.query);
+    let head_only = req.head_only;
+    async fn ok(
+        stream: &mut TcpStream,
+        ty: &'static str,
+        body: Vec<u8>,
+        head_only: bool,
+    ) -> Result<(), Refusal> {
+        // A client that went away needs no answer.
+        let _ = http::respond(stream, 200, ty, &body, head_only).await;
+        Ok(())
+    }
+    const JSON: &str = "application/json";
+    match req.path.as_str() {
+        "/" | "/index.html" => {
+            p.only(&[])?;
+            ok(
+                stream,
+                "text/html; charset=utf-8",
+                INDEX_HTML.into(),
+                head_only,
+            )
+            .await
+        }
+        "/app.js" => {
+            p.only(&[])?;
+            ok(
+                stream,
+                "text/javascript; charset=utf-8",
+                APP_JS.into(),
+                head_only,
+            )
+            .await
+        }
+        "/app.css" => {
+            p.only(&[])?;
+            ok(stream, "text/css; charset=utf-8", APP_CSS.into(), head_only).await
+        }
+        "/api/fleet" => {
+            p.only(&[])?;
+            ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await
+        }
+        "/api/alerts" => {
+            p.only(&[])?;
+            ok(stream, JSON, json(&ctx.fleet.alerts()), head_only).await
+        }
+        "/api/sensor" => {
+            p.only(&["building", "sensor"])?;
+            let (b, s) = (p.building()?, p.sensor()?);
+            let body = sensor_detail(&ctx.session, &b, &s).await;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/history" => {
+            p.only(&[
+                "building",
+                "sensor",
+                "from_ns",
+                "to_ns",
+                "width",
+                "calibration",
+            ])?;
+            let body = history(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/events" => {
+            p.only(&["building", "sensor", "span_s", "width"])?;
+            let sensor = match (p.get("building"), p.get("sensor")) {
+                (None, None) => None,
+                _ => Some((p.building()?, p.sensor()?)),
+            };
+            let span_s = p.int("span_s", Some(30), 1..=KEEP_NS / 1_000_000_000)?;
+            let width = p.int("width", Some(1000), WIDTH_RANGE)?;
+            let Ok(permit) = ctx.streams.clone().try_acquire_owned() else {
+                return Err(Refusal::new(
+                    503,
+                    format!(
+                        "too many live streams open ({}); close a console tab",
+                        ctx.options.max_streams
+                    ),
+                ));
+            };
+            if req.head_only {
+                return ok(stream, "text/event-stream", Vec::new(), head_only).await;
+            }
+            events(ctx, stream, sensor, span_s * 1_000_000_000, width).await;
+            drop(permit);
+            Ok(())
+        }
+        _ => Err(Refusal::new(404, format!("no such page: {:?}", req.path))),
+    }
+}
+
+fn json<T: serde::Serialize>(v: &T) -> Vec<u8> {
+    // The console's own types serialise without failing: string keys, no foreign Serialize.
+    serde_json::to_vec(v).unwrap_or_else(|e| {
+        tracing::error!(cause = %e, "serialising a response failed");
+        b"null".to_vec()
+    })
+}
+
+/// The query parameters of one request.
+struct Params<'a>(&'a [(String, String)]);
+
+impl Params<'_> {
+    fn get(&self, name: &str) -> Option<&str> {
+        self.0
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// Refuses a parameter not in `known`, naming it.
+    fn only(&self, known: &[&str]) -> Result<(), Refusal> {
+        match self.0.iter().find(|(k, _)| !known.contains(&k.as_str())) {
+            None => Ok(()),
+            Some((k, _)) => Err(Refusal::new(
+                400,
+                format!(
+                    "unknown parameter {k:?} (known here: {})",
+                    if known.is_empty() {
+                        "none".to_owned()
+                    } else {
+                        known.join(", ")
+                    }
+                ),
+            )),
+        }
+    }
+
+    fn required(&self, name: &str) -> Result<&str, Refusal> {
+        self.get(name)
+            .ok_or_else(|| Refusal::new(400, format!("parameter {name:?} is required")))
+    }
+
+    fn building(&self) -> Result<BuildingId, Refusal> {
+        BuildingId::new(self.required("building")?)
+            .map_err(|e| Refusal::new(400, format!("parameter \"building\": {e}")))
+    }
+
+    fn sensor(&self) -> Result<SensorId, Refusal> {
+        SensorId::new(self.required("sensor")?)
+            .map_err(|e| Refusal::new(400, format!("parameter \"sensor\": {e}")))
+    }
+
+    /// A whole number in `range`; `default` when absent (none: required).
+    fn int(
+        &self,
+        name: &str,
+        default: Option<i64>,
+        range: std::ops::RangeInclusive<i64>,
+    ) -> Result<i64, Refusal> {
+        let v = match (self.get(name), default) {
+            (None, Some(d)) => return Ok(d),
+            (None, None) => self.required(name)?,
+            (Some(v), _) => v,
+        };
+        let n: i64 = v.parse().map_err(|_| {
+            Refusal::new(
+                400,
+                format!("parameter {name:?}: {v:?} is not a whole number"),
+            )
+        })?;
+        if !range.contains(&n) {
+            return Err(Refusal::new(
+                400,
+                format!(
+                    "parameter {name:?}: {n} is outside {}..={}",
+                    range.start(),
+                    range.end()
+                ),
+            ));
+        }
+        Ok(n)
+    }
+}
+
+/// The sensor's status and the record in force, as its gateway answers a one-sensor status
+/// query; `error` says why there is none.
+async fn sensor_detail(
+    session: &zenoh::Session,
+    b: &BuildingId,
+    s: &SensorId,
+) -> serde_json::Value {
+    let selector = format!("{}?sensor={s}", Key::Status(b.clone()));
+    let err = |m: String| serde_json::json!({ "building": b, "sensor_id": s, "error": m });
+    let replies = match session.get(&selector).timeout(Duration::from_secs(2)).await {
+        Ok(r) => r,
+        Err(e) => return err(format!("status query failed: {e}")),
+    };
+    let Ok(reply) = replies.recv_async().await else {
+        return err(format!("no answer from the gateway of building {b}"));
+    };
+    let status = match reply.result() {
+        Ok(sample) => from_json::<GatewayStatus>(&sample.payload().to_bytes()),
+        Err(e) => {
+            return err(format!(
+                "the gateway refused: {}",
+                String::from_utf8_lossy(&e.payload().to_bytes())
+            ))
+        }
+    };
+    match status {
+        Err(e) => err(format!("the gateway's answer does not decode: {e}")),
+        Ok(st) => match st.sensors.into_iter().find(|x| &x.sensor_id == s) {
+            None => err(format!(
+                "the gateway of building {b} does not know sensor {s}"
+            )),
+            Some(sensor) => serde_json::json!({
+                "building": b,
+                "sensor_id": s,
+                "gateway": st.gateway,
+                "reported_at": st.reported_at.format(&time::format_description::well_known::Rfc3339).ok(),
+                "history": st.history,
+                "status": sensor,
+            }),
+        },
+    }
+}
+
+/// A past range of one sensor, read from its gateway's history and decimated.
+async fn history(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    let (b, s) = (p.building()?, p.sensor()?);
+    let from_ns = p.int("from_ns", None, 0..=i64::MAX)?;
+    let to_ns = p.int("to_ns", None, 0..=i64::MAX)?;
+    let width = p.int("width", Some(1000), WIDTH_RANGE)?;
+    if to_ns <= from_ns || to_ns - from_ns > MAX_HISTORY_SPAN_NS {
+        return Err(Refusal::new(
+            400,
+            format!(
+                "parameters \"from_ns\", \"to_ns\": the range must be positive and at most {} s",
+                MAX_HISTORY_SPAN_NS / 1_000_000_000
+            ),
+        ));
+    }
+    let calibration = match p.get("calibration") {
+        None => None,
+        Some(c @ ("in_force" | "latest")) => Some(c.to_owned()),
+        Some(v) => match v.parse::<u64>() {
+            Ok(n) if n >= 1 => Some(n.to_string()),
+            _ => {
+                return Err(Refusal::new(
+                    400,
+                    format!(
+                        "parameter \"calibration\": {v:?} is not in_force, latest or a version ≥ 1"
+                    ),
+                ))
+            }
+        },
+    };
+    let bucket_ns = (to_ns - from_ns + width - 1) / width;
+    let mut agg =
+        Aggregator::new(from_ns, to_ns, bucket_ns).map_err(|e| Refusal::new(400, e.to_string()))?;
+    let Ok(_permit) = ctx.history_queries.try_acquire() else {
+        return Err(Refusal::new(
+            503,
+            format!(
+                "{} history queries are running; try again in a moment",
+                ctx.options.max_history_queries
+            ),
+        ));
+    };
+    let mut request = HistoryRequest::sensor(&b, &s);
+    request.from_ns = Some(from_ns.saturating_sub(HISTORY_LEAD_NS));
+    request.to_ns = Some(to_ns);
+    request.calibration = calibration;
+    let fetched = triax_client::history::fetch(
+        &ctx.session,
+        &request,
+        ctx.options.history_timeout,
+        &mut |r| agg.push(&r.batch),
+    )
+    .await;
+    let view = agg.finish();
+    Ok(match fetched {
+        // Zenoh answers a query nobody serves with nothing at all: say why it is empty.
+        Ok(0) if ctx.fleet.gateway_state(&b) != GatewayState::Up => serde_json::json!({
+            "source": "history",
+            "batches_read": 0,
+            "error": format!("no answer: the gateway of building {b} is not heard"),
+            "view": view,
+        }),
+        Ok(n) => serde_json::json!({ "source": "history", "batches_read": n, "view": view }),
+        Err(e) => serde_json::json!({ "source": "history", "error": e.to_string(), "view": view }),
+    })
+}
+
+/// The event stream of one page: the fleet every second and, for a sensor view, its live frames
+/// and tilt. Ends when the page goes, a write stalls, or the console stops.
+async fn events(
+    ctx: &Context,
+    stream: &mut TcpStream,
+    sensor: Option<(BuildingId, SensorId)>,
+    span_ns: i64,
+    width: i64,
+) {
+    if http::start_events(stream).await.is_err() {
+        return;
+    }
+    let mut fleet = ctx.fleet_json.clone();
+    let mut stop = ctx.stop.clone();
+    let first = fleet.borrow_and_update().clone();
+    if http::send_event(stream, "fleet", &first).await.is_err() {
+        return;
+    }
+    let feed = match &sensor {
+        None => None,
+        Some((b, s)) => match ctx.feeds.open(b, s).await {
+            Ok(f) => Some(f),
+            Err(e) => {
+                let msg = serde_json::json!({ "error": format!("cannot subscribe: {e}") });
+                let _ = http::send_event(stream, "problem", &msg.to_string()).await;
+                return;
+            }
+        },
+    };
+    let bucket_ns = (span_ns / width).max(1);
+    let mut last_end: Option<i64> = None;
+    let mut prepends = 0;
+    let mut last_tilt_ns = i64::MIN;
+    let mut tick = tokio::time::interval(LIVE_PERIOD);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tokio::select! {
+            _ = stop.changed() => return,
+            changed = fleet.changed() => {
+                if changed.is_err() {
+                    return;
+                }
+                let text = fleet.borrow_and_update().clone();
+                if http::send_event(stream, "fleet", &text).await.is_err() {
+                    return;
+                }
+            }
+            _ = tick.tick() => {
+                let Some(feed) = &feed else { continue };
+                if feed.prepends() != prepends {
+                    // The recent past arrived from the history: send the whole window again.
+                    prepends = feed.prepends();
+                    last_end = None;
+                }
+                if let Some(frame) = live_frame(feed, &mut last_end, span_ns, bucket_ns) {
+                    if http::send_event(stream, "live", &frame).await.is_err() {
+                        return;
+                    }
+                }
+                let tilt = feed.tilt_after(last_tilt_ns);
+                if let Some(t) = tilt.last() {
+                    last_tilt_ns = t.timestamp_ns;
+                    let text = serde_json::to_string(&tilt).unwrap_or_default();
+                    if http::send_event(stream, "tilt", &text).await.is_err() {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The next live frame, if the stream moved: the whole window the first time, then what is new
+/// plus [`RESEND_NS`] before it (the page replaces buckets by index).
+fn live_frame(
+    feed: &crate::live::Feed,
+    last_end: &mut Option<i64>,
+    span_ns: i64,
+    bucket_ns: i64,
+) -> Option<String> {
+    let newest = feed.newest_end_ns()?;
+    if *last_end == Some(newest) {
+        return None;
+    }
+    let window_start = newest.saturating_sub(span_ns);
+    let mut from = match *last_end {
+        None => window_start,
+        Some(e) => window_start.max(e.saturating_sub(RESEND_NS)),
+    };
+    if from >= newest {
+        // The node's clock went back: start over.
+        from = window_start;
+    }
+    // Keep within the bucket budget whatever the span and width.
+    from = from.max(newest.saturating_sub(bucket_ns.saturating_mul(MAX_BUCKETS as i64 - 2)));
+    let view: View = feed.view(from, newest, bucket_ns).ok()?;
+    *last_end = Some(newest);
+    let frame = serde_json::json!({
+        "building": feed.building,
+        "sensor_id": feed.sensor,
+        "span_ns": span_ns,
+        "malformed": feed.malformed(),
+        "view": view,
+    });
+    Some(frame.to_string())
+}
