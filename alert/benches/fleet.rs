@@ -96,7 +96,11 @@ fn batch(sensor: &SensorId, seq: u64, t0_ns: i64, amplitude: f32) -> Vec<u8> {
             .map(|i| {
                 let t = (seq * 10 + i) as f32 / 100.0;
                 CorrectedSample {
-                    accel_mps2: [amplitude * (2.0 * std::f32::consts::PI * 1.3 * t).sin(), 0.0, 9.81],
+                    accel_mps2: [
+                        amplitude * (2.0 * std::f32::consts::PI * 1.3 * t).sin(),
+                        0.0,
+                        9.81,
+                    ],
                     uncertainty_mps2: [0.01; 3],
                     flags: 0,
                 }
@@ -156,7 +160,13 @@ async fn main() {
         Command::new(env!("CARGO_BIN_EXE_triax-alert"))
             .arg("--config")
             .arg(&config)
-            .args(["--zenoh-mode", "client", "--connect", &endpoint, "--no-multicast-scouting"])
+            .args([
+                "--zenoh-mode",
+                "client",
+                "--connect",
+                &endpoint,
+                "--no-multicast-scouting",
+            ])
             .env("RUST_LOG", "error")
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -195,7 +205,9 @@ async fn main() {
             if alert.kind == AlertKind::PeakAcceleration && alert.level == AlertLevel::Exceeded {
                 let key = format!("{}/{}", alert.building, alert.sensor_id);
                 if let Some(at) = inj.lock().expect("lock").remove(&key) {
-                    lat.lock().expect("lock").push(at.elapsed().as_secs_f64() * 1e3);
+                    lat.lock()
+                        .expect("lock")
+                        .push(at.elapsed().as_secs_f64() * 1e3);
                 }
             }
         })
@@ -224,7 +236,9 @@ async fn main() {
                     at: time::OffsetDateTime::now_utc(),
                     sensors: Default::default(),
                 };
-                let _ = session.put(Key::Heartbeat(b.clone()).to_string(), to_json(&beat)).await;
+                let _ = session
+                    .put(Key::Heartbeat(b.clone()).to_string(), to_json(&beat))
+                    .await;
             }
             next_beat += 1.0;
         }
@@ -256,7 +270,11 @@ async fn main() {
     let rss = rss_mib(pid);
     let mut l = latencies.lock().expect("lock").clone();
     l.sort_by(|x, y| x.total_cmp(y));
-    let pct = |p: f64| l.get(((l.len().max(1) - 1) as f64 * p) as usize).copied().unwrap_or(f64::NAN);
+    let pct = |p: f64| {
+        l.get(((l.len().max(1) - 1) as f64 * p) as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
     println!(
         "| {} buildings × {} sensors | {:.0} batches/s offered ({:.2} M samples/s) | triax-alert {:.2} cores, RSS {:.1} MiB | alert latency p50 {:.0} ms, p99 {:.0} ms ({} of {} events) | {} alerts |",
         a.buildings,

@@ -56,6 +56,11 @@ pub struct DemoOptions {
     /// Time between summaries.
     pub refresh: Duration,
     pub seed: u64,
+    /// Zenoh endpoint the demo's gateway listens on (loopback), so that another program of the
+    /// same process can join; none: a free port.
+    pub endpoint: Option<String>,
+    /// A line the live summary shows under its title (the console's address).
+    pub banner: Option<String>,
 }
 
 impl Default for DemoOptions {
@@ -65,6 +70,8 @@ impl Default for DemoOptions {
             duration: None,
             refresh: Duration::from_secs(1),
             seed: 2015,
+            endpoint: None,
+            banner: None,
         }
     }
 }
@@ -346,8 +353,14 @@ pub async fn run(
     .map_err(|e| DemoError::Store(e.to_string()))?
     .map_err(DemoError::Store)?;
 
-    let port = triax_net::free_loopback_port().map_err(|e| DemoError::Zenoh(e.to_string()))?;
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let endpoint = match &opts.endpoint {
+        Some(e) => e.clone(),
+        None => {
+            let port =
+                triax_net::free_loopback_port().map_err(|e| DemoError::Zenoh(e.to_string()))?;
+            format!("tcp/127.0.0.1:{port}")
+        }
+    };
     let mut config = base;
     // A literal of valid characters.
     config.building = BuildingId::new("demo").expect("literal building id is valid");
@@ -455,7 +468,7 @@ pub async fn run(
             _ = &mut shutdown => break,
             _ = tick.tick() => {
                 status = query_status(&session, &building).await.or(status);
-                let text = render(&lock(&summaries), status.as_ref(), started.elapsed(), metrics, &by_id);
+                let text = render(&lock(&summaries), status.as_ref(), started.elapsed(), metrics, &by_id, opts.banner.as_deref());
                 if tty {
                     print!("\x1b[2J\x1b[H{text}");
                 } else {
@@ -480,7 +493,8 @@ pub async fn run(
             report.status.as_ref(),
             started.elapsed(),
             metrics,
-            &by_id
+            &by_id,
+            opts.banner.as_deref()
         )
     );
     let _ = session.close().await;
@@ -546,6 +560,7 @@ fn render(
     elapsed: Duration,
     metrics: Option<std::net::SocketAddr>,
     fleet: &BTreeMap<String, SimSensor>,
+    banner: Option<&str>,
 ) -> String {
     use std::fmt::Write as _;
     let mut o = String::new();
@@ -556,6 +571,9 @@ fn render(
         elapsed.as_secs_f64(),
         metrics.map_or(String::new(), |a| format!(", metrics http://{a}/metrics"))
     );
+    if let Some(b) = banner {
+        let _ = writeln!(o, "{b}");
+    }
     let _ = writeln!(
         o,
         "{:<8} {:<7} {:>3}  {:>24}  {:>8}  {:>24}  {:>7}  {:>6}  flags",

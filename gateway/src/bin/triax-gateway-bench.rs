@@ -623,7 +623,11 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
         }
         while received.load(Relaxed) < (round + 1) * n as u64 * 9 / 10 {
             if Instant::now() > deadline {
-                bail!("{system:?} with {n} sensors: the warm-up did not come through");
+                bail!(
+                    "{system:?} with {n} sensors: the warm-up did not come through (round {round}: {} of {} batches arrived)",
+                    received.load(Relaxed),
+                    (round + 1) * n as u64
+                );
             }
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
