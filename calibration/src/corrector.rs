@@ -121,6 +121,10 @@ pub struct SetCorrector {
     param_cov: [QuadForm; 6],
     /// Noise and stated contributions, which do not depend on the sample: Cov(a_k, a_l).
     const_cov: [[f64; 3]; 3],
+    /// The two parts of `const_cov` kept apart for filtered quantities, which reduce the white
+    /// output noise (V², per output channel) but not the stated part (per axis, (m/s²)²).
+    output_noise_var: [f64; 3],
+    stated_var: [f64; 3],
     domain: Domain,
     coverage_factor: f64,
 }
@@ -212,6 +216,7 @@ impl SetCorrector {
         }
 
         let mut const_cov = Matrix3::zeros();
+        let output_noise_var = record.sensor.output_noise.unwrap_or([0.0; 3]).map(|n| n * n);
         if let Some(noise) = record.sensor.output_noise {
             let sigma_v = Matrix3::from_diagonal(&noise.map(|n| n * n).into());
             const_cov += s_inv * sigma_v * s_inv.transpose();
@@ -226,6 +231,8 @@ impl SetCorrector {
             offset_mps2: set.offset,
             param_cov,
             const_cov: const_cov.transpose().into(),
+            output_noise_var,
+            stated_var: set.uncertainty_mps2.map(|u| u * u),
             domain: set.domain,
             coverage_factor: set.coverage_factor,
         })
@@ -303,6 +310,30 @@ impl SetCorrector {
     /// Stated and noise variances per axis (independent of the sample).
     pub fn constant_variance(&self) -> [f64; 3] {
         [0, 1, 2].map(|k| self.const_cov[k][k])
+    }
+
+    /// The full 3×3 covariance of a low-passed `a` at low-passed output `v`: the parameter and
+    /// stated parts as for one sample, the white output noise scaled by the filter's noise gain
+    /// (Σh², the share of its variance the filter passes), plus `extra_output_var` (V², per
+    /// channel) for what the filter's output carries beyond the low band's truth.
+    pub fn covariance_filtered(
+        &self,
+        v: [f64; 3],
+        noise_gain: f64,
+        extra_output_var: [f64; 3],
+    ) -> [[f64; 3]; 3] {
+        let scaled = self.scale(v);
+        let out_var = [0, 1, 2].map(|j| self.output_noise_var[j] * noise_gain + extra_output_var[j]);
+        let m = &self.s_inv;
+        let mut c = [[0.0; 3]; 3];
+        for (k, row) in c.iter_mut().enumerate() {
+            for (l, cell) in row.iter_mut().enumerate() {
+                let through: f64 = (0..3).map(|j| m[k][j] * out_var[j] * m[l][j]).sum();
+                let stated = if k == l { self.stated_var[k] } else { 0.0 };
+                *cell = eval(&self.param_cov[pair(k, l)], scaled, 1.0) + stated + through;
+            }
+        }
+        c
     }
 
     /// The full 3×3 covariance of `a` at output `v`, for quantities that mix axes (tilt).
@@ -423,6 +454,28 @@ mod tests {
         let out = c.set(SetKind::Static).correct([2.0, 4.0, -5.0]);
         assert_eq!(out.accel_mps2, [1.1, 1.2, -0.7]);
         assert_eq!(out.uncertainty_mps2, [0.0; 3]);
+    }
+
+    /// Filtering scales the output noise by the noise gain and nothing else: at gain 1 it is
+    /// the single sample's covariance; at gain 0 the noise is gone while the stated part stays;
+    /// an extra output variance goes through S⁻¹ like noise (hand-computed on a diagonal S).
+    #[test]
+    fn filtered_covariance_scales_only_the_noise() {
+        let mut r = diag_record();
+        r.static_set.uncertainty_mps2 = [0.0, 0.05, 0.0];
+        r.sensor.output_noise = Some([0.02, 0.04, 0.0]);
+        let c = Corrector::from_record(&r).unwrap();
+        let set = c.set(SetKind::Static);
+        let v = [1.0, -2.0, 3.0];
+        assert_eq!(set.covariance_filtered(v, 1.0, [0.0; 3]), set.covariance(v));
+        let none = set.covariance_filtered(v, 0.0, [0.0; 3]);
+        assert!(none[0][0].abs() < 1e-18, "{none:?}");
+        assert!((none[1][1] - 0.05f64.powi(2)).abs() < 1e-15, "{none:?}");
+        let extra = set.covariance_filtered(v, 0.25, [0.0, 0.0, 1.0]);
+        // x: (0.02/2)²·0.25; y: 0.05² + (0.04/4)²·0.25; z: 1/5².
+        assert!((extra[0][0] - 0.25e-4).abs() < 1e-15, "{extra:?}");
+        assert!((extra[1][1] - (0.0025 + 0.25e-4)).abs() < 1e-15, "{extra:?}");
+        assert!((extra[2][2] - 0.04).abs() < 1e-15, "{extra:?}");
     }
 
     #[test]

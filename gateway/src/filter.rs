@@ -46,6 +46,34 @@ impl Coefficients {
         Self::design(cutoff_hz, sample_rate_hz, FRAC_1_SQRT_2, false)
     }
 
+    /// Group delay at DC, in samples: a ramp comes out of the filter this much later, exactly,
+    /// once the start has faded (for a low pass; the DC gain must not be zero).
+    pub fn dc_delay_samples(&self) -> f64 {
+        let [b0, b1, b2] = self.b;
+        let [a1, a2] = self.a;
+        (b1 + 2.0 * b2) / (b0 + b1 + b2) - (a1 + 2.0 * a2) / (1.0 + a1 + a2)
+    }
+
+    /// Σh² of the impulse response: the share of a white input's variance the filter passes.
+    pub fn noise_gain(&self) -> f64 {
+        // The response decays as |pole|ⁿ: stop once the state is 1e-7 of the response's norm
+        // (the tail's energy is then ~1e-12 of the total at the slowest corners), or at a bound
+        // far beyond any corner this gateway designs.
+        let mut f = Biquad3::new(*self);
+        f.primed = true;
+        let mut energy = 0.0;
+        let mut x = 1.0;
+        for n in 0..10_000_000u32 {
+            let y = f.step([x, 0.0, 0.0])[0];
+            x = 0.0;
+            energy += y * y;
+            if n > 16 && f.s1[0].abs() + f.s2[0].abs() < 1e-7 * energy.sqrt() {
+                break;
+            }
+        }
+        energy
+    }
+
     /// Second-order Butterworth high pass.
     pub fn high_pass(cutoff_hz: f64, sample_rate_hz: f64) -> Coefficients {
         Self::design(cutoff_hz, sample_rate_hz, FRAC_1_SQRT_2, true)
@@ -90,6 +118,10 @@ impl Biquad3 {
 
     pub fn is_primed(&self) -> bool {
         self.primed
+    }
+
+    pub fn coefficients(&self) -> &Coefficients {
+        &self.c
     }
 
     /// Forgets the past: the next sample primes the filter again.
@@ -251,6 +283,33 @@ mod tests {
             }
         }
         peak
+    }
+
+    /// A second-order Butterworth low pass delays a ramp by √2/(2π·fc) (analog prototype; the
+    /// bilinear design at fc ≪ fs differs by a hair), and passes 2·ENBW/fs of white noise's
+    /// variance with ENBW = fc·(π/4)/sin(π/4) (the Butterworth noise bandwidth for order 2).
+    #[test]
+    fn low_pass_delay_and_noise_gain_match_the_analog_prototype() {
+        let (fc, fs) = (0.1, 100.0);
+        let c = Coefficients::low_pass(fc, fs);
+        let delay_s = c.dc_delay_samples() / fs;
+        let expect_s = 2f64.sqrt() / (2.0 * PI * fc);
+        assert!((delay_s - expect_s).abs() < 1e-4 * expect_s, "{delay_s} vs {expect_s}");
+        let enbw_hz = fc * (PI / 4.0) / (PI / 4.0).sin();
+        let expect_gain = 2.0 * enbw_hz / fs;
+        let gain = c.noise_gain();
+        assert!((gain - expect_gain).abs() < 1e-3 * expect_gain, "{gain} vs {expect_gain}");
+
+        // And by simulation: a ramp, once the start has faded, lags by exactly that delay.
+        let mut f = Biquad3::new(c);
+        let rate = 0.3;
+        let mut lag_s = 0.0;
+        for i in 0..(60.0 * fs) as usize {
+            let t = i as f64 / fs;
+            let y = f.step([rate * t, 0.0, 0.0])[0];
+            lag_s = t - y / rate;
+        }
+        assert!((lag_s - delay_s).abs() < 1e-6, "{lag_s} vs {delay_s}");
     }
 
     #[test]

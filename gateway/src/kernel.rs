@@ -71,12 +71,13 @@ use triax_protocol::RawBatchView;
 
 use crate::config::{CorrectionMode, SensorSettings};
 use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients, HighPass4x32, Lanes};
+use crate::tilt::{LowBandError, TiltFilter};
 
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
 
 /// Format of [`SensorKernel::checkpoint`]: changes whenever the kernel's state changes shape.
-const CHECKPOINT_FORMAT: u8 = 1;
+const CHECKPOINT_FORMAT: u8 = 2;
 
 /// Content slower than this is the constant part of the signal (gravity, offsets, drift over
 /// minutes), which every calibrated domain includes: the lower band check ignores it.
@@ -108,7 +109,7 @@ struct Design {
     version: u64,
     crossover: Option<Box<Biquad3>>,
     detector: Option<Detector>,
-    tilt: Option<Box<Biquad3>>,
+    tilt: Option<Box<TiltFilter>>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -150,8 +151,11 @@ pub struct TiltState {
     /// Low-passed raw outputs at the end of the last batch.
     pub output_lp: [f64; 3],
     pub flags: u16,
+    /// The instant `output_lp` describes: the last sample's time less the filter's delay.
     pub timestamp_ns: i64,
+    /// Once the low pass has settled from its start (see [`crate::tilt`]).
     pub ready: bool,
+    pub low_band: LowBandError,
 }
 
 /// Per-sensor memory of the sample path.
@@ -195,6 +199,7 @@ impl SensorKernel {
                 flags: 0,
                 timestamp_ns: 0,
                 ready: false,
+                low_band: LowBandError::default(),
             },
         }
     }
@@ -281,12 +286,8 @@ impl SensorKernel {
             };
             let tilt = if s.tilt {
                 keep.as_ref().and_then(|d| d.tilt.clone()).or_else(|| {
-                    realisable(s.tilt_cutoff_hz, sample_rate_hz).then(|| {
-                        Box::new(Biquad3::new(Coefficients::low_pass(
-                            s.tilt_cutoff_hz,
-                            sample_rate_hz,
-                        )))
-                    })
+                    realisable(s.tilt_cutoff_hz, sample_rate_hz)
+                        .then(|| Box::new(TiltFilter::new(s.tilt_cutoff_hz, sample_rate_hz)))
                 })
             } else {
                 None
@@ -349,13 +350,11 @@ impl SensorKernel {
             || design.crossover.as_ref().is_some_and(|f| !f.is_primed());
         if unprimed {
             if let Some(mean) = mean_of_finite(&scratch.v) {
-                for f in [design.tilt.as_mut(), design.crossover.as_mut()]
-                    .into_iter()
-                    .flatten()
-                {
-                    if !f.is_primed() {
-                        f.prime(mean);
-                    }
+                if let Some(f) = design.crossover.as_mut().filter(|f| !f.is_primed()) {
+                    f.prime(mean);
+                }
+                if let Some(f) = design.tilt.as_mut().filter(|f| !f.is_primed()) {
+                    f.prime(mean);
                 }
             }
         }
@@ -372,12 +371,21 @@ impl SensorKernel {
             }
         }
         if let Some(t) = design.tilt.as_mut().filter(|_| in_sequence) {
-            let mut any = false;
-            for v in scratch.v.iter().filter(|v| finite(**v)) {
+            let mut last = None;
+            for (i, v) in scratch.v.iter().enumerate().filter(|(_, v)| finite(**v)) {
                 self.tilt.output_lp = t.step(*v);
-                any = true;
+                last = Some(i);
             }
-            self.tilt.ready |= any;
+            if let Some(i) = last {
+                self.tilt.ready = t.settled();
+                self.tilt.low_band = t.error();
+                let at_ns = i as f64 / raw.header.sample_rate_hz * 1e9;
+                self.tilt.timestamp_ns = raw
+                    .header
+                    .timestamp_ns
+                    .saturating_add(at_ns as i64)
+                    .saturating_sub(t.delay_ns());
+            }
         }
 
         let static_set = c.set(SetKind::Static);
@@ -448,7 +456,6 @@ impl SensorKernel {
 
         if self.settings.tilt && in_sequence {
             self.tilt.flags |= batch_flags;
-            self.tilt.timestamp_ns = batch_end_ns(raw);
         }
         BatchOutcome {
             batch_flags,
@@ -587,12 +594,6 @@ fn mean_of_finite(v: &[[f64; 3]]) -> Option<[f64; 3]> {
         n += 1;
     }
     (n > 0).then(|| sum.map(|s| s / n as f64))
-}
-
-/// Time just after the batch's last sample, ns since the Unix epoch.
-pub fn batch_end_ns(raw: &RawBatchView<'_>) -> i64 {
-    let duration_ns = raw.len() as f64 / raw.header.sample_rate_hz * 1e9;
-    raw.header.timestamp_ns.saturating_add(duration_ns as i64)
 }
 
 fn uncalibrated(raw: &RawBatchView<'_>, stream_flags: u16, out: &mut Vec<u8>) -> BatchOutcome {
@@ -1041,7 +1042,7 @@ mod tests {
     }
 
     /// Length and FNV-1a of `busy_kernel`'s checkpoint in format [`CHECKPOINT_FORMAT`].
-    const PINNED_CHECKPOINT: (usize, u64) = (424, 16_905_124_122_722_691_664);
+    const PINNED_CHECKPOINT: (usize, u64) = (663, 218_612_266_170_998_216);
 
     #[test]
     fn content_below_the_band_is_flagged_and_gravity_is_not() {

@@ -458,7 +458,7 @@ impl SensorState {
         if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
-                let est = tilt(corrector.set(SetKind::Static), t.output_lp);
+                let est = tilt(corrector.set(SetKind::Static), t.output_lp, &t.low_band);
                 let sample = TiltSample {
                     format_version: JSON_FORMAT_VERSION,
                     sensor_id: self.entry.id.clone(),
