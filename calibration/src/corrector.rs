@@ -216,7 +216,11 @@ impl SetCorrector {
         }
 
         let mut const_cov = Matrix3::zeros();
-        let output_noise_var = record.sensor.output_noise.unwrap_or([0.0; 3]).map(|n| n * n);
+        let output_noise_var = record
+            .sensor
+            .output_noise
+            .unwrap_or([0.0; 3])
+            .map(|n| n * n);
         if let Some(noise) = record.sensor.output_noise {
             let sigma_v = Matrix3::from_diagonal(&noise.map(|n| n * n).into());
             const_cov += s_inv * sigma_v * s_inv.transpose();
@@ -323,7 +327,8 @@ impl SetCorrector {
         extra_output_var: [f64; 3],
     ) -> [[f64; 3]; 3] {
         let scaled = self.scale(v);
-        let out_var = [0, 1, 2].map(|j| self.output_noise_var[j] * noise_gain + extra_output_var[j]);
+        let out_var =
+            [0, 1, 2].map(|j| self.output_noise_var[j] * noise_gain + extra_output_var[j]);
         let m = &self.s_inv;
         let mut c = [[0.0; 3]; 3];
         for (k, row) in c.iter_mut().enumerate() {
@@ -474,7 +479,10 @@ mod tests {
         let extra = set.covariance_filtered(v, 0.25, [0.0, 0.0, 1.0]);
         // x: (0.02/2)²·0.25; y: 0.05² + (0.04/4)²·0.25; z: 1/5².
         assert!((extra[0][0] - 0.25e-4).abs() < 1e-15, "{extra:?}");
-        assert!((extra[1][1] - (0.0025 + 0.25e-4)).abs() < 1e-15, "{extra:?}");
+        assert!(
+            (extra[1][1] - (0.0025 + 0.25e-4)).abs() < 1e-15,
+            "{extra:?}"
+        );
         assert!((extra[2][2] - 0.04).abs() < 1e-15, "{extra:?}");
     }
 

@@ -294,11 +294,17 @@ mod tests {
         let c = Coefficients::low_pass(fc, fs);
         let delay_s = c.dc_delay_samples() / fs;
         let expect_s = 2f64.sqrt() / (2.0 * PI * fc);
-        assert!((delay_s - expect_s).abs() < 1e-4 * expect_s, "{delay_s} vs {expect_s}");
+        assert!(
+            (delay_s - expect_s).abs() < 1e-4 * expect_s,
+            "{delay_s} vs {expect_s}"
+        );
         let enbw_hz = fc * (PI / 4.0) / (PI / 4.0).sin();
         let expect_gain = 2.0 * enbw_hz / fs;
         let gain = c.noise_gain();
-        assert!((gain - expect_gain).abs() < 1e-3 * expect_gain, "{gain} vs {expect_gain}");
+        assert!(
+            (gain - expect_gain).abs() < 1e-3 * expect_gain,
+            "{gain} vs {expect_gain}"
+        );
 
         // And by simulation: a ramp, once the start has faded, lags by exactly that delay.
         let mut f = Biquad3::new(c);

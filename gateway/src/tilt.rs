@@ -174,8 +174,8 @@ impl TiltFilter {
             b.y0 = y;
         }
         let i = f64::from(b.n);
-        for k in 0..3 {
-            let d = y[k] - b.y0[k];
+        for (k, yk) in y.iter().enumerate() {
+            let d = yk - b.y0[k];
             b.sy[k] += d;
             b.siy[k] += i * d;
             b.syy[k] += d * d;
@@ -193,13 +193,12 @@ impl TiltFilter {
         // Σi and Σi² over i = 0..n−1, centred.
         let si = n * (n - 1.0) / 2.0;
         let sxx = (n - 1.0) * n * (n + 1.0) / 12.0;
-        let mut slope = [0.0; 3];
-        for k in 0..3 {
+        let slope = [0, 1, 2].map(|k| {
             let sxy = b.siy[k] - si * b.sy[k] / n;
             let syy = b.syy[k] - b.sy[k] * b.sy[k] / n;
-            slope[k] = sxy / sxx * self.sample_rate_hz;
             self.ripple_var[k] = ((syy - sxy * sxy / sxx) / n).max(0.0);
-        }
+            sxy / sxx * self.sample_rate_hz
+        });
         if let Some(last) = self.last_slope {
             for k in 0..3 {
                 let change = (slope[k] - last[k]).abs();
@@ -213,11 +212,8 @@ impl TiltFilter {
 /// Tilt of the static-corrected, low-passed output `output_lp`, with the filter's own errors.
 pub fn tilt(static_set: &SetCorrector, output_lp: [f64; 3], low_band: &LowBandError) -> Tilt {
     let a = static_set.accel(output_lp);
-    let cov = static_set.covariance_filtered(
-        output_lp,
-        low_band.noise_gain,
-        low_band.extra_output_var,
-    );
+    let cov =
+        static_set.covariance_filtered(output_lp, low_band.noise_gain, low_band.extra_output_var);
     let [ax, ay, az] = a;
     let r2 = ay * ay + az * az;
     let r = r2.sqrt();

@@ -25,6 +25,8 @@
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
+//! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
+//!   sample's instant lies within ±k·u at the stated rate.
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
@@ -36,6 +38,8 @@ mod console;
 mod hardening;
 #[path = "gateway/history.rs"]
 mod history;
+#[path = "gateway/tilt.rs"]
+mod tilt;
 mod util;
 
 use std::f64::consts::PI;
@@ -565,7 +569,8 @@ async fn split_mode_and_tilt_stream() {
         ]
     };
     let zero = [0.0; 3];
-    let n_batches = 20u64;
+    // 20 s: the tilt low pass settles from its start in 10.4 s before its first sample.
+    let n_batches = 40u64;
     for seq in 0..n_batches {
         let samples = (0..50)
             .map(|i| {
@@ -597,13 +602,13 @@ async fn split_mode_and_tilt_stream() {
             }
         }
     }
-    // Tilt every 0.5 s of sensor time over 10 s: wait for the estimate made at the stream's
-    // end (within one publishing interval of it), then check the settled ones.
+    // Tilt every 0.5 s of sensor time once settled, each describing the instant 2.25 s (the
+    // low pass's delay) before its last sample: wait for the one made at the stream's end.
     let stream_end_ns = 1_800_000_000_000_000_000 + n_batches as i64 * 500_000_000;
     let mut tilts: Vec<TiltSample> = Vec::new();
     while tilts
         .last()
-        .is_none_or(|t| t.timestamp_ns < stream_end_ns - 1_000_000_000)
+        .is_none_or(|t| t.timestamp_ns < stream_end_ns - 3_000_000_000)
     {
         let s = tokio::time::timeout(TIMEOUT, tilt_sub.recv_async())
             .await
@@ -611,7 +616,7 @@ async fn split_mode_and_tilt_stream() {
             .unwrap();
         tilts.push(from_json::<TiltSample>(&s.payload().to_bytes()).expect("tilt decodes"));
     }
-    assert!(tilts.len() >= 10, "{} tilt samples", tilts.len());
+    assert!(tilts.len() >= 16, "{} tilt samples", tilts.len());
     let last = tilts.last().unwrap();
     assert_eq!(last.calibration_version, 1);
     assert!(last.roll_uncertainty_deg > 0.0 && last.roll_uncertainty_deg < 0.5);
