@@ -626,6 +626,7 @@ mod tests {
             duplicates: 0,
             rejects: 0,
             flagged_samples: 0,
+            keys_declared: true,
             calibration_version: version,
             mode: if version.is_some() {
                 Mode::Dynamic

@@ -23,6 +23,8 @@ pub const DEFAULT_MAX_SENSORS: usize = 100_000;
 
 /// Default of [`Config::unknown_sensor_expiry`], seconds.
 pub const DEFAULT_UNKNOWN_SENSOR_EXPIRY_S: f64 = 300.0;
+/// Default of [`Config::declared_keys_idle`], seconds.
+pub const DEFAULT_DECLARED_KEYS_IDLE_S: f64 = 60.0;
 
 /// Default of `declared_keys_mib`: Zenoh routing state for about 23 000 keys, 11 000 sensors.
 pub const DEFAULT_DECLARED_KEYS_MIB: f64 = 64.0;
@@ -190,6 +192,9 @@ pub struct Config {
     /// all declared or none (BENCHMARKS.md). Why a bound: each key costs its routing state, and
     /// a network that names new sensors must not grow the gateway's memory without bound.
     pub declared_keys_max: usize,
+    /// A sensor silent this long gives its declared keys back to the budget, where a sensor
+    /// streaming on undeclared keys takes them; it declares them again when it speaks.
+    pub declared_keys_idle: Duration,
     pub zenoh: ZenohSettings,
     pub calibration: CalibrationSettings,
     /// None: no history is kept (and history queries are not answered).
@@ -249,6 +254,7 @@ pub struct FileConfig {
     pub max_sensors: Option<usize>,
     pub unknown_sensor_expiry_s: Option<f64>,
     pub declared_keys_mib: Option<f64>,
+    pub declared_keys_idle_s: Option<f64>,
     #[serde(default)]
     pub zenoh: ZenohSettings,
     #[serde(default)]
@@ -346,6 +352,12 @@ impl FileConfig {
         }
         let declared_keys_max =
             (declared_keys_mib * (1u64 << 20) as f64 / DECLARED_KEY_BYTES as f64) as usize;
+        let declared_keys_idle = duration_in(
+            "declared_keys_idle_s",
+            self.declared_keys_idle_s
+                .unwrap_or(DEFAULT_DECLARED_KEYS_IDLE_S),
+            1.0..=86_400.0,
+        )?;
         let unknown_sensor_expiry = duration_in(
             "unknown_sensor_expiry_s",
             self.unknown_sensor_expiry_s
@@ -398,6 +410,7 @@ impl FileConfig {
             max_sensors,
             unknown_sensor_expiry,
             declared_keys_max,
+            declared_keys_idle,
             zenoh,
             calibration,
             history,

@@ -42,6 +42,8 @@ pub enum Next<T> {
     Late(T),
     /// Closed and empty: the worker stops.
     Closed,
+    /// Nothing came for the time given to [`Inbox::pop_or_idle`].
+    Idle,
 }
 
 impl<T> Inbox<T> {
@@ -85,6 +87,13 @@ impl<T> Inbox<T> {
 
     /// Waits for the next entry, or for the inbox to close.
     pub fn pop(&self) -> Next<T> {
+        self.pop_or_idle(None)
+    }
+
+    /// As [`pop`](Self::pop), but gives up with [`Next::Idle`] after `idle` with nothing to
+    /// hand out, so that a worker whose sensors fell silent still does its housekeeping.
+    pub fn pop_or_idle(&self, idle: Option<std::time::Duration>) -> Next<T> {
+        let deadline = idle.map(|d| Instant::now() + d);
         let mut s = self.lock();
         loop {
             if let Some(item) = s.queue.pop_front() {
@@ -96,7 +105,19 @@ impl<T> Inbox<T> {
             if s.drain_until.is_some() {
                 return Next::Closed;
             }
-            s = self.ready.wait(s).unwrap_or_else(|p| p.into_inner());
+            s = match deadline {
+                None => self.ready.wait(s).unwrap_or_else(|p| p.into_inner()),
+                Some(deadline) => {
+                    let left = deadline.saturating_duration_since(Instant::now());
+                    if left.is_zero() {
+                        return Next::Idle;
+                    }
+                    self.ready
+                        .wait_timeout(s, left)
+                        .unwrap_or_else(|p| p.into_inner())
+                        .0
+                }
+            };
         }
     }
 
@@ -146,6 +167,16 @@ mod tests {
         std::thread::sleep(Duration::from_millis(50));
         q.push(7);
         assert_eq!(t.join().unwrap(), Next::Item(7));
+    }
+
+    #[test]
+    fn an_empty_inbox_says_idle_after_the_time_given_and_an_item_still_comes_first() {
+        let q = Inbox::<u32>::new(2, Arc::new(AtomicU64::new(0)));
+        let started = Instant::now();
+        assert_eq!(q.pop_or_idle(Some(Duration::from_millis(30))), Next::Idle);
+        assert!(started.elapsed() >= Duration::from_millis(30));
+        q.push(3);
+        assert_eq!(q.pop_or_idle(Some(Duration::ZERO)), Next::Item(3));
     }
 
     #[test]

@@ -480,6 +480,8 @@ impl Gateway {
             table: table.clone(),
             counters: counters.clone(),
             declared_keys_max: config.declared_keys_max,
+            declared_keys_idle_ns: config.declared_keys_idle.as_nanos().min(i64::MAX as u128)
+                as i64,
             history: recorder.as_ref().map(|r| r.sink.clone()),
         });
         let (inboxes, subscriber) = start_intake(&config, &session, &counters, &shared).await?;

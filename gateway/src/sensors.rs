@@ -61,6 +61,8 @@ pub struct SensorCounters {
     pub last_published_sequence: AtomicU64,
     pub last_published_timestamp_ns: AtomicI64,
     pub last_published_ns: AtomicI64,
+    /// Whether the worker holds the sensor's keys declared (see `worker::SensorKeys`).
+    pub keys_declared: AtomicBool,
 }
 
 /// One sensor as the gateway knows it.
@@ -129,6 +131,7 @@ impl SensorEntry {
             duplicates: c.duplicates.load(Relaxed),
             rejects: c.rejects.load(Relaxed),
             flagged_samples: c.flagged_samples.load(Relaxed),
+            keys_declared: c.keys_declared.load(Relaxed),
             calibration_version: version,
             mode: if version.is_some() {
                 self.settings.mode.wire()

@@ -39,6 +39,8 @@ pub struct Shared {
     pub counters: Arc<GatewayCounters>,
     /// [`crate::Config::declared_keys_max`].
     pub declared_keys_max: usize,
+    /// [`crate::Config::declared_keys_idle`].
+    pub declared_keys_idle_ns: i64,
     /// Where corrected batches are kept; none when the history is off.
     pub history: Option<Arc<history::Sink>>,
 }
@@ -116,11 +118,11 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
 /// The keys a sensor uses on Zenoh.
 struct SensorKeys {
     /// The sensor's raw key, declared on the gateway's own session while the budget lasts.
-    /// Never read: holding it keeps a routing entry for the key, so Zenoh looks up the route of
+    /// Not used to receive: holding it keeps a routing entry for the key, so Zenoh looks up the route of
     /// each incoming batch instead of matching the key against every subscription again, which
     /// it does for a key sent in full (as a node's publisher does unless it declared the key
     /// itself). That matching was a quarter of the gateway's CPU per batch (BENCHMARKS.md).
-    _input_route: Option<SensorKey>,
+    input_route: Option<SensorKey>,
     corrected: SensorKey,
     /// Only for inclinometers.
     tilt: Option<SensorKey>,
@@ -130,6 +132,13 @@ struct SensorKeys {
 }
 
 impl SensorKeys {
+    /// Whether any of these keys holds a place in the declared-key budget.
+    fn holds_places(&self) -> bool {
+        self.input_route.is_some()
+            || self.corrected.is_declared()
+            || self.tilt.as_ref().is_some_and(SensorKey::is_declared)
+    }
+
     fn new(shared: &Shared, entry: &SensorEntry, declare: bool) -> zenoh::Result<SensorKeys> {
         let (b, id) = (&shared.building, &entry.id);
         let key = |k: Key| match declare {
@@ -137,15 +146,20 @@ impl SensorKeys {
             false => KeyExpr::try_from(k.to_string()).map(SensorKey::Plain),
         };
         let input = key(Key::Raw(b.clone(), id.clone()))?;
-        Ok(SensorKeys {
-            _input_route: input.is_declared().then_some(input),
+        let keys = SensorKeys {
+            input_route: input.is_declared().then_some(input),
             corrected: key(Key::Corrected(b.clone(), id.clone()))?,
             tilt: match entry.settings.tilt {
                 true => Some(key(Key::Tilt(b.clone(), id.clone()))?),
                 false => None,
             },
             declared: declare,
-        })
+        };
+        entry
+            .counters
+            .keys_declared
+            .store(keys.holds_places(), Relaxed);
+        Ok(keys)
     }
 }
 
@@ -193,8 +207,9 @@ pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shared: Arc<Shared>) {
     tracing::debug!(worker = index, "worker started");
     let mut abandoned = 0u64;
     loop {
-        match inbox.pop() {
+        match inbox.pop_or_idle(Some(SWEEP_INTERVAL)) {
             Next::Item(sample) => shard.handle(&shared, sample),
+            Next::Idle => shard.sweep(&shared),
             Next::Late(_) => {
                 shared.counters.dropped.fetch_add(1, Relaxed);
                 abandoned += 1;
@@ -237,7 +252,7 @@ impl Shard {
     /// Corrects and publishes one raw batch; a bad one is counted and skipped. The batch's key
     /// is a concrete raw key of the building, checked at intake.
     pub fn handle(&mut self, shared: &Shared, sample: Sample) {
-        self.sweep_now_and_then();
+        self.sweep_now_and_then(shared);
         let Shard {
             sensors, scratch, ..
         } = self;
@@ -328,7 +343,7 @@ impl Shard {
     /// Drops the state of sensors the table forgot (displaced or expired), which gives back
     /// their declared keys; at most once a [`SWEEP_INTERVAL`], the clock read every
     /// [`SWEEP_CHECK_BATCHES`] batches.
-    fn sweep_now_and_then(&mut self) {
+    fn sweep_now_and_then(&mut self, shared: &Shared) {
         self.since_sweep += 1;
         if self.since_sweep < SWEEP_CHECK_BATCHES {
             return;
@@ -342,14 +357,55 @@ impl Shard {
             return;
         }
         self.last_sweep = Some(now);
-        self.sweep();
+        self.sweep(shared);
     }
 
-    /// Drops the state of every sensor the table forgot.
-    pub fn sweep(&mut self) {
+    /// Drops the state of every sensor the table forgot; moves declared keys from silent
+    /// sensors to streaming ones.
+    pub fn sweep(&mut self, shared: &Shared) {
         self.sensors.retain(|_, s| !s.entry.is_evicted());
         if self.sensors.capacity() > 4 * self.sensors.len().max(256) {
             self.sensors.shrink_to_fit();
+        }
+        self.reassign_keys(shared);
+    }
+
+    /// A sensor silent for `declared_keys_idle` gives its declared keys back to the budget (it
+    /// declares them again when it speaks); a streaming sensor whose keys went undeclared
+    /// because the budget was spent declares them on its next batch, while there is room. So the
+    /// budget follows the sensors that stream, not the first ones ever seen.
+    fn reassign_keys(&mut self, shared: &Shared) {
+        let idle_before_ns = now_ns().saturating_sub(shared.declared_keys_idle_ns);
+        let mut waiting = false;
+        for s in self.sensors.values_mut() {
+            let silent = s.entry.counters.last_seen_ns.load(Relaxed) < idle_before_ns;
+            if silent && s.keys.holds_places() {
+                match SensorKeys::new(shared, &s.entry, false) {
+                    Ok(plain) => s.keys = plain,
+                    Err(e) => {
+                        tracing::warn!(sensor = %s.entry.id, cause = %e, "cannot release the sensor's keys")
+                    }
+                }
+            } else if !silent && s.keys.declared && !s.keys.holds_places() {
+                waiting = true;
+            }
+        }
+        if !waiting {
+            return;
+        }
+        let mut room = shared
+            .declared_keys_max
+            .saturating_sub(shared.counters.declared_keys.load(Relaxed));
+        for s in self.sensors.values_mut() {
+            let needed = 2 + usize::from(s.entry.settings.tilt);
+            if room < needed {
+                break;
+            }
+            let silent = s.entry.counters.last_seen_ns.load(Relaxed) < idle_before_ns;
+            if !silent && s.keys.declared && !s.keys.holds_places() {
+                s.keys.declared = false;
+                room -= needed;
+            }
         }
     }
 }

@@ -157,6 +157,10 @@ pub struct SensorStatus {
     pub rejects: u64,
     /// Samples published with any quality flag set.
     pub flagged_samples: u64,
+    /// Whether the sensor's keys are declared to Zenoh (`declared_keys_mib`): a sensor
+    /// streaming undeclared costs the gateway more CPU per batch.
+    #[serde(default)]
+    pub keys_declared: bool,
     /// Version in force; none when uncalibrated.
     pub calibration_version: Option<u64>,
     pub mode: Mode,
@@ -471,6 +475,7 @@ mod tests {
                 duplicates: 0,
                 rejects: 1,
                 flagged_samples: 100,
+                keys_declared: true,
                 calibration_version: Some(4),
                 mode: Mode::Dynamic,
                 valid_from: Some(t()),

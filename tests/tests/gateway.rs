@@ -263,6 +263,78 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
     gw.stop().await;
 }
 
+/// Room for one sensor's two keys: the first sensor takes them; once it falls silent for
+/// `declared_keys_idle`, it gives them back and the sensor that kept streaming undeclared
+/// takes them, even with the two sensors on different workers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config("b8k", &dir.path().join("store"));
+    cfg.declared_keys_max = 2;
+    cfg.declared_keys_idle = std::time::Duration::from_millis(300);
+    cfg.workers = 2;
+    assert_ne!(
+        triax_gateway::worker::shard("silent", 2),
+        triax_gateway::worker::shard("streaming", 2),
+        "the two sensors are meant for different workers"
+    );
+    let gw = start(cfg).await;
+    let session = client(&gw.endpoint).await;
+    // Established after a few batches (`sensors::ESTABLISHED_BATCHES`): then declared.
+    let send = |id: &'static str, seq: u64| {
+        let session = session.clone();
+        async move {
+            session
+                .put(
+                    key_raw("b8k", id),
+                    raw(id, seq, vec![[0.1, -0.2, 0.98]; 10]),
+                )
+                .await
+                .unwrap();
+        }
+    };
+    let declared = |id: &'static str| {
+        let session = session.clone();
+        async move {
+            let st = status(&session, "b8k").await;
+            st.sensors
+                .iter()
+                .find(|s| s.sensor_id.as_str() == id)
+                .map(|s| s.keys_declared)
+        }
+    };
+    let mut seq = 0;
+    while declared("silent").await != Some(true) {
+        send("silent", seq).await;
+        seq += 1;
+        assert!(seq < 2000, "the silent sensor never declared its keys");
+        tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+    }
+    for i in 0..20 {
+        send("streaming", i).await;
+    }
+    wait_until_async("the streaming sensor is seen", || async {
+        declared("streaming").await.is_some()
+    })
+    .await;
+    assert_eq!(declared("streaming").await, Some(false), "no room yet");
+    // The first falls silent; the second keeps streaming.
+    let mut i = 20;
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while declared("streaming").await != Some(true) {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the silent sensor's keys never went to the streaming one"
+        );
+        send("streaming", i).await;
+        i += 1;
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(declared("silent").await, Some(false));
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_publishes_every_batch_already_received() {
     use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
