@@ -26,8 +26,11 @@ pub const DEFAULT_UNKNOWN_SENSOR_EXPIRY_S: f64 = 300.0;
 /// Default of [`Config::declared_keys_idle`], seconds.
 pub const DEFAULT_DECLARED_KEYS_IDLE_S: f64 = 60.0;
 
-/// Default of `declared_keys_mib`: Zenoh routing state for about 23 000 keys, 11 000 sensors.
-pub const DEFAULT_DECLARED_KEYS_MIB: f64 = 64.0;
+/// Default of `declared_keys_mib`: Zenoh routing state for about 5 800 keys, 2 900 sensors.
+/// Not more: with 10 000 keys declared (5 000 sensors), Zenoh 1.10 spent 110 µs of CPU per
+/// batch and the gateway fell behind, against 13 µs with every key undeclared (BENCHMARKS.md);
+/// up to 3 500 sensors, declared keys are the cheaper (8–9 µs).
+pub const DEFAULT_DECLARED_KEYS_MIB: f64 = 16.0;
 
 /// What one declared key costs in Zenoh 1.10's routing state, measured (BENCHMARKS.md: the
 /// gateway's resident set with 2000 sensors, all keys declared and none).
@@ -181,9 +184,11 @@ pub struct Config {
     /// counters and correction state); calibrated sensors are never forgotten.
     pub unknown_sensor_expiry: Duration,
     /// Most keys declared to Zenoh: a sensor's raw key (its input) and its output keys
-    /// (corrected, tilt), for calibrated and established sensors in the order they come
-    /// online; further keys are used undeclared. Set in bytes (`declared_keys_mib`), at
-    /// [`DECLARED_KEY_BYTES`] a key.
+    /// (corrected, tilt), declared together for calibrated and established sensors as they come
+    /// online, all or nothing: a store with more calibrated sensors than the budget holds
+    /// starts undeclared, and streaming sensors left waiting for room past the patience of
+    /// `worker::Shard::reassign_keys` turn every key undeclared. Set in bytes
+    /// (`declared_keys_mib`), at [`DECLARED_KEY_BYTES`] a key.
     ///
     /// Why declare: Zenoh keeps the routes of a declared key, while the route of an undeclared
     /// one is worked out again for every batch that uses it, by matching the key against every

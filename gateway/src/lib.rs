@@ -473,6 +473,19 @@ impl Gateway {
             .await
             .map_err(zenoh_err("open session"))?;
         let counters = Arc::new(GatewayCounters::default());
+        // A store that already holds more calibrated sensors than the key budget can declare
+        // starts undeclared: waiting to find out would spend minutes partly declared, the
+        // slowest state (see `worker::Shard::reassign_keys`).
+        if loaded.saturating_mul(2) > config.declared_keys_max {
+            counters
+                .keys_undeclared
+                .store(true, std::sync::atomic::Ordering::Relaxed);
+            tracing::info!(
+                calibrations = loaded,
+                budget_keys = config.declared_keys_max,
+                "more calibrated sensors than declared_keys_mib holds: keys are used undeclared"
+            );
+        }
         let (trigger, shutdown) = shutdown::channel();
         let shared = Arc::new(worker::Shared {
             building: config.building.clone(),

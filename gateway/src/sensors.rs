@@ -390,8 +390,9 @@ pub struct GatewayCounters {
     pub sensors_online: AtomicU64,
     /// Keys declared to Zenoh, raw and output (at most `declared_keys_max`).
     pub declared_keys: AtomicUsize,
-    /// Set once a key could not be declared for want of budget (logged once).
-    pub keys_budget_spent: AtomicBool,
+    /// Set once streaming sensors waited for declared keys longer than `declared_keys_idle`:
+    /// from then on every key is used undeclared (logged once).
+    pub keys_undeclared: AtomicBool,
     /// Payloads on the raw subscription whose key is not a concrete raw key of this building,
     /// by [`RawKeyRefusal`] (in the order of [`RawKeyRefusal::ALL`]).
     pub refused_keys: [AtomicU64; 3],

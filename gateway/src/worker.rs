@@ -77,31 +77,38 @@ impl SensorKey {
 }
 
 impl Shared {
-    /// `key` declared to Zenoh if fewer than `declared_keys_max` keys are, so that Zenoh keeps
-    /// its routes rather than working them out for every batch (see
-    /// [`crate::Config::declared_keys_max`]); plain once the budget is spent.
-    fn key(&self, key: &Key) -> zenoh::Result<SensorKey> {
-        let taken = self
-            .counters
-            .declared_keys
-            .fetch_update(Relaxed, Relaxed, |n| {
-                (n < self.declared_keys_max).then_some(n + 1)
-            })
-            .is_ok();
-        if !taken {
-            if !self.counters.keys_budget_spent.swap(true, Relaxed) {
-                tracing::warn!(
-                    declared = self.declared_keys_max,
-                    "declared_keys_mib spent: further keys are used undeclared, and every batch \
-                     on them is matched against every declared key (raise the budget)"
-                );
-            }
-            return KeyExpr::try_from(key.to_string()).map(SensorKey::Plain);
+    /// Takes `n` places in the declared-key budget at once, or none: a sensor's keys are
+    /// declared together or not at all.
+    fn reserve(&self, n: usize) -> Option<Vec<Place>> {
+        if self.counters.keys_undeclared.load(Relaxed) {
+            return None;
         }
+        self.counters
+            .declared_keys
+            .fetch_update(Relaxed, Relaxed, |taken| {
+                (taken + n <= self.declared_keys_max).then_some(taken + n)
+            })
+            .ok()?;
+        Some((0..n).map(|_| Place(self.counters.clone())).collect())
+    }
+
+    /// `key` declared to Zenoh in the place given, so that Zenoh keeps its routes.
+    fn declare(&self, key: &Key, place: Place) -> zenoh::Result<SensorKey> {
         // Dropped on error, the place goes back to the budget.
-        let place = Place(self.counters.clone());
         let key = self.session.declare_keyexpr(key.to_string()).wait()?;
         Ok(SensorKey::Declared { key, _place: place })
+    }
+
+    /// From now on every key is used undeclared (see [`Shard::reassign_keys`]).
+    fn turn_keys_undeclared(&self) {
+        if !self.counters.keys_undeclared.swap(true, Relaxed) {
+            tracing::warn!(
+                budget_keys = self.declared_keys_max,
+                "more streaming sensors than declared_keys_mib holds: every key is used \
+                 undeclared from now on (a partly declared gateway is the slowest; raise the \
+                 budget to declare them all)"
+            );
+        }
     }
 }
 
@@ -141,9 +148,15 @@ impl SensorKeys {
 
     fn new(shared: &Shared, entry: &SensorEntry, declare: bool) -> zenoh::Result<SensorKeys> {
         let (b, id) = (&shared.building, &entry.id);
-        let key = |k: Key| match declare {
-            true => shared.key(&k),
-            false => KeyExpr::try_from(k.to_string()).map(SensorKey::Plain),
+        let needed = 2 + usize::from(entry.settings.tilt);
+        let mut places = if declare {
+            shared.reserve(needed)
+        } else {
+            None
+        };
+        let mut key = |k: Key| match places.as_mut().and_then(Vec::pop) {
+            Some(place) => shared.declare(&k, place),
+            None => KeyExpr::try_from(k.to_string()).map(SensorKey::Plain),
         };
         let input = key(Key::Raw(b.clone(), id.clone()))?;
         let keys = SensorKeys {
@@ -188,6 +201,8 @@ pub struct Shard {
     /// Batches handled since the last sweep for forgotten sensors.
     since_sweep: u32,
     last_sweep: Option<std::time::Instant>,
+    /// Since when streaming sensors of this worker wait for room in the declared-key budget.
+    waiting_since: Option<std::time::Instant>,
 }
 
 /// Batches between two looks at the clock for a sweep.
@@ -370,41 +385,67 @@ impl Shard {
         self.reassign_keys(shared);
     }
 
-    /// A sensor silent for `declared_keys_idle` gives its declared keys back to the budget (it
-    /// declares them again when it speaks); a streaming sensor whose keys went undeclared
-    /// because the budget was spent declares them on its next batch, while there is room. So the
-    /// budget follows the sensors that stream, not the first ones ever seen.
+    /// Keeps the declared-key budget on the sensors that stream, all or nothing.
+    ///
+    /// A sensor silent for `declared_keys_idle` gives its declared keys back (it declares them
+    /// again when it speaks); a streaming sensor whose keys are plain for want of room takes the
+    /// room given back, on its next batch. If streaming sensors still wait twice
+    /// `declared_keys_idle` and two sweeps later, the budget cannot hold them all, and a partly declared gateway is
+    /// the slowest (a batch on a plain key is matched against every declared one): then every
+    /// key of every worker goes undeclared, for good.
     fn reassign_keys(&mut self, shared: &Shared) {
-        let idle_before_ns = now_ns().saturating_sub(shared.declared_keys_idle_ns);
-        let mut waiting = false;
-        for s in self.sensors.values_mut() {
-            let silent = s.entry.counters.last_seen_ns.load(Relaxed) < idle_before_ns;
-            if silent && s.keys.holds_places() {
-                match SensorKeys::new(shared, &s.entry, false) {
-                    Ok(plain) => s.keys = plain,
-                    Err(e) => {
-                        tracing::warn!(sensor = %s.entry.id, cause = %e, "cannot release the sensor's keys")
-                    }
-                }
-            } else if !silent && s.keys.declared && !s.keys.holds_places() {
-                waiting = true;
+        let release = |s: &mut SensorState| match SensorKeys::new(shared, &s.entry, false) {
+            Ok(plain) => s.keys = plain,
+            Err(e) => {
+                tracing::warn!(sensor = %s.entry.id, cause = %e, "cannot release the sensor's keys")
             }
-        }
-        if !waiting {
+        };
+        if shared.counters.keys_undeclared.load(Relaxed) {
+            for s in self.sensors.values_mut().filter(|s| s.keys.holds_places()) {
+                release(s);
+            }
             return;
+        }
+        let idle_before_ns = now_ns().saturating_sub(shared.declared_keys_idle_ns);
+        let silent = |s: &SensorState| s.entry.counters.last_seen_ns.load(Relaxed) < idle_before_ns;
+        let waits = |s: &SensorState| s.keys.declared && !s.keys.holds_places();
+        for s in self.sensors.values_mut() {
+            if silent(s) && s.keys.holds_places() {
+                release(s);
+            }
         }
         let mut room = shared
             .declared_keys_max
             .saturating_sub(shared.counters.declared_keys.load(Relaxed));
+        let mut left_waiting = false;
         for s in self.sensors.values_mut() {
-            let needed = 2 + usize::from(s.entry.settings.tilt);
-            if room < needed {
-                break;
+            if silent(s) || !waits(s) {
+                continue;
             }
-            let silent = s.entry.counters.last_seen_ns.load(Relaxed) < idle_before_ns;
-            if !silent && s.keys.declared && !s.keys.holds_places() {
+            let needed = 2 + usize::from(s.entry.settings.tilt);
+            if needed <= room {
+                // Its next batch declares them (`establish`).
                 s.keys.declared = false;
                 room -= needed;
+            } else {
+                left_waiting = true;
+            }
+        }
+        if !left_waiting {
+            self.waiting_since = None;
+            return;
+        }
+        // Long enough for every silent sensor to have been released by its own worker (each
+        // sweeps at least once a SWEEP_INTERVAL), with room to spare.
+        let patience_ns =
+            2 * shared.declared_keys_idle_ns.max(0) as u128 + 2 * SWEEP_INTERVAL.as_nanos();
+        let since = *self
+            .waiting_since
+            .get_or_insert_with(std::time::Instant::now);
+        if since.elapsed().as_nanos() >= patience_ns {
+            shared.turn_keys_undeclared();
+            for s in self.sensors.values_mut().filter(|s| s.keys.holds_places()) {
+                release(s);
             }
         }
     }

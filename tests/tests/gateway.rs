@@ -8,8 +8,11 @@
 //!   the corrected values fall within the tagged k = 2 interval at the expected rate.
 //! - `uncalibrated_sensor_is_published_flagged_and_counted`: no record: raw values pass through
 //!   flagged `uncalibrated`, mode none, NaN uncertainty; counted in status and metrics.
-//! - `sensors_past_the_declared_key_budget_publish_undeclared`: with room for one declared key,
-//!   three sensors' streams all arrive.
+//! - `sensors_past_the_declared_key_budget_publish_undeclared`: with room for one sensor's
+//!   keys, three sensors' streams all arrive.
+//! - `declared_keys_move_from_a_silent_sensor_to_a_streaming_one`,
+//!   `more_streaming_sensors_than_the_key_budget_turn_every_key_undeclared`: the budget follows
+//!   the streaming sensors, all or nothing.
 //! - `shutdown_publishes_every_batch_already_received`: stopping right after a burst still
 //!   corrects and publishes what was queued, and the history keeps all of it.
 //! - `status_is_paged_and_bad_parameters_are_refused_by_name`
@@ -228,7 +231,8 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = config("b8", &dir.path().join("store"));
     cfg.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
-    cfg.declared_keys_max = 1;
+    // Room for one sensor's two keys (a sensor's keys are declared together or not at all).
+    cfg.declared_keys_max = 2;
     let gw = start(cfg).await;
     let session = client(&gw.endpoint).await;
     let sub = session
@@ -256,7 +260,7 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
     got.dedup();
     assert_eq!(got, ids, "declared or not, every sensor's stream arrives");
     let page = metrics(gw.metrics.expect("metrics enabled")).await;
-    assert!(page.contains("triax_gateway_declared_keys 1\n"), "{page}");
+    assert!(page.contains("triax_gateway_declared_keys 2\n"), "{page}");
     assert!(page.contains("triax_gateway_sensors_online 3\n"), "{page}");
     assert!(page.contains("process_resident_memory_bytes "), "{page}");
     session.close().await.unwrap();
@@ -271,7 +275,7 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = config("b8k", &dir.path().join("store"));
     cfg.declared_keys_max = 2;
-    cfg.declared_keys_idle = std::time::Duration::from_millis(300);
+    cfg.declared_keys_idle = std::time::Duration::from_millis(1000);
     cfg.workers = 2;
     assert_ne!(
         triax_gateway::worker::shard("silent", 2),
@@ -331,6 +335,78 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
     assert_eq!(declared("silent").await, Some(false));
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+/// Room for one sensor's keys, two sensors streaming: rather than stay partly declared (the
+/// slowest state), the gateway turns every key undeclared, and both streams go on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn more_streaming_sensors_than_the_key_budget_turn_every_key_undeclared() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config("b8u", &dir.path().join("store"));
+    cfg.declared_keys_max = 2;
+    cfg.declared_keys_idle = std::time::Duration::from_millis(200);
+    let gw = start(cfg).await;
+    let session = client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber("triax/b8u/corrected/*")
+        .await
+        .unwrap();
+    let declared = |st: &GatewayStatus| {
+        let mut d: Vec<(String, bool)> = st
+            .sensors
+            .iter()
+            .map(|s| (s.sensor_id.to_string(), s.keys_declared))
+            .collect();
+        d.sort();
+        d
+    };
+    let mut seq = 0;
+    let mut seen_one_declared = false;
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    loop {
+        for id in ["one", "two"] {
+            session
+                .put(
+                    key_raw("b8u", id),
+                    raw(id, seq, vec![[0.1, -0.2, 0.98]; 10]),
+                )
+                .await
+                .unwrap();
+        }
+        seq += 1;
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        // Drained as it goes: a full subscriber channel would hold up this process's Zenoh.
+        while sub.try_recv().ok().flatten().is_some() {}
+        let d = declared(&status(&session, "b8u").await);
+        seen_one_declared |= d.iter().filter(|(_, k)| *k).count() == 1;
+        if seen_one_declared && d.len() == 2 && d.iter().all(|(_, k)| !k) {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "never all undeclared (one declared first: {seen_one_declared}): {d:?}"
+        );
+    }
+    // Both streams still arrive, undeclared.
+    while sub.try_recv().ok().flatten().is_some() {}
+    for id in ["one", "two"] {
+        session
+            .put(
+                key_raw("b8u", id),
+                raw(id, seq, vec![[0.1, -0.2, 0.98]; 10]),
+            )
+            .await
+            .unwrap();
+    }
+    let mut got: Vec<String> = collect(&sub, 2)
+        .await
+        .into_iter()
+        .map(|b| b.header.sensor_id.to_string())
+        .collect();
+    got.sort();
+    assert_eq!(got, ["one", "two"]);
     session.close().await.unwrap();
     gw.stop().await;
 }

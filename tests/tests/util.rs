@@ -189,8 +189,15 @@ pub fn config(building: &str, store: &Path) -> Config {
     Config::for_tests(building, store, vec![endpoint])
 }
 
+/// Starts a gateway; `endpoint` is where it listens, or, for a client of a router, the router.
 pub async fn start(config: Config) -> Running {
-    let endpoint = config.zenoh.listen[0].clone();
+    let endpoint = config
+        .zenoh
+        .listen
+        .first()
+        .or(config.zenoh.connect.first())
+        .expect("a test gateway listens or connects")
+        .clone();
     let gateway = Gateway::start(config).await.expect("gateway starts");
     let metrics = gateway.metrics_addr();
     let (tx, rx) = oneshot::channel::<()>();
