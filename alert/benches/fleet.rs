@@ -167,9 +167,9 @@ async fn main() {
                 &endpoint,
                 "--no-multicast-scouting",
             ])
-            .env("RUST_LOG", "error")
+            .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("triax-alert.log")).expect("log file"))
             .spawn()
             .expect("triax-alert"),
     );
@@ -289,5 +289,13 @@ async fn main() {
         (a.seconds - 3.0).max(0.0) as u64,
         alerts.load(Relaxed)
     );
+    if l.is_empty() {
+        let log = std::fs::read_to_string(dir.path().join("triax-alert.log")).unwrap_or_default();
+        let tail: Vec<&str> = log.lines().rev().take(20).collect();
+        eprintln!("no injected event was alerted; the service's log ends:");
+        for line in tail.into_iter().rev() {
+            eprintln!("  {line}");
+        }
+    }
     drop(service);
 }

@@ -664,10 +664,11 @@ fn evaluate_window(
         noise_share: settings.noise_share,
     };
     let rate = state.sample_rate_hz;
-    let clean_stats = window_stats(&clean, rate, propagation);
+    let with_frequency = state.limits.frequency().next().is_some();
+    let clean_stats = window_stats(&clean, rate, propagation, with_frequency);
     // Only worth a second look when flagged samples add something to the clean ones.
     let flagged_stats = if all.len() > clean.len() {
-        window_stats(&all, rate, propagation)
+        window_stats(&all, rate, propagation, with_frequency)
     } else {
         None
     };

@@ -22,7 +22,7 @@ use std::time::Duration;
 
 use time::OffsetDateTime;
 use tokio::sync::mpsc;
-use triax_client::{Delivery, FollowOptions, Follower};
+use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, TiltSample};
 use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId};
@@ -90,23 +90,17 @@ fn save_state(path: &Path, positions: &Positions) -> std::io::Result<()> {
 
 /// Follows one building: every delivery goes to the monitor's inbox, waiting for room (a full
 /// inbox slows the follower, whose own gap-filling makes up for what Zenoh then drops).
-async fn follow(
-    session: &zenoh::Session,
+fn follow(
+    fleet: &Fleet,
     building: BuildingId,
     resume: BTreeMap<SensorId, u64>,
     tx: mpsc::Sender<Inbound>,
-) -> Result<tokio::task::JoinHandle<()>, ServiceError> {
+) -> tokio::task::JoinHandle<()> {
     let mut options = FollowOptions::new(building.clone());
     options.resume_after = resume;
-    let mut follower =
-        Follower::start(session, options)
-            .await
-            .map_err(|e| ServiceError::Zenoh {
-                what: "follow a building",
-                message: e.to_string(),
-            })?;
+    let mut follower = fleet.follow(options);
     tracing::info!(building = %building, "following corrected streams");
-    Ok(tokio::spawn(async move {
+    tokio::spawn(async move {
         while let Some(d) = follower.next().await {
             if tx
                 .send(Inbound::Corrected(building.clone(), d))
@@ -116,7 +110,7 @@ async fn follow(
                 return;
             }
         }
-    }))
+    })
 }
 
 /// Runs the alerting service until `shutdown` completes.
@@ -135,20 +129,29 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     let (tx, mut rx) = mpsc::channel::<Inbound>(INBOX_CAPACITY);
     let dropped = Arc::new(AtomicU64::new(0));
     let mut subscribers = Vec::new();
-    let tilt_exprs: Vec<String> = if config.watch_all_buildings {
-        vec![all_buildings(Stream::Tilt)]
-    } else {
-        config
-            .buildings
-            .keys()
-            .map(|b| all_sensors(b, Stream::Tilt))
-            .collect()
-    };
-    for expr in tilt_exprs {
+    // One subscription, for the same reason as the corrected streams' (`Fleet`); buildings not
+    // watched are filtered out here.
+    let (tilt_expr, watched): (String, Option<BTreeSet<String>>) =
+        match (config.watch_all_buildings, config.buildings.keys().next()) {
+            (false, Some(b)) if config.buildings.len() == 1 => (all_sensors(b, Stream::Tilt), None),
+            (false, _) => (
+                all_buildings(Stream::Tilt),
+                Some(config.buildings.keys().map(|b| b.to_string()).collect()),
+            ),
+            (true, _) => (all_buildings(Stream::Tilt), None),
+        };
+    {
+        let expr = tilt_expr;
         let (tx, dropped) = (tx.clone(), dropped.clone());
         let sub = session
             .declare_subscriber(expr.clone())
             .callback(move |sample| {
+                let key = sample.key_expr().as_str();
+                if let Some(w) = &watched {
+                    if !key.split('/').nth(1).is_some_and(|b| w.contains(b)) {
+                        return;
+                    }
+                }
                 let msg = Inbound::Tilt {
                     key: sample.key_expr().as_str().to_owned(),
                     payload: sample.payload().to_bytes().into_owned(),
@@ -175,6 +178,17 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             .map_err(zenoh_error("declare subscriber"))?;
         subscribers.push(sub);
     }
+    // One subscription for every followed building: a subscription each would have Zenoh
+    // match every batch against all of them (`triax_client::Fleet`).
+    let only = (!config.watch_all_buildings && config.buildings.len() == 1)
+        .then(|| config.buildings.keys().next().cloned())
+        .flatten();
+    let fleet = Fleet::start(&session, only.as_ref())
+        .await
+        .map_err(|e| ServiceError::Zenoh {
+            what: "follow the buildings",
+            message: e.to_string(),
+        })?;
     let mut followed: BTreeSet<BuildingId> = BTreeSet::new();
     let mut followers = Vec::new();
     // Buildings listed, and buildings the state remembers when watching all.
@@ -184,7 +198,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     }
     for b in initial {
         let resume = positions.get(&b).cloned().unwrap_or_default();
-        followers.push(follow(&session, b.clone(), resume, tx.clone()).await?);
+        followers.push(follow(&fleet, b.clone(), resume, tx.clone()));
         followed.insert(b);
     }
 
@@ -202,7 +216,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
                 Some(Inbound::Building(b)) => {
                     if followed.insert(b.clone()) {
                         let resume = positions.get(&b).cloned().unwrap_or_default();
-                        followers.push(follow(&session, b, resume, tx.clone()).await?);
+                        followers.push(follow(&fleet, b, resume, tx.clone()));
                     }
                     Vec::new()
                 }

@@ -84,6 +84,7 @@ pub fn window_stats(
     samples: &[CorrectedSample],
     sample_rate_hz: f64,
     propagation: Propagation,
+    with_frequency: bool,
 ) -> Option<WindowStats> {
     if samples.is_empty() {
         return None;
@@ -142,7 +143,8 @@ pub fn window_stats(
         axis: rms_axis,
     };
 
-    let dominant_frequency = (n >= MIN_FREQUENCY_SAMPLES).then(|| {
+    // The spectrum is most of the cost of a window: only for sensors with a frequency limit.
+    let dominant_frequency = (with_frequency && n >= MIN_FREQUENCY_SAMPLES).then(|| {
         let window_s = n as f64 / sample_rate_hz;
         Estimate {
             value: dominant_frequency_hz(samples, &mean, sample_rate_hz),
@@ -249,7 +251,7 @@ mod tests {
     #[test]
     fn sine_statistics() {
         let s = sine(1000, 100.0, 2.5, 0.3, 0.01);
-        let w = window_stats(&s, 100.0, CORRELATED).unwrap();
+        let w = window_stats(&s, 100.0, CORRELATED, true).unwrap();
         assert_eq!(w.peak.axis, 0);
         assert!((w.peak.estimate.value - 0.3).abs() < 1e-3, "{w:?}");
         assert_eq!(w.peak.estimate.standard_uncertainty, 0.01f32 as f64);
@@ -270,8 +272,8 @@ mod tests {
     #[test]
     fn independent_noise_shrinks_rms_uncertainty_with_n() {
         let s = sine(1000, 100.0, 2.5, 0.3, 0.01);
-        let all_noise = window_stats(&s, 100.0, Propagation { noise_share: 1.0 }).unwrap();
-        let correlated = window_stats(&s, 100.0, CORRELATED).unwrap();
+        let all_noise = window_stats(&s, 100.0, Propagation { noise_share: 1.0 }, true).unwrap();
+        let correlated = window_stats(&s, 100.0, CORRELATED, true).unwrap();
         // Independent: u(r) ≈ u/√N; correlated does not average away.
         let u_noise = all_noise.rms.estimate.standard_uncertainty;
         assert!((u_noise - 0.01 / 1000f64.sqrt()).abs() < 2e-5, "{u_noise}");
@@ -281,11 +283,11 @@ mod tests {
     #[test]
     fn gravity_is_not_vibration() {
         let s = vec![sample([0.0, 0.0, 9.81], [0.01; 3]); 32];
-        let w = window_stats(&s, 100.0, CORRELATED).unwrap();
+        let w = window_stats(&s, 100.0, CORRELATED, true).unwrap();
         assert!(w.peak.estimate.value < 1e-6);
         assert_eq!(w.rms.estimate.value, 0.0);
         assert!((w.rms.estimate.standard_uncertainty - 0.01).abs() < 1e-6);
-        assert!(window_stats(&[], 100.0, CORRELATED).is_none());
+        assert!(window_stats(&[], 100.0, CORRELATED, true).is_none());
     }
 
     #[test]

@@ -22,7 +22,6 @@ use triax_protocol::batch::{flags, CorrectedBatch};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::Heartbeat;
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
-use zenoh::handlers::FifoChannel;
 
 use crate::history::{fetch, HistoryRequest};
 use crate::{zenoh_err, ClientError};
@@ -80,29 +79,99 @@ pub struct Follower {
     rx: mpsc::Receiver<Delivery>,
     counters: Arc<FollowerCounters>,
     task: tokio::task::JoinHandle<()>,
+    /// Keeps the subscriptions of a follower started alone.
+    _fleet: Option<Fleet>,
 }
 
-impl Follower {
-    /// Subscribes to the building's corrected streams and heartbeat, reads what
-    /// `options.resume_after` says was missed, and starts following.
+/// What a building's follower is told by the subscriptions, in arrival order.
+enum Event {
+    Live(Vec<u8>),
+    Beat(Vec<u8>),
+}
+
+type Routes = Arc<std::sync::RwLock<HashMap<BuildingId, mpsc::Sender<Event>>>>;
+
+/// One subscription to the corrected streams and heartbeats of every building (or of one), shared
+/// by the followers of many buildings.
+///
+/// Why: Zenoh matches every incoming sample against every subscription of the session, so a
+/// service following a hundred buildings with a subscription each paid for a hundred key
+/// matches per batch (at 100 000 batches/s, more than a core). One wildcard subscription and a
+/// map lookup by the key's building chunk cost one.
+pub struct Fleet {
+    session: zenoh::Session,
+    routes: Routes,
+    _live: zenoh::pubsub::Subscriber<()>,
+    _beats: zenoh::pubsub::Subscriber<()>,
+}
+
+impl Fleet {
+    /// Subscribes to the corrected streams and heartbeats of `building`, or of every building
+    /// when none is given. Nothing is followed until [`Fleet::follow`].
     pub async fn start(
         session: &zenoh::Session,
-        options: FollowOptions,
-    ) -> Result<Follower, ClientError> {
+        building: Option<&BuildingId>,
+    ) -> Result<Fleet, ClientError> {
+        let routes: Routes = Arc::default();
+        let (live_expr, beat_expr) = match building {
+            Some(b) => (
+                keys::all_sensors(b, Stream::Corrected),
+                Key::Heartbeat(b.clone()).to_string(),
+            ),
+            None => (
+                keys::all_buildings(Stream::Corrected),
+                "triax/*/heartbeat".to_owned(),
+            ),
+        };
+        let route = |routes: Routes, wrap: fn(Vec<u8>) -> Event| {
+            move |sample: zenoh::sample::Sample| {
+                // `triax/<building>/…`: the second chunk.
+                let Some(b) = sample.key_expr().as_str().split('/').nth(1) else {
+                    return;
+                };
+                let Ok(b) = BuildingId::new(b) else { return };
+                let tx = routes
+                    .read()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .get(&b)
+                    .cloned();
+                // A follower that cannot keep up loses the batch here and reads it back from
+                // the history when the next one shows the gap; Zenoh's thread never waits.
+                if let Some(tx) = tx {
+                    let _ = tx.try_send(wrap(sample.payload().to_bytes().into_owned()));
+                }
+            }
+        };
         let live = session
-            .declare_subscriber(keys::all_sensors(&options.building, Stream::Corrected))
-            .with(FifoChannel::new(options.buffer_batches.max(1)))
+            .declare_subscriber(live_expr)
+            .callback(route(routes.clone(), Event::Live))
             .await
             .map_err(zenoh_err("subscribe to corrected streams"))?;
         let beats = session
-            .declare_subscriber(Key::Heartbeat(options.building.clone()).to_string())
-            .with(FifoChannel::new(16))
+            .declare_subscriber(beat_expr)
+            .callback(route(routes.clone(), Event::Beat))
             .await
-            .map_err(zenoh_err("subscribe to the heartbeat"))?;
+            .map_err(zenoh_err("subscribe to heartbeats"))?;
+        Ok(Fleet {
+            session: session.clone(),
+            routes,
+            _live: live,
+            _beats: beats,
+        })
+    }
+
+    /// Starts following `options.building`: reads what `options.resume_after` says was missed,
+    /// then the live stream. A building the subscription does not cover gets nothing.
+    pub fn follow(&self, options: FollowOptions) -> Follower {
+        let (events_tx, mut events) = mpsc::channel(options.buffer_batches.max(1));
+        self.routes
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(options.building.clone(), events_tx);
         let (tx, rx) = mpsc::channel(1024);
         let counters = Arc::new(FollowerCounters::default());
         let mut state = State {
-            session: session.clone(),
+            session: self.session.clone(),
             options: options.clone(),
             last: options.resume_after.clone().into_iter().collect(),
             tx,
@@ -116,23 +185,37 @@ impl Follower {
                     return;
                 }
             }
-            loop {
-                let open = tokio::select! {
-                    s = live.recv_async() => match s {
-                        Ok(s) => state.live(s.payload().to_bytes().to_vec()).await,
-                        Err(_) => false,
-                    },
-                    h = beats.recv_async() => match h {
-                        Ok(h) => state.heartbeat(&h.payload().to_bytes()).await,
-                        Err(_) => false,
-                    },
+            while let Some(event) = events.recv().await {
+                let open = match event {
+                    Event::Live(payload) => state.live(payload).await,
+                    Event::Beat(payload) => state.heartbeat(&payload).await,
                 };
                 if !open {
                     return;
                 }
             }
         });
-        Ok(Follower { rx, counters, task })
+        Follower {
+            rx,
+            counters,
+            task,
+            _fleet: None,
+        }
+    }
+}
+
+impl Follower {
+    /// Subscribes to the building's corrected streams and heartbeat, reads what
+    /// `options.resume_after` says was missed, and starts following. (For many buildings, one
+    /// [`Fleet`] serves them all.)
+    pub async fn start(
+        session: &zenoh::Session,
+        options: FollowOptions,
+    ) -> Result<Follower, ClientError> {
+        let fleet = Fleet::start(session, Some(&options.building)).await?;
+        let mut follower = fleet.follow(options);
+        follower._fleet = Some(fleet);
+        Ok(follower)
     }
 
     /// The next batch; none once the session closed.

@@ -7,7 +7,7 @@
 pub mod follow;
 pub mod history;
 
-pub use follow::{Delivery, FollowOptions, Follower, FollowerCounters};
+pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters};
 pub use history::{HistoryRequest, Recovered};
 
 /// Why a consumer could not do what it was asked.

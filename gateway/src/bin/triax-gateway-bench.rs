@@ -921,13 +921,13 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
 /// gateway's growth-settle periods, so that its own post-growth release has run.
 const RSS_SETTLE: Duration = Duration::from_secs(3);
 
-async fn rss_check(n: usize) -> Result<()> {
+async fn rss_check(n: usize, system: System) -> Result<()> {
     let dir = tempfile::tempdir()?;
     let store_path = dir.path().join("store");
     let sp = store_path.clone();
     tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
     let port = triax_net::free_loopback_port()?;
-    let server = Server::spawn(System::Gateway, Some(&store_path), port)?;
+    let server = Server::spawn(system, Some(&store_path), port)?;
     let (pid, start_ms, online) = (server.pid, server.start_ms, server.online.clone());
     let loaded_rss = proc_status_kib(pid, "VmRSS:").unwrap_or(0);
 
@@ -985,7 +985,7 @@ async fn rss_check(n: usize) -> Result<()> {
     println!(
         "{online} sensors online after {rounds} rounds of one batch per sensor ({online_after_s:.1} s)\n"
     );
-    println!("| state | VmRSS (MiB) |\n|---|---|");
+    println!("{}:\n| state | VmRSS (MiB) |\n|---|---|", system.name());
     println!(
         "| gateway started, {n} calibrations loaded (start-up {start_ms:.0} ms) | {:.1} |",
         loaded_rss as f64 / 1024.0
@@ -1124,7 +1124,14 @@ fn main() -> Result<()> {
             report_building(&results);
         }
         if args.rss_sensors > 0 {
-            rss_check(args.rss_sensors).await?;
+            // The first gateway among `--systems`, else the default gateway (history on).
+            let system = args
+                .systems
+                .iter()
+                .copied()
+                .find(|s| !matches!(s, System::Relay | System::KeyedRelay))
+                .unwrap_or(System::Gateway);
+            rss_check(args.rss_sensors, system).await?;
         }
         Ok(())
     })
