@@ -6,6 +6,7 @@
 
 pub mod follow;
 pub mod history;
+pub mod parquet;
 
 pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters};
 pub use history::{HistoryRequest, Recovered};

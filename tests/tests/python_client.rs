@@ -12,8 +12,12 @@
 //! started again on its file. Both files end holding every batch once, in order, byte for byte
 //! the same.
 //!
-//! Needs a Python interpreter with `eclipse-zenoh` installed, named by `TRIAX_PYTHON`
-//! (`scripts/test` sets it up); without it the tests fail and say so.
+//! `a_parquet_export_reads_back_identically_in_pandas`: a gateway's history, fetched and
+//! written by `triax_client::parquet` (what `triax-export parquet` does), read by pandas with
+//! pyarrow: every row, bit for bit, and the units in the file's metadata.
+//!
+//! Needs a Python interpreter with `eclipse-zenoh`, `pandas` and `pyarrow` installed, named by
+//! `TRIAX_PYTHON` (`scripts/test` sets it up); without it the tests fail and say so.
 
 mod util;
 
@@ -445,4 +449,141 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         .expect("gateway stops on shutdown")
         .unwrap()
         .unwrap();
+}
+
+/// Reads the Parquet file with pandas and prints, as JSON, every column (floats as the bits of
+/// their f32, so NaN and exact values survive) and the file's `triax.units` metadata.
+const READ_PARQUET: &str = r#"
+import json, sys
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+path = sys.argv[1]
+df = pd.read_parquet(path, engine="pyarrow")
+meta = pq.read_metadata(path).metadata
+out = {
+    "time_dtype": str(df["time"].dtype),
+    "time_ns": df["time"].astype("int64").tolist(),
+    "sensor_id": df["sensor_id"].tolist(),
+    "sequence": df["sequence"].tolist(),
+    "flags": df["flags"].astype("int64").tolist(),
+    "calibration_version": df["calibration_version"].tolist(),
+    "mode": df["mode"].tolist(),
+    "units": meta[b"triax.units"].decode(),
+}
+for c in ["ax_mps2", "ay_mps2", "az_mps2", "ux_mps2", "uy_mps2", "uz_mps2", "coverage_factor"]:
+    out[c] = np.asarray(df[c], dtype=np.float32).view(np.uint32).tolist()
+print(json.dumps(out))
+"#;
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_parquet_export_reads_back_identically_in_pandas() {
+    let py = python_interpreter();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    util::seed_store(&store, &[sample::record("pq-1", 1)]);
+    let gw = util::start(util::config("pq", &store)).await;
+    let session = util::client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(util::key_corrected("pq", "pq-1"))
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .await
+        .unwrap();
+    let publisher = util::blocking_publisher(&session, util::key_raw("pq", "pq-1")).await;
+    let n_batches = 40u64;
+    for seq in 0..n_batches {
+        // Sequence 20 skipped: a gap flag; one non-finite sample.
+        if seq == 20 {
+            continue;
+        }
+        let samples = (0..50)
+            .map(|i| {
+                let t = (seq * 50 + i) as f32 / 100.0;
+                if seq == 7 && i == 3 {
+                    [f32::NAN, 0.0, 0.98]
+                } else {
+                    [
+                        0.03 * (9.0 * t).sin(),
+                        -0.01 * t,
+                        0.98 + 0.001 * (3.0 * t).cos(),
+                    ]
+                }
+            })
+            .collect();
+        publisher
+            .put(util::raw("pq-1", seq, samples))
+            .await
+            .unwrap();
+    }
+    util::collect(&sub, n_batches as usize - 1).await;
+    let request = triax_client::HistoryRequest::sensor(
+        &BuildingId::new("pq").unwrap(),
+        &SensorId::new("pq-1").unwrap(),
+    );
+    let path = dir.path().join("pq-1.parquet");
+    let mut writer =
+        triax_client::parquet::ParquetWriter::new(std::fs::File::create(&path).unwrap()).unwrap();
+    let mut batches = Vec::new();
+    triax_client::history::fetch(&session, &request, util::TIMEOUT, &mut |r| {
+        writer.push(&r.batch).unwrap();
+        batches.push(r.batch);
+    })
+    .await
+    .expect("history answered");
+    let rows = writer.finish().unwrap();
+    assert_eq!(batches.len(), n_batches as usize - 1);
+    assert_eq!(rows, 50 * batches.len() as u64);
+
+    let out = Command::new(&py)
+        .args(["-c", READ_PARQUET])
+        .arg(&path)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "pandas could not read the export: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).expect("python prints JSON");
+    assert_eq!(v["time_dtype"], "datetime64[ns, UTC]");
+    assert!(v["units"].as_str().unwrap().contains("m/s²"));
+    let col = |name: &str| v[name].as_array().unwrap().clone();
+    let mut row = 0;
+    let (mut gap_rows, mut nan_rows) = (0, 0);
+    for b in &batches {
+        for (i, s) in b.samples.iter().enumerate() {
+            let t = b.header.timestamp_ns + (i as f64 * 1e9 / b.header.sample_rate_hz) as i64;
+            assert_eq!(col("time_ns")[row].as_i64(), Some(t), "row {row}");
+            assert_eq!(col("sensor_id")[row], "pq-1");
+            assert_eq!(col("sequence")[row].as_u64(), Some(b.header.sequence));
+            let flags = u64::from(s.flags | b.batch_flags);
+            assert_eq!(col("flags")[row].as_u64(), Some(flags), "row {row}");
+            gap_rows += usize::from(flags & 0x10 != 0);
+            nan_rows += usize::from(s.accel_mps2[0].is_nan());
+            assert_eq!(col("calibration_version")[row].as_u64(), Some(1));
+            assert_eq!(col("mode")[row], "dynamic");
+            for (j, name) in ["ax_mps2", "ay_mps2", "az_mps2"].iter().enumerate() {
+                assert_eq!(
+                    col(name)[row].as_u64(),
+                    Some(u64::from(s.accel_mps2[j].to_bits()))
+                );
+            }
+            for (j, name) in ["ux_mps2", "uy_mps2", "uz_mps2"].iter().enumerate() {
+                assert_eq!(
+                    col(name)[row].as_u64(),
+                    Some(u64::from(s.uncertainty_mps2[j].to_bits()))
+                );
+            }
+            assert_eq!(
+                col("coverage_factor")[row].as_u64(),
+                Some(u64::from(b.info.coverage_factor.to_bits()))
+            );
+            row += 1;
+        }
+    }
+    assert_eq!(row, col("time_ns").len());
+    assert_eq!(gap_rows, 50, "the batch after the hole, all its samples");
+    assert_eq!(nan_rows, 1);
+    session.close().await.unwrap();
+    gw.stop().await;
 }

@@ -1,0 +1,154 @@
+//! `triax-export`: a building's history, read from its gateway over Zenoh, written to a file
+//! for analysis tools.
+//!
+//! ```text
+//! triax-export parquet --connect tcp/127.0.0.1:7447 --building hq --sensor acc-01 \
+//!     --from 2026-11-24T00:00:00Z --to 2026-11-25T00:00:00Z --out acc-01.parquet
+//! ```
+//!
+//! The gateway answers from its history (PROTOCOL.md §5.1): each batch corrected with the
+//! record in force at its time unless `--calibration latest` or a version number is given.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use time::format_description::well_known::Rfc3339;
+use time::OffsetDateTime;
+use triax_client::history::fetch;
+use triax_client::parquet::ParquetWriter;
+use triax_client::HistoryRequest;
+use triax_protocol::BuildingId;
+
+#[derive(Debug, Parser)]
+#[command(
+    version,
+    about = "Export a Triax gateway's history (corrected samples) to a file"
+)]
+struct Args {
+    #[command(subcommand)]
+    format: Format,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum Format {
+    /// One row per sample: time, sensor, sequence, acceleration and uncertainty per axis (m/s²),
+    /// coverage factor, flags, calibration version, mode (the schema is in the file's metadata
+    /// and in README.md).
+    Parquet(Export),
+}
+
+#[derive(Debug, clap::Args)]
+struct Export {
+    /// Zenoh endpoint of the gateway or of a router that reaches it (repeatable).
+    #[arg(long, required = true)]
+    connect: Vec<String>,
+    /// Building whose gateway keeps the history.
+    #[arg(long)]
+    building: String,
+    /// A sensor id, or `*` for every sensor of the building.
+    #[arg(long, default_value = "*")]
+    sensor: String,
+    /// First sample time, RFC 3339 (e.g. 2026-11-24T00:00:00Z); default: the oldest kept.
+    #[arg(long)]
+    from: Option<String>,
+    /// End of the range (exclusive), RFC 3339; default: the newest kept.
+    #[arg(long)]
+    to: Option<String>,
+    /// `in_force` (the record each batch was corrected with), `latest`, or a version number.
+    #[arg(long, default_value = "in_force")]
+    calibration: String,
+    /// Output file (overwritten).
+    #[arg(long)]
+    out: PathBuf,
+    /// Seconds one page of the history query may take.
+    #[arg(long, default_value_t = 30.0)]
+    timeout_s: f64,
+}
+
+fn time_ns(what: &str, v: &Option<String>) -> Result<Option<i64>> {
+    v.as_deref()
+        .map(|s| {
+            let t = OffsetDateTime::parse(s, &Rfc3339)
+                .with_context(|| format!("--{what} {s:?} is not an RFC 3339 time"))?;
+            i64::try_from(t.unix_timestamp_nanos())
+                .with_context(|| format!("--{what} {s:?} is out of range"))
+        })
+        .transpose()
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("TRIAX_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let Format::Parquet(a) = Args::parse().format;
+    let building = BuildingId::new(&a.building)
+        .map_err(|e| anyhow::anyhow!("--building {:?}: {e}", a.building))?;
+    if !(a.timeout_s.is_finite() && a.timeout_s > 0.0) {
+        bail!(
+            "--timeout-s {} is not a positive number of seconds",
+            a.timeout_s
+        );
+    }
+    let request = HistoryRequest {
+        building,
+        sensors: a.sensor.clone(),
+        from_ns: time_ns("from", &a.from)?,
+        to_ns: time_ns("to", &a.to)?,
+        from_seq: None,
+        to_seq: None,
+        calibration: Some(a.calibration.clone()),
+    };
+    let mut config = zenoh::Config::default();
+    let endpoints = serde_json::to_string(&a.connect).context("--connect")?;
+    for (k, v) in [
+        ("mode", "\"client\"".to_owned()),
+        ("connect/endpoints", endpoints),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        config
+            .insert_json5(k, &v)
+            .map_err(|e| anyhow::anyhow!("zenoh setting {k}: {e}"))?;
+    }
+    let session = zenoh::open(config)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot reach {:?}: {e}", a.connect))?;
+    let file = std::fs::File::create(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let mut writer = ParquetWriter::new(std::io::BufWriter::new(file))?;
+    let started = Instant::now();
+    let mut failed = None;
+    let batches = fetch(
+        &session,
+        &request,
+        Duration::from_secs_f64(a.timeout_s),
+        &mut |r| {
+            if failed.is_none() {
+                if let Err(e) = writer.push(&r.batch) {
+                    failed = Some(e);
+                }
+            }
+        },
+    )
+    .await
+    .context("history query")?;
+    if let Some(e) = failed {
+        return Err(e).with_context(|| format!("writing {}", a.out.display()));
+    }
+    let rows = writer
+        .finish()
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    let _ = session.close().await;
+    eprintln!(
+        "{batches} batches, {rows} samples written to {} in {:.2} s",
+        a.out.display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
