@@ -652,6 +652,17 @@ fn evaluate_window(
     if n == 0 {
         return Vec::new();
     }
+    // Only whole windows are judged: a window shorter than `window_s` (the first seconds of a
+    // stream, or after a restart of the window) holds a fraction of a cycle, whose mean is not
+    // the baseline, and its demeaned peak reads up to a fifth high.
+    let period_ns = 1e9 / state.sample_rate_hz;
+    let span_ns = match (state.window.front(), state.window.back()) {
+        (Some(first), Some(last)) => (last.t_ns - first.t_ns) as f64 + period_ns,
+        _ => 0.0,
+    };
+    if span_ns < settings.window_s * 1e9 - 0.5 * period_ns {
+        return Vec::new();
+    }
     let all: Vec<CorrectedSample> = state
         .window
         .iter()

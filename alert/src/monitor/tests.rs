@@ -129,6 +129,32 @@ fn levels(alerts: &[Alert], kind: AlertKind) -> Vec<AlertLevel> {
         .collect()
 }
 
+/// A window shorter than `window_s` is not judged: its mean is not the baseline, and the first
+/// half second of a 1.3 Hz sine demeaned over itself reads far above its amplitude. Once the
+/// window is whole (2 s here), the same stream is judged.
+#[test]
+fn only_whole_windows_are_judged() {
+    let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
+    let mut s = Script::new();
+    let mut judged_at_s = None;
+    for _ in 0..8 {
+        let b = s.batch(0.9, 1.3, 0);
+        let alerts = m.on_corrected(&hq(), &b, at(s.time_s()));
+        let peak = levels(&alerts, AlertKind::PeakAcceleration);
+        if s.time_s() < 2.0 {
+            assert!(peak.is_empty(), "judged at {} s: {alerts:?}", s.time_s());
+        } else if judged_at_s.is_none() && !peak.is_empty() {
+            judged_at_s = Some(s.time_s());
+            assert_eq!(peak, [AlertLevel::Exceeded]);
+        }
+    }
+    assert_eq!(
+        judged_at_s,
+        Some(2.0),
+        "judged as soon as the window is whole"
+    );
+}
+
 #[test]
 fn peak_crossing_the_threshold_shows_the_three_regimes() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
