@@ -39,7 +39,9 @@ pub struct FollowOptions {
     pub resume_after: BTreeMap<SensorId, u64>,
     /// How long one history query may take.
     pub query_timeout: Duration,
-    /// Live batches the follower holds while it reads the history.
+    /// Live batches (and heartbeats) the follower holds while it reads the history or its
+    /// consumer is busy; beyond that they are dropped, and read back from the history when the
+    /// next batch or heartbeat shows what is missing.
     pub buffer_batches: usize,
 }
 

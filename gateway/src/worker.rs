@@ -125,10 +125,11 @@ pub fn shard(sensor: &str, n_workers: usize) -> usize {
 /// The keys a sensor uses on Zenoh.
 struct SensorKeys {
     /// The sensor's raw key, declared on the gateway's own session while the budget lasts.
-    /// Not used to receive: holding it keeps a routing entry for the key, so Zenoh looks up the route of
-    /// each incoming batch instead of matching the key against every subscription again, which
-    /// it does for a key sent in full (as a node's publisher does unless it declared the key
-    /// itself). That matching was a quarter of the gateway's CPU per batch (BENCHMARKS.md).
+    /// Not used to receive: holding it keeps a routing entry for the key, so Zenoh looks up the
+    /// route of each incoming batch instead of matching the key against every subscription
+    /// again, which it does for a key sent in full (as a node's publisher does unless it
+    /// declared the key itself). That matching was a quarter of the gateway's CPU per batch
+    /// (BENCHMARKS.md).
     input_route: Option<SensorKey>,
     corrected: SensorKey,
     /// Only for inclinometers.
@@ -390,9 +391,9 @@ impl Shard {
     /// A sensor silent for `declared_keys_idle` gives its declared keys back (it declares them
     /// again when it speaks); a streaming sensor whose keys are plain for want of room takes the
     /// room given back, on its next batch. If streaming sensors still wait twice
-    /// `declared_keys_idle` and two sweeps later, the budget cannot hold them all, and a partly declared gateway is
-    /// the slowest (a batch on a plain key is matched against every declared one): then every
-    /// key of every worker goes undeclared, for good.
+    /// `declared_keys_idle` and two sweeps later, the budget cannot hold them all, and a partly
+    /// declared gateway is the slowest (a batch on a plain key is matched against every declared
+    /// one): then every key of every worker goes undeclared, until restart.
     fn reassign_keys(&mut self, shared: &Shared) {
         let release = |s: &mut SensorState| match SensorKeys::new(shared, &s.entry, false) {
             Ok(plain) => s.keys = plain,
