@@ -26,6 +26,7 @@
 //! - `console`: the operators' console in headless Chromium against a demo building; what it
 //!   refuses; the one-sensor status it reads the calibration record from.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
+//! - `campaign` (ignored by default): a million hostile messages against one gateway.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
 //! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
@@ -33,6 +34,8 @@
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
+#[path = "gateway/campaign.rs"]
+mod campaign;
 #[path = "gateway/catchup.rs"]
 mod catchup;
 #[path = "gateway/console.rs"]
