@@ -125,7 +125,7 @@ async fn hostile_campaign() {
     let good = blocking_publisher(&session, key_raw(BUILDING, "good")).await;
 
     let wildcards = [
-        format!("triax/*/raw/good"),
+        "triax/*/raw/good".to_owned(),
         format!("triax/{BUILDING}/raw/*"),
         "**/raw/good".to_owned(),
         "triax/**".to_owned(),
