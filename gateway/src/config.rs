@@ -184,11 +184,12 @@ pub struct Config {
     /// counters and correction state); calibrated sensors are never forgotten.
     pub unknown_sensor_expiry: Duration,
     /// Most keys declared to Zenoh: a sensor's raw key (its input) and its output keys
-    /// (corrected, tilt), declared together for calibrated and established sensors as they come
-    /// online, all or nothing: a store with more calibrated sensors than the budget holds
-    /// starts undeclared, and streaming sensors left waiting for room past the patience of
-    /// `worker::Shard::reassign_keys` turn every key undeclared. Set in bytes
-    /// (`declared_keys_mib`), at [`DECLARED_KEY_BYTES`] a key.
+    /// (corrected, tilt), declared together for calibrated sensors as they come online (never
+    /// for uncalibrated ids, which anyone can make up), all or nothing: a store of 1 000 or
+    /// more calibrated sensors, more than the budget holds, starts undeclared, and streaming
+    /// sensors left waiting for room past the patience of `worker::Shard::reassign_keys` turn
+    /// every key undeclared. Set in bytes (`declared_keys_mib`), at [`DECLARED_KEY_BYTES`] a
+    /// key.
     ///
     /// Why declare: Zenoh keeps the routes of a declared key, while the route of an undeclared
     /// one is worked out again for every batch that uses it, by matching the key against every

@@ -475,8 +475,10 @@ impl Gateway {
         let counters = Arc::new(GatewayCounters::default());
         // A store that already holds more calibrated sensors than the key budget can declare
         // starts undeclared: waiting to find out would spend minutes partly declared, the
-        // slowest state (see `worker::Shard::reassign_keys`).
-        if loaded.saturating_mul(2) > config.declared_keys_max {
+        // slowest state (see `worker::Shard::reassign_keys`). Only for a building of a thousand
+        // sensors or more, where that state costs several times more per batch (BENCHMARKS.md);
+        // below, the budget's patience decides.
+        if loaded >= 1000 && loaded.saturating_mul(2) > config.declared_keys_max {
             counters
                 .keys_undeclared
                 .store(true, std::sync::atomic::Ordering::Relaxed);

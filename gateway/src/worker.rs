@@ -466,15 +466,16 @@ impl SensorState {
         })
     }
 
-    /// Declares the sensor's keys once it is calibrated or established (see [`SensorKeys`]).
+    /// Declares the sensor's keys once it is calibrated (see [`SensorKeys`]). An uncalibrated
+    /// sensor keeps plain keys however long it streams: ids anyone can make up must take no
+    /// place in the budget (a flood of ids sending two batches each drove the gateway into the
+    /// partly declared state, the slowest, until the budget's patience ran out).
     fn establish(&mut self, shared: &Shared) -> zenoh::Result<()> {
         if self.keys.declared {
             return Ok(());
         }
         let e = &self.entry;
-        let established = e.calibration_version().is_some()
-            || e.counters.batches.load(Relaxed) >= crate::sensors::ESTABLISHED_BATCHES;
-        if !established {
+        if e.calibration_version().is_none() {
             return Ok(());
         }
         // Marked first: a failure is logged once, and the sensor goes on undeclared.

@@ -232,7 +232,13 @@ async fn uncalibrated_sensor_is_published_flagged_and_counted() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sensors_past_the_declared_key_budget_publish_undeclared() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = config("b8", &dir.path().join("store"));
+    let store = dir.path().join("store");
+    // Only calibrated sensors' keys are declared.
+    seed_store(
+        &store,
+        &["u-1", "u-2", "u-3"].map(|id| sample::record(id, 1)),
+    );
+    let mut cfg = config("b8", &store);
     cfg.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
     // Room for one sensor's two keys (a sensor's keys are declared together or not at all).
     cfg.declared_keys_max = 2;
@@ -243,7 +249,7 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
         .await
         .unwrap();
     let ids = ["u-1", "u-2", "u-3"];
-    // Two batches each: a sensor's keys are declared once it is established.
+    // Two batches each; the first sensor takes the room, the others publish undeclared.
     for id in ids {
         let publisher = session.declare_publisher(key_raw("b8", id)).await.unwrap();
         wait_matching(&publisher).await;
@@ -276,7 +282,12 @@ async fn sensors_past_the_declared_key_budget_publish_undeclared() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = config("b8k", &dir.path().join("store"));
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &["silent", "streaming"].map(|id| sample::record(id, 1)),
+    );
+    let mut cfg = config("b8k", &store);
     cfg.declared_keys_max = 2;
     cfg.declared_keys_idle = std::time::Duration::from_millis(1000);
     cfg.workers = 2;
@@ -287,7 +298,7 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
     );
     let gw = start(cfg).await;
     let session = client(&gw.endpoint).await;
-    // Established after a few batches (`sensors::ESTABLISHED_BATCHES`): then declared.
+    // Calibrated: its keys are declared with its first batch.
     let send = |id: &'static str, seq: u64| {
         let session = session.clone();
         async move {
@@ -347,7 +358,9 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn more_streaming_sensors_than_the_key_budget_turn_every_key_undeclared() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = config("b8u", &dir.path().join("store"));
+    let store = dir.path().join("store");
+    seed_store(&store, &["one", "two"].map(|id| sample::record(id, 1)));
+    let mut cfg = config("b8u", &store);
     cfg.declared_keys_max = 2;
     cfg.declared_keys_idle = std::time::Duration::from_millis(200);
     let gw = start(cfg).await;
