@@ -50,10 +50,11 @@ struct Export {
     /// A sensor id, or `*` for every sensor of the building.
     #[arg(long, default_value = "*")]
     sensor: String,
-    /// First sample time, RFC 3339 (e.g. 2026-11-24T00:00:00Z); default: the oldest kept.
+    /// Batches whose first sample is at or after this time, RFC 3339 (e.g.
+    /// 2026-11-24T00:00:00Z); default: the oldest kept.
     #[arg(long)]
     from: Option<String>,
-    /// End of the range (exclusive), RFC 3339; default: the newest kept.
+    /// Batches whose first sample is before this time, RFC 3339; default: no bound.
     #[arg(long)]
     to: Option<String>,
     /// `in_force` (the record each batch was corrected with), `latest`, or a version number.
