@@ -15,15 +15,29 @@
 //! path then costs ten multiply-adds per axis for full covariance propagation, with no matrix
 //! product and no allocation.
 //!
+//! # Degrees of freedom
+//!
+//! A contribution whose variance was estimated from data (the parameter covariance from a fit's
+//! residuals, the output noise from a recording) carries degrees of freedom ν, which the record
+//! may state; an unstated ν is infinite. Per sample and axis the effective ν of the sum is the
+//! Welch–Satterthwaite `ν_eff = u⁴ / Σ u_i⁴/ν_i` over the three contributions, and the coverage
+//! factor is Student's t at ν_eff and the set's coverage probability
+//! ([`SetCorrector::coverage_factor_at`]). A set that states no ν at all keeps the coverage
+//! factor it states, as records always did.
+//!
 //! Everything that can be wrong with a record is found when it is loaded
 //! ([`Corrector::from_record`]): wrong shape or non-finite values (by
 //! [`CalibrationRecord::validate`]), a sensitivity matrix with condition number above
 //! [`MAX_CONDITION_NUMBER`], a covariance that is not positive semi-definite. Correction itself
 //! cannot fail; non-finite outputs give non-finite accelerations, which the caller flags.
 
+use std::sync::Arc;
+
 use nalgebra::{Matrix3, SMatrix, SymmetricEigen};
 use triax_protocol::record::{CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind};
 use triax_protocol::SensorId;
+
+use crate::student::{CoverageTable, DEFAULT_COVERAGE_PROBABILITY};
 
 /// Largest accepted condition number (2-norm) of a sensitivity matrix.
 ///
@@ -125,8 +139,52 @@ pub struct SetCorrector {
     /// output noise (V², per output channel) but not the stated part (per axis, (m/s²)²).
     output_noise_var: [f64; 3],
     stated_var: [f64; 3],
+    /// Reciprocal degrees of freedom of the three contributions, 0 for infinitely many.
+    inv_dof: InverseDof,
+    /// `u_noise⁴/ν_noise + u_stated⁴/ν_stated` per axis: the constant part of the
+    /// Welch–Satterthwaite denominator.
+    const_ws: [f64; 3],
     domain: Domain,
     coverage_factor: f64,
+    /// Student's t factors at the set's coverage probability; `None` when the set states no
+    /// degrees of freedom, and its own coverage factor applies.
+    coverage_table: Option<Arc<CoverageTable>>,
+}
+
+/// Reciprocals of the degrees of freedom of a set's three contributions (0: infinitely many).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct InverseDof {
+    pub parameters: f64,
+    pub noise: f64,
+    pub stated: f64,
+}
+
+/// The covariance of a low-passed `a` by contribution, each 3×3, so that a caller can weigh
+/// their degrees of freedom: see [`SetCorrector::covariance_filtered_parts`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CovarianceParts {
+    pub parameters: [[f64; 3]; 3],
+    pub stated: [[f64; 3]; 3],
+    pub noise: [[f64; 3]; 3],
+    /// What the caller added beyond the truth of the low band; known, infinite ν.
+    pub extra: [[f64; 3]; 3],
+}
+
+impl CovarianceParts {
+    pub fn total(&self) -> [[f64; 3]; 3] {
+        let mut c = [[0.0; 3]; 3];
+        for (k, row) in c.iter_mut().enumerate() {
+            for (l, cell) in row.iter_mut().enumerate() {
+                *cell =
+                    self.parameters[k][l] + self.stated[k][l] + self.noise[k][l] + self.extra[k][l];
+            }
+        }
+        c
+    }
+}
+
+fn inverse(dof: Option<f64>) -> f64 {
+    dof.map_or(0.0, |nu| 1.0 / nu)
 }
 
 /// The most negative eigenvalue of `sigma`, if it is below zero beyond round-off.
@@ -225,9 +283,28 @@ impl SetCorrector {
             let sigma_v = Matrix3::from_diagonal(&noise.map(|n| n * n).into());
             const_cov += s_inv * sigma_v * s_inv.transpose();
         }
+        let noise_var_mps2 = [0, 1, 2].map(|k| const_cov[(k, k)]);
+        let stated_var = set.uncertainty_mps2.map(|u| u * u);
         for k in 0..3 {
-            const_cov[(k, k)] += set.uncertainty_mps2[k].powi(2);
+            const_cov[(k, k)] += stated_var[k];
         }
+        let inv_dof = InverseDof {
+            parameters: inverse(set.covariance_dof),
+            noise: inverse(record.sensor.output_noise_dof),
+            stated: inverse(set.uncertainty_dof),
+        };
+        let const_ws = [0, 1, 2].map(|k| {
+            noise_var_mps2[k].powi(2) * inv_dof.noise + stated_var[k].powi(2) * inv_dof.stated
+        });
+        let states_dof = set.covariance_dof.is_some()
+            || set.uncertainty_dof.is_some()
+            || record.sensor.output_noise_dof.is_some();
+        let coverage_table = states_dof.then(|| {
+            CoverageTable::shared(
+                set.coverage_probability
+                    .unwrap_or(DEFAULT_COVERAGE_PROBABILITY),
+            )
+        });
 
         Ok(SetCorrector {
             kind,
@@ -236,10 +313,57 @@ impl SetCorrector {
             param_cov,
             const_cov: const_cov.transpose().into(),
             output_noise_var,
-            stated_var: set.uncertainty_mps2.map(|u| u * u),
+            stated_var,
+            inv_dof,
+            const_ws,
             domain: set.domain,
             coverage_factor: set.coverage_factor,
+            coverage_table,
         })
+    }
+
+    /// Whether the set states degrees of freedom, so that its coverage factor depends on the
+    /// sample ([`coverage_factor_at`](Self::coverage_factor_at)).
+    pub fn states_dof(&self) -> bool {
+        self.coverage_table.is_some()
+    }
+
+    /// The coverage factor for an interval with `nu_eff` effective degrees of freedom:
+    /// Student's t at the set's coverage probability, ν truncated to the integer below as
+    /// JCGM 100 G.4.1 does (and a little further on a coarse grid above 30, always to the
+    /// larger factor). A set that states no degrees of freedom returns its own factor.
+    #[inline]
+    pub fn coverage_factor_at(&self, nu_eff: f64) -> f64 {
+        match &self.coverage_table {
+            Some(table) => table.factor(nu_eff),
+            None => self.coverage_factor,
+        }
+    }
+
+    pub fn inverse_dof(&self) -> InverseDof {
+        self.inv_dof
+    }
+
+    /// `u_noise⁴/ν_noise + u_stated⁴/ν_stated` per axis, (m/s²)⁴.
+    pub fn constant_ws(&self) -> [f64; 3] {
+        self.const_ws
+    }
+
+    /// [`correct_variance`](Self::correct_variance) and, per axis, the Welch–Satterthwaite
+    /// denominator `Σ u_i⁴/ν_i` of that variance, so that `ν_eff = variance² / denominator`.
+    #[inline(always)]
+    pub fn correct_with_dof(&self, v: [f64; 3]) -> ([f64; 3], [f64; 3], [f64; 3]) {
+        let scaled = self.scale(v);
+        let mut accel_mps2 = [0.0; 3];
+        let mut variance = [0.0; 3];
+        let mut ws = [0.0; 3];
+        for k in 0..3 {
+            accel_mps2[k] = scaled[k] + self.offset_mps2[k];
+            let param = eval(&self.param_cov[k], scaled, 1.0);
+            variance[k] = param + self.const_cov[k][k];
+            ws[k] = param * param * self.inv_dof.parameters + self.const_ws[k];
+        }
+        (accel_mps2, variance, ws)
     }
 
     pub fn kind(&self) -> SetKind {
@@ -326,19 +450,44 @@ impl SetCorrector {
         noise_gain: f64,
         extra_output_var: [f64; 3],
     ) -> [[f64; 3]; 3] {
+        self.covariance_filtered_parts(v, noise_gain, extra_output_var)
+            .total()
+    }
+
+    /// [`covariance_filtered`](Self::covariance_filtered) by contribution, for a caller that
+    /// combines their degrees of freedom ([`inverse_dof`](Self::inverse_dof); the extra part
+    /// is a model, with infinitely many).
+    pub fn covariance_filtered_parts(
+        &self,
+        v: [f64; 3],
+        noise_gain: f64,
+        extra_output_var: [f64; 3],
+    ) -> CovarianceParts {
         let scaled = self.scale(v);
-        let out_var =
-            [0, 1, 2].map(|j| self.output_noise_var[j] * noise_gain + extra_output_var[j]);
         let m = &self.s_inv;
-        let mut c = [[0.0; 3]; 3];
-        for (k, row) in c.iter_mut().enumerate() {
-            for (l, cell) in row.iter_mut().enumerate() {
-                let through: f64 = (0..3).map(|j| m[k][j] * out_var[j] * m[l][j]).sum();
-                let stated = if k == l { self.stated_var[k] } else { 0.0 };
-                *cell = eval(&self.param_cov[pair(k, l)], scaled, 1.0) + stated + through;
+        let through = |out_var: [f64; 3]| {
+            let mut c = [[0.0; 3]; 3];
+            for (k, row) in c.iter_mut().enumerate() {
+                for (l, cell) in row.iter_mut().enumerate() {
+                    *cell = (0..3).map(|j| m[k][j] * out_var[j] * m[l][j]).sum();
+                }
             }
+            c
+        };
+        let mut parameters = [[0.0; 3]; 3];
+        let mut stated = [[0.0; 3]; 3];
+        for k in 0..3 {
+            for l in 0..3 {
+                parameters[k][l] = eval(&self.param_cov[pair(k, l)], scaled, 1.0);
+            }
+            stated[k][k] = self.stated_var[k];
         }
-        c
+        CovarianceParts {
+            parameters,
+            stated,
+            noise: through(self.output_noise_var.map(|n| n * noise_gain)),
+            extra: through(extra_output_var),
+        }
     }
 
     /// The full 3×3 covariance of `a` at output `v`, for quantities that mix axes (tilt).
@@ -459,6 +608,49 @@ mod tests {
         let out = c.set(SetKind::Static).correct([2.0, 4.0, -5.0]);
         assert_eq!(out.accel_mps2, [1.1, 1.2, -0.7]);
         assert_eq!(out.uncertainty_mps2, [0.0; 3]);
+    }
+
+    /// Welch–Satterthwaite by hand on a diagonal S = diag(2, 4, 5): offset variance 0.01² on x
+    /// with ν = 6, output noise 0.02 V (0.01 m/s² on x) with ν = 100, stated 0.01 m/s² with
+    /// ν = ∞. On x each contributes 1e-4, so ν_eff = (3e-4)² / (1e-8/6 + 1e-8/100) = 50.94.
+    #[test]
+    fn effective_dof_by_hand() {
+        use crate::student::t_quantile;
+        let mut r = diag_record();
+        let mut cov = [[0.0; 12]; 12];
+        cov[9][9] = 1e-4;
+        r.static_set.covariance = Some(Box::new(cov));
+        r.static_set.covariance_dof = Some(6.0);
+        r.static_set.uncertainty_mps2 = [0.01, 0.0, 0.0];
+        r.sensor.output_noise = Some([0.02, 0.0, 0.0]);
+        r.sensor.output_noise_dof = Some(100.0);
+        let c = Corrector::from_record(&r).unwrap();
+        let set = c.set(SetKind::Static);
+        assert!(set.states_dof());
+        let (_, var, ws) = set.correct_with_dof([1.0, 1.0, 1.0]);
+        assert!((var[0] - 3e-4).abs() < 1e-11, "{var:?}");
+        let nu = var[0] * var[0] / ws[0];
+        assert!(
+            (nu - 9e-8 / (1e-8 / 6.0 + 1e-8 / 100.0)).abs() < 1e-3,
+            "{nu}"
+        );
+        // Truncated to 50, which is on the grid.
+        assert_eq!(set.coverage_factor_at(nu), t_quantile(50, 0.95));
+        // A set that states no ν keeps its own factor; the dynamic set here states none.
+        r.static_set.covariance_dof = None;
+        r.sensor.output_noise_dof = None;
+        let c = Corrector::from_record(&r).unwrap();
+        assert!(!c.set(SetKind::Static).states_dof());
+        assert_eq!(c.set(SetKind::Static).coverage_factor_at(3.0), 2.0);
+        // A stated probability moves k: 99 % at ν = 6.
+        let mut r = diag_record();
+        r.static_set.covariance_dof = Some(6.0);
+        r.static_set.coverage_probability = Some(0.99);
+        let c = Corrector::from_record(&r).unwrap();
+        assert_eq!(
+            c.set(SetKind::Static).coverage_factor_at(6.0),
+            t_quantile(6, 0.99)
+        );
     }
 
     /// Filtering scales the output noise by the noise gain and nothing else: at gain 1 it is

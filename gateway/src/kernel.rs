@@ -390,33 +390,26 @@ impl SensorKernel {
 
         let static_set = c.set(SetKind::Static);
         let dynamic_set = c.set(SetKind::Dynamic);
-        let (coverage, amplitude_max) = match mode {
-            CorrectionMode::Static => (
-                static_set.coverage_factor(),
-                static_set.domain().amplitude_max_mps2,
-            ),
-            CorrectionMode::Dynamic => (
-                dynamic_set.coverage_factor(),
-                dynamic_set.domain().amplitude_max_mps2,
-            ),
-            CorrectionMode::Split => (
-                static_set
-                    .coverage_factor()
-                    .max(dynamic_set.coverage_factor()),
-                0.0,
-            ),
-        };
-
-        // Corrected values and per-sample flags into the scratch arrays.
-        match mode {
+        // Corrected values and per-sample flags into the scratch arrays, and the batch's
+        // coverage factor: the largest of its samples', so that every interval is at least
+        // right.
+        let coverage = match mode {
             CorrectionMode::Static | CorrectionMode::Dynamic => {
                 let set = if mode == CorrectionMode::Static {
                     static_set
                 } else {
                     dynamic_set
                 };
-                correct_all(set, &scratch.v, &mut scratch.a, &mut scratch.u);
-                flag_all(c, amplitude_max, scratch);
+                let coverage = if set.states_dof() {
+                    let worst =
+                        correct_all_with_dof(set, &scratch.v, &mut scratch.a, &mut scratch.u);
+                    set.coverage_factor_at(1.0 / worst)
+                } else {
+                    correct_all(set, &scratch.v, &mut scratch.a, &mut scratch.u);
+                    set.coverage_factor()
+                };
+                flag_all(c, set.domain().amplitude_max_mps2, scratch);
+                coverage
             }
             CorrectionMode::Split => {
                 // A duplicate is corrected through the crossover as it stands, which then
@@ -437,14 +430,18 @@ impl SensorKernel {
                 if let (Some(saved), Some(x)) = (saved, design.crossover.as_mut()) {
                     **x = saved;
                 }
-                split_all(static_set, dynamic_set, scratch);
+                let worst = split_all(static_set, dynamic_set, scratch);
                 for i in 0..n {
                     if c.is_clipped(scratch.v[i]) {
                         scratch.f[i] |= flags::CLIPPED;
                     }
                 }
+                let nu = 1.0 / worst;
+                static_set
+                    .coverage_factor_at(nu)
+                    .max(dynamic_set.coverage_factor_at(nu))
             }
-        }
+        };
 
         let info = CorrectionInfo {
             calibration_version: c.version(),
@@ -504,6 +501,29 @@ fn correct_all(set: &SetCorrector, v: &[[f64; 3]], a: &mut [[f64; 3]], u: &mut [
     }
 }
 
+/// [`correct_all`] for a set that states degrees of freedom; returns the largest `1/ν_eff`
+/// of the batch (0 when every contribution has infinitely many). Non-finite samples give NaN
+/// ratios, which `f64::max` passes over.
+#[inline(never)]
+fn correct_all_with_dof(
+    set: &SetCorrector,
+    v: &[[f64; 3]],
+    a: &mut [[f64; 3]],
+    u: &mut [[f64; 3]],
+) -> f64 {
+    let mut worst: f64 = 0.0;
+    for ((v, a), u) in v.iter().zip(a.iter_mut()).zip(u.iter_mut()) {
+        let (accel, var, ws) = set.correct_with_dof(*v);
+        *a = accel;
+        for k in 0..3 {
+            // Round-off can take a zero variance a hair below zero.
+            u[k] = var[k].max(0.0).sqrt();
+            worst = worst.max(ws[k] / (var[k] * var[k]));
+        }
+    }
+    worst
+}
+
 /// Per-sample flags of static or dynamic mode: clipped outputs, and accelerations above the
 /// set's amplitude domain.
 #[inline(never)]
@@ -555,15 +575,28 @@ fn write_all(
     (batch_flags, n_flagged)
 }
 
-/// Split mode over a whole batch, from `scratch.v` and its low band `scratch.low`.
+/// Split mode over a whole batch, from `scratch.v` and its low band `scratch.low`. Returns the
+/// largest `1/ν_eff` of the batch, as [`correct_all_with_dof`] does (0 when neither set states
+/// degrees of freedom).
 #[inline(never)]
-fn split_all(static_set: &SetCorrector, dynamic_set: &SetCorrector, s: &mut Scratch) {
+fn split_all(static_set: &SetCorrector, dynamic_set: &SetCorrector, s: &mut Scratch) -> f64 {
     let amp_s = static_set.domain().amplitude_max_mps2;
     let amp_d = dynamic_set.domain().amplitude_max_mps2;
     let const_s = static_set.constant_variance();
     let const_d = dynamic_set.constant_variance();
-    // Constant part counted once: the larger of the two sets' statements.
+    // Constant part counted once: the larger of the two sets' statements, with its ν.
     let extra = [0, 1, 2].map(|k| (const_d[k] - const_s[k]).max(0.0));
+    let (ws_s, ws_d) = (static_set.constant_ws(), dynamic_set.constant_ws());
+    let const_ws = [0, 1, 2].map(|k| {
+        if const_d[k] > const_s[k] {
+            ws_d[k]
+        } else {
+            ws_s[k]
+        }
+    });
+    let inv_s = static_set.inverse_dof().parameters;
+    let inv_d = dynamic_set.inverse_dof().parameters;
+    let mut worst: f64 = 0.0;
     for i in 0..s.v.len() {
         let (v, low) = (s.v[i], s.low[i]);
         let high = [v[0] - low[0], v[1] - low[1], v[2] - low[2]];
@@ -574,13 +607,18 @@ fn split_all(static_set: &SetCorrector, dynamic_set: &SetCorrector, s: &mut Scra
         for k in 0..3 {
             s.a[i][k] = al[k] + ah[k];
             // Round-off can take a zero variance a hair below zero.
-            s.u[i][k] = (var_l[k].max(0.0) + vh[k] + extra[k]).sqrt();
+            let var = var_l[k].max(0.0) + vh[k] + extra[k];
+            s.u[i][k] = var.sqrt();
+            let param_s = (var_l[k] - const_s[k]).max(0.0);
+            let ws = param_s * param_s * inv_s + vh[k] * vh[k] * inv_d + const_ws[k];
+            worst = worst.max(ws / (var * var));
             if al[k].abs() > amp_s || ah[k].abs() > amp_d {
                 f |= flags::OUTSIDE_AMPLITUDE;
             }
         }
         s.f[i] = f;
     }
+    worst
 }
 
 /// Mean of the finite samples.
@@ -660,7 +698,11 @@ fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<De
         return None;
     }
     let threshold_mps2 = [0, 1, 2].map(|k| {
-        let set_u = |set: &SetCorrector| set.coverage_factor() * set.constant_variance()[k].sqrt();
+        let set_u = |set: &SetCorrector| {
+            let var = set.constant_variance()[k];
+            let nu = var * var / set.constant_ws()[k];
+            set.coverage_factor_at(nu) * var.sqrt()
+        };
         set_u(low_set)
             .max(set_u(high_set))
             .max(s.frequency_floor_mps2)

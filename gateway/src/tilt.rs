@@ -41,7 +41,8 @@
 //! (10.4 s at 0.1 Hz), by which time what the start left in the filter is below 1 %.
 
 use serde::{Deserialize, Serialize};
-use triax_calibration::corrector::SetCorrector;
+use triax_calibration::corrector::{CovarianceParts, InverseDof, SetCorrector};
+use triax_calibration::student::welch_satterthwaite;
 
 use crate::filter::{Biquad3, Coefficients};
 
@@ -52,20 +53,40 @@ pub struct Tilt {
     pub pitch_deg: f64,
     pub roll_uncertainty_deg: f64,
     pub pitch_uncertainty_deg: f64,
+    /// For both angles: Student's t at the smaller of their Welch–Satterthwaite effective
+    /// degrees of freedom, or the set's own factor when it states none.
+    pub coverage_factor: f64,
 }
 
 /// Uncertainty reported for an angle that is undefined at the sample: the widest an angle can
 /// be wrong. (JSON has no infinity.)
 pub const UNDEFINED_UNCERTAINTY_DEG: f64 = 180.0;
 
-/// Standard uncertainty in degrees of an angle with gradient `j` (per m/s²).
-fn angle_uncertainty_deg(j: [f64; 3], c: &[[f64; 3]; 3]) -> f64 {
+/// Variance of an angle with gradient `j` (per m/s²) under covariance `c`, rad².
+fn angle_variance(j: [f64; 3], c: &[[f64; 3]; 3]) -> f64 {
     let mut v = 0.0;
     for k in 0..3 {
         for l in 0..3 {
             v += j[k] * c[k][l] * j[l];
         }
     }
+    v
+}
+
+/// Effective degrees of freedom of an angle with gradient `j`: Welch–Satterthwaite over the
+/// contributions of `parts`.
+fn angle_dof(j: [f64; 3], parts: &CovarianceParts, inv: InverseDof) -> f64 {
+    welch_satterthwaite(&[
+        (angle_variance(j, &parts.parameters), inv.parameters),
+        (angle_variance(j, &parts.stated), inv.stated),
+        (angle_variance(j, &parts.noise), inv.noise),
+        (angle_variance(j, &parts.extra), 0.0),
+    ])
+}
+
+/// Standard uncertainty in degrees of an angle with gradient `j` (per m/s²).
+fn angle_uncertainty_deg(j: [f64; 3], c: &[[f64; 3]; 3]) -> f64 {
+    let v = angle_variance(j, c);
     if v.is_finite() {
         // Round-off can take a zero variance a hair below zero.
         v.max(0.0)
@@ -212,8 +233,12 @@ impl TiltFilter {
 /// Tilt of the static-corrected, low-passed output `output_lp`, with the filter's own errors.
 pub fn tilt(static_set: &SetCorrector, output_lp: [f64; 3], low_band: &LowBandError) -> Tilt {
     let a = static_set.accel(output_lp);
-    let cov =
-        static_set.covariance_filtered(output_lp, low_band.noise_gain, low_band.extra_output_var);
+    let parts = static_set.covariance_filtered_parts(
+        output_lp,
+        low_band.noise_gain,
+        low_band.extra_output_var,
+    );
+    let cov = parts.total();
     let [ax, ay, az] = a;
     let r2 = ay * ay + az * az;
     let r = r2.sqrt();
@@ -228,6 +253,15 @@ pub fn tilt(static_set: &SetCorrector, output_lp: [f64; 3], low_band: &LowBandEr
         pitch_deg: pitch.to_degrees(),
         roll_uncertainty_deg: angle_uncertainty_deg(j_roll, &cov),
         pitch_uncertainty_deg: angle_uncertainty_deg(j_pitch, &cov),
+        coverage_factor: if static_set.states_dof() {
+            let inv = static_set.inverse_dof();
+            // An undefined angle (NaN ν; its uncertainty already says 180°) is passed over;
+            // with both undefined, the factor is that of ν = 1.
+            let nu = angle_dof(j_roll, &parts, inv).min(angle_dof(j_pitch, &parts, inv));
+            static_set.coverage_factor_at(nu)
+        } else {
+            static_set.coverage_factor()
+        },
     }
 }
 

@@ -566,7 +566,7 @@ impl SensorState {
                     pitch_deg: est.pitch_deg,
                     roll_uncertainty_deg: est.roll_uncertainty_deg,
                     pitch_uncertainty_deg: est.pitch_uncertainty_deg,
-                    coverage_factor: corrector.set(SetKind::Static).coverage_factor(),
+                    coverage_factor: est.coverage_factor,
                     calibration_version: corrector.version(),
                     flags: t.flags,
                 };

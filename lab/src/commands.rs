@@ -15,14 +15,18 @@ use triax_calibration::fit::tables::{
     RmsFigure,
 };
 use triax_calibration::fit::{
-    fit_radius, fit_static, DynamicFit, RadiusFit, ReferenceMethod, StaticFit, StaticObservation,
+    fit_radius, fit_static_with, ArmAngleUncertainty, DynamicFit, RadiusFit, ReferenceMethod,
+    StaticFit, StaticObservation,
 };
 use triax_calibration::sim::{simulate, SimBench, SimConfig};
 use triax_protocol::record::{CalibrationRecord, SetKind};
 use triax_protocol::{from_json, to_json_pretty};
 
 use crate::input::{read_bench, read_output_series, read_spacers, read_static, LoadedBench};
-use crate::record::{build_record, dynamic_set, static_set, RecordMeta};
+use crate::record::{
+    build_record, coverage_factor, dynamic_dof, dynamic_set, static_set, RecordMeta,
+    COVERAGE_PROBABILITY,
+};
 use crate::report::{render, Report};
 use crate::LabError;
 
@@ -36,9 +40,13 @@ pub struct StaticResult {
     pub fit: StaticFit,
 }
 
-pub fn run_static(path: &Path, gravity_mps2: f64) -> Result<StaticResult, LabError> {
+pub fn run_static(
+    path: &Path,
+    gravity_mps2: f64,
+    arm: Option<ArmAngleUncertainty>,
+) -> Result<StaticResult, LabError> {
     let observations = read_static(path, gravity_mps2)?;
-    let fit = fit_static(&observations).map_err(|source| LabError::Fit {
+    let fit = fit_static_with(&observations, arm).map_err(|source| LabError::Fit {
         file: path.to_path_buf(),
         source,
     })?;
@@ -135,6 +143,8 @@ pub struct FitOutput {
 /// Options of `fit` beyond the input paths.
 pub struct FitOptions {
     pub gravity_mps2: f64,
+    /// The operator's statement of the static arm's angle uncertainty, if any.
+    pub arm: Option<ArmAngleUncertainty>,
     pub reference: Option<ReferenceMethod>,
     pub points_per_cycle: Option<usize>,
     pub report: bool,
@@ -147,7 +157,7 @@ pub fn run_fit(
     bench_path: &Path,
     options: &FitOptions,
 ) -> Result<FitOutput, LabError> {
-    let stat = run_static(static_path, options.gravity_mps2)?;
+    let stat = run_static(static_path, options.gravity_mps2, options.arm)?;
     let dynamic = run_dynamic(bench_path, options.reference, options.points_per_cycle)?;
     let at = options.meta.issued_at;
     let alphas: Vec<f64> = dynamic
@@ -161,6 +171,7 @@ pub fn run_fit(
         static_set(&stat.fit, &stat.observations, options.gravity_mps2, at),
         dynamic_set(&dynamic.fit, &dynamic.budget, dynamic.bench(), &alphas, at),
         dynamic.fit.output_noise,
+        dynamic.fit.output_noise_dof,
     );
     record
         .validate()
@@ -237,6 +248,13 @@ pub fn static_summary(stat: &StaticResult) -> String {
         fit.residuals_mps2.len(),
         fit.dof
     );
+    let _ = writeln!(
+        s,
+        "  covariance: ν = {:.0}, k = {:.3} at {:.0} %",
+        fit.covariance_dof,
+        coverage_factor(fit.covariance_dof),
+        COVERAGE_PROBABILITY * 100.0
+    );
     let _ = write!(s, "  S [output/(m/s²)]:\n{}", fmt_matrix(cal.sensitivity()));
     let _ = write!(s, "  u(S):\n{}", fmt_matrix(&s_sigma));
     let _ = writeln!(s, "  q [m/s²]:      {}", fmt_vec(cal.offset_mps2(), 4));
@@ -257,7 +275,33 @@ pub fn static_summary(stat: &StaticResult) -> String {
     for w in &fit.warnings {
         let _ = writeln!(s, "  warning: {w}");
     }
+    if let Some(w) = low_dof_warning(fit) {
+        let _ = writeln!(s, "  warning: {w}");
+    }
     s
+}
+
+/// Degrees of freedom below which the static set's k is more than 10 % above the normal
+/// distribution's (t = 2.16 at ν = 13 against 1.96).
+pub const LOW_DOF: f64 = 13.0;
+
+/// Says when the static covariance rests on few degrees of freedom, and what would help.
+pub fn low_dof_warning(fit: &StaticFit) -> Option<String> {
+    if fit.covariance_dof >= LOW_DOF || fit.dof == 0 {
+        return None;
+    }
+    let missing = (LOW_DOF - fit.covariance_dof).ceil() as usize;
+    Some(format!(
+        "the static covariance has only {:.0} degrees of freedom, so every interval that rests \
+         on it needs k = {:.2} rather than 1.96 at 95 %; {} orientations (not in one plane) \
+         would give ν = {:.0} (k = {:.2}), or state the arm's angle uncertainty \
+         (--arm-angle-uncertainty-deg) to pool it with the residuals",
+        fit.covariance_dof,
+        coverage_factor(fit.covariance_dof),
+        fit.residuals_mps2.len() + missing,
+        fit.covariance_dof + missing as f64,
+        coverage_factor(fit.covariance_dof + missing as f64),
+    ))
 }
 
 pub fn dynamic_summary(d: &DynamicResult) -> String {
@@ -274,6 +318,16 @@ pub fn dynamic_summary(d: &DynamicResult) -> String {
         fit.points_per_cycle,
         fit.n_points,
         fit.cycles.len()
+    );
+    let dof = dynamic_dof(fit, b);
+    let nu_cov = dof.covariance.unwrap_or(f64::INFINITY);
+    let _ = writeln!(
+        s,
+        "  covariance: ν = {nu_cov:.0}, k = {:.3} at {:.0} %; uncertainty_mps2: ν = {}",
+        coverage_factor(nu_cov),
+        COVERAGE_PROBABILITY * 100.0,
+        dof.uncertainty
+            .map_or("∞".to_string(), |nu| format!("{nu:.0}"))
     );
     let _ = write!(s, "  S [output/(m/s²)]:\n{}", fmt_matrix(cal.sensitivity()));
     let _ = write!(s, "  u(S):\n{}", fmt_matrix(&s_sigma));

@@ -21,6 +21,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use time::OffsetDateTime;
+use triax_calibration::fit::ArmAngleUncertainty;
 use triax_calibration::fit::ReferenceMethod;
 use triax_calibration::sim::{SensorTruth, SimConfig};
 use triax_calibration_store::cli::{self as store_cli, StoreCommand};
@@ -68,6 +69,34 @@ impl From<Reference> for ReferenceMethod {
     }
 }
 
+/// What the operator knows of the static arm's angles (a Type B statement).
+#[derive(clap::Args)]
+struct ArmArgs {
+    /// Standard uncertainty of each of the arm's two angles (roll, pitch), degrees. Pooled with
+    /// the residuals, it gives the static covariance more degrees of freedom than the
+    /// orientations alone (N − 4); without it the residuals alone speak.
+    #[arg(long, value_name = "DEG")]
+    arm_angle_uncertainty_deg: Option<f64>,
+    /// Degrees of freedom of that statement: ½·(u/Δu)², e.g. 50 when u is known to ±10 %.
+    #[arg(
+        long,
+        value_name = "NU",
+        default_value_t = 50.0,
+        requires = "arm_angle_uncertainty_deg"
+    )]
+    arm_angle_dof: f64,
+}
+
+impl ArmArgs {
+    fn statement(&self) -> Option<ArmAngleUncertainty> {
+        self.arm_angle_uncertainty_deg
+            .map(|angle_deg| ArmAngleUncertainty {
+                angle_deg,
+                dof: self.arm_angle_dof,
+            })
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Static and dynamic fit: writes a full calibration record and prints a summary.
@@ -89,6 +118,8 @@ enum Command {
         /// Local gravity for roll_deg/pitch_deg static files, m/s².
         #[arg(long, default_value_t = 9.80665)]
         gravity: f64,
+        #[command(flatten)]
+        arm: ArmArgs,
         /// Overrides the bench file's reference method.
         #[arg(long, value_enum)]
         reference: Option<Reference>,
@@ -113,6 +144,8 @@ enum Command {
         static_csv: PathBuf,
         #[arg(long, default_value_t = 9.80665)]
         gravity: f64,
+        #[command(flatten)]
+        arm: ArmArgs,
     },
     /// Dynamic fit only: prints S, q, the uncertainty budget and the comparison tables.
     Dynamic {
@@ -398,6 +431,7 @@ fn main() -> anyhow::Result<()> {
             out,
             report,
             gravity,
+            arm,
             reference,
             points,
             record_version,
@@ -410,6 +444,7 @@ fn main() -> anyhow::Result<()> {
             let now = OffsetDateTime::now_utc();
             let options = FitOptions {
                 gravity_mps2: gravity,
+                arm: arm.statement(),
                 reference: reference.map(Into::into),
                 points_per_cycle: points,
                 report: report.is_some(),
@@ -435,8 +470,9 @@ fn main() -> anyhow::Result<()> {
         Command::Static {
             static_csv,
             gravity,
+            arm,
         } => {
-            let result = run_static(&static_csv, gravity)?;
+            let result = run_static(&static_csv, gravity, arm.statement())?;
             print!("{}", static_summary(&result));
         }
         Command::Dynamic {

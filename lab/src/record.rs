@@ -6,6 +6,15 @@
 //!
 //! - static set: zero. Its random parameter error, including the arm's angle errors that show
 //!   up in the residuals, is in `covariance`; the sample noise is `sensor.output_noise`.
+//!
+//! Degrees of freedom, so that the gateway's coverage factors are Student's t (JCGM 100 G):
+//! the static covariance has the fit's residual ν (N − 4, plus the arm statement's when one is
+//! given); the dynamic covariance has N − 4 over all its points, or K − 1 when the
+//! repeatability of K one-cycle sets scaled it up, since then K sets are what it rests on;
+//! `uncertainty_mps2` has the Welch–Satterthwaite ν of the radius (a Type B value taken as
+//! exact) and the lack of fit; the output noise has the ν of its second-difference estimate.
+//! Each set's `coverage_factor` is Student's t at [`COVERAGE_PROBABILITY`] for its
+//! covariance's ν: the k of the parameters' expanded uncertainties.
 //! - dynamic set: √(u_r² + u_lof²), the radius and lack-of-fit contributions of
 //!   [`triax_calibration::fit::repeatability`]. Repeatability is represented by `covariance`
 //!   (which is scaled up when the observed repeatability exceeds what it predicts) and the
@@ -15,6 +24,7 @@ use nalgebra::Vector3;
 use time::OffsetDateTime;
 use triax_calibration::fit::repeatability::UncertaintyBudget;
 use triax_calibration::fit::{Bench, Calibration, DynamicFit, StaticFit, StaticObservation};
+use triax_calibration::student::{t_quantile, welch_satterthwaite, MAX_DOF};
 use triax_protocol::record::{
     CalibrationRecord, CalibrationSet, Certificate, Domain, Lab, SensorInfo,
 };
@@ -31,8 +41,24 @@ pub struct RecordMeta {
     pub output_unit: String,
 }
 
-/// Coverage factor stated in the record: k = 2 for about 95 % with normal errors.
-pub const COVERAGE_FACTOR: f64 = 2.0;
+/// Coverage probability the record states for every set.
+pub const COVERAGE_PROBABILITY: f64 = 0.95;
+
+/// Student's t at [`COVERAGE_PROBABILITY`] for `nu` degrees of freedom, truncated to an
+/// integer as JCGM 100 G.4.1 does.
+pub fn coverage_factor(nu: f64) -> f64 {
+    t_quantile(
+        nu.clamp(1.0, f64::from(MAX_DOF)) as u32,
+        COVERAGE_PROBABILITY,
+    )
+}
+
+/// The degrees of freedom of one set, each `None` for infinitely many.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SetDof {
+    pub covariance: Option<f64>,
+    pub uncertainty: Option<f64>,
+}
 
 fn covariance_rows(cal: &Calibration) -> Box<[[f64; 12]; 12]> {
     let c = cal.covariance();
@@ -46,9 +72,11 @@ fn covariance_rows(cal: &Calibration) -> Box<[[f64; 12]; 12]> {
     Box::new(rows)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn set(
     cal: &Calibration,
     uncertainty_mps2: Vector3<f64>,
+    dof: SetDof,
     domain: Domain,
     method: String,
     reference: String,
@@ -65,8 +93,11 @@ fn set(
         ],
         offset: [q.x, q.y, q.z],
         uncertainty_mps2: [uncertainty_mps2.x, uncertainty_mps2.y, uncertainty_mps2.z],
+        uncertainty_dof: dof.uncertainty,
         covariance: Some(covariance_rows(cal)),
-        coverage_factor: COVERAGE_FACTOR,
+        covariance_dof: dof.covariance,
+        coverage_factor: coverage_factor(dof.covariance.unwrap_or(f64::INFINITY)),
+        coverage_probability: Some(COVERAGE_PROBABILITY),
         domain,
         method,
         reference,
@@ -89,6 +120,11 @@ pub fn static_set(
     set(
         &fit.calibration,
         Vector3::zeros(),
+        SetDof {
+            // With no residual and no arm statement the covariance is zero: nothing to weigh.
+            covariance: (fit.covariance_dof >= 1.0).then_some(fit.covariance_dof),
+            uncertainty: None,
+        },
         Domain {
             amplitude_max_mps2: amplitude.max(f64::MIN_POSITIVE),
             frequency_min_hz: 0.0,
@@ -117,6 +153,7 @@ pub fn dynamic_set(
     set(
         &budget.calibration,
         budget.combined_mps2,
+        dynamic_dof(fit, budget),
         Domain {
             amplitude_max_mps2: budget.max_abs_mps2.max(),
             frequency_min_hz: bench.motion.frequency_hz,
@@ -144,12 +181,35 @@ pub fn dynamic_set(
     )
 }
 
+/// Degrees of freedom of the dynamic set (see the module's documentation).
+pub fn dynamic_dof(fit: &DynamicFit, budget: &UncertaintyBudget) -> SetDof {
+    let covariance = if budget.covariance_inflation > 1.0 {
+        budget.sets.saturating_sub(1).max(1) as f64
+    } else {
+        fit.n_points.saturating_sub(4).max(1) as f64
+    };
+    // Per axis, the radius (exact) and the lack of fit (ν from its cells); the smallest ν of
+    // the three axes speaks for all.
+    let uncertainty = (0..3)
+        .map(|k| {
+            let radius = budget.radius_mps2[k].powi(2);
+            let lof = budget.lack_of_fit_mps2[k].powi(2);
+            welch_satterthwaite(&[(radius, 0.0), (lof, 1.0 / fit.lack_of_fit_dof)])
+        })
+        .fold(f64::INFINITY, f64::min);
+    SetDof {
+        covariance: Some(covariance),
+        uncertainty: uncertainty.is_finite().then_some(uncertainty),
+    }
+}
+
 /// The full record with both sets.
 pub fn build_record(
     meta: &RecordMeta,
     static_set: CalibrationSet,
     dynamic_set: CalibrationSet,
     output_noise: Vector3<f64>,
+    output_noise_dof: f64,
 ) -> CalibrationRecord {
     CalibrationRecord {
         format_version: JSON_FORMAT_VERSION,
@@ -171,6 +231,7 @@ pub fn build_record(
         sensor: SensorInfo {
             output_unit: meta.output_unit.clone(),
             output_noise: Some([output_noise.x, output_noise.y, output_noise.z]),
+            output_noise_dof: Some(output_noise_dof),
             output_full_scale: None,
             model: None,
             serial: None,

@@ -22,6 +22,13 @@ pub const N_PARAMS: usize = 12;
 pub const MIN_COVERAGE_FACTOR: f64 = 0.1;
 pub const MAX_COVERAGE_FACTOR: f64 = 10.0;
 
+/// Accepted range of a set's coverage probability.
+pub const MIN_COVERAGE_PROBABILITY: f64 = 0.5;
+pub const MAX_COVERAGE_PROBABILITY: f64 = 0.999;
+
+/// Smallest accepted degrees of freedom.
+pub const MIN_DOF: f64 = 1.0;
+
 /// One sensor's calibration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -96,6 +103,9 @@ pub struct SensorInfo {
     /// Standard deviation of one output sample at rest, per axis, in the output unit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub output_noise: Option<[f64; 3]>,
+    /// Degrees of freedom of `output_noise`; none means infinitely many (a known value).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub output_noise_dof: Option<f64>,
     /// |V| at or above which an output is clipped, in the output unit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub output_full_scale: Option<f64>,
@@ -116,11 +126,23 @@ pub struct CalibrationSet {
     /// Per-axis standard uncertainty (k = 1) of a corrected value, m/s², from the contributions
     /// the covariance does not represent (repeatability of the reference, radius, model error).
     pub uncertainty_mps2: [f64; 3],
+    /// Degrees of freedom of `uncertainty_mps2`; none means infinitely many.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncertainty_dof: Option<f64>,
     /// Covariance of the 12 parameters (S row-major, then q), in their units.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub covariance: Option<Box<[[f64; N_PARAMS]; N_PARAMS]>>,
-    /// Coverage factor stated with the expanded uncertainty (2 for ≈95 %).
+    /// Degrees of freedom of `covariance` (for a least-squares fit, the residual degrees of
+    /// freedom); none means infinitely many.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance_dof: Option<f64>,
+    /// Coverage factor stated with the expanded uncertainty of the parameters (2 for ≈95 %
+    /// with infinite degrees of freedom; Student's t at `coverage_probability` otherwise).
     pub coverage_factor: f64,
+    /// Coverage probability the gateway's intervals aim at when the set states degrees of
+    /// freedom; none means 0.95.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage_probability: Option<f64>,
     pub domain: Domain,
     /// Calibration method ("static multi-orientation least squares", …).
     pub method: String,
@@ -198,6 +220,9 @@ impl CalibrationRecord {
                 }
             }
         }
+        if let Some(nu) = self.sensor.output_noise_dof {
+            check_dof(nu).map_err(|problem| err("sensor.output_noise_dof", problem))?;
+        }
         if let Some(fs) = self.sensor.output_full_scale {
             if !(fs.is_finite() && fs > 0.0) {
                 return Err(err(
@@ -249,6 +274,24 @@ impl CalibrationSet {
                 ),
             ));
         }
+        for (field, dof) in [
+            ("uncertainty_dof", self.uncertainty_dof),
+            ("covariance_dof", self.covariance_dof),
+        ] {
+            if let Some(nu) = dof {
+                check_dof(nu).map_err(|problem| (field.to_string(), problem))?;
+            }
+        }
+        if let Some(p) = self.coverage_probability {
+            if !(MIN_COVERAGE_PROBABILITY..=MAX_COVERAGE_PROBABILITY).contains(&p) {
+                return Err((
+                    "coverage_probability".into(),
+                    format!(
+                        "{p} is outside {MIN_COVERAGE_PROBABILITY}..={MAX_COVERAGE_PROBABILITY}"
+                    ),
+                ));
+            }
+        }
         let d = &self.domain;
         if !(d.amplitude_max_mps2.is_finite() && d.amplitude_max_mps2 > 0.0) {
             return Err((
@@ -298,6 +341,19 @@ impl CalibrationSet {
     }
 }
 
+/// Degrees of freedom below one describe no estimate at all; infinity is written by leaving
+/// the field out.
+fn check_dof(nu: f64) -> Result<(), String> {
+    if nu.is_finite() && nu >= MIN_DOF {
+        Ok(())
+    } else {
+        Err(format!(
+            "{nu} is not a finite number of degrees of freedom of at least {MIN_DOF} (leave the \
+             field out for infinitely many)"
+        ))
+    }
+}
+
 /// The two sets of a record.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -322,8 +378,11 @@ pub mod sample {
             ],
             offset: [0.05, -0.03, 0.02],
             uncertainty_mps2: [0.01, 0.012, 0.011],
+            uncertainty_dof: None,
             covariance: None,
+            covariance_dof: None,
             coverage_factor: 2.0,
+            coverage_probability: None,
             domain: Domain {
                 amplitude_max_mps2: 20.0,
                 frequency_min_hz: 0.0,
@@ -355,6 +414,7 @@ pub mod sample {
             sensor: SensorInfo {
                 output_unit: "V".into(),
                 output_noise: Some([0.001, 0.001, 0.001]),
+                output_noise_dof: None,
                 output_full_scale: Some(40.0),
                 model: None,
                 serial: None,
@@ -419,6 +479,24 @@ mod tests {
         let mut r = sample::record("s1", 1);
         r.version = 0;
         assert_eq!(r.validate().unwrap_err().field, "version");
+
+        let mut r = sample::record("s1", 1);
+        r.static_set.covariance_dof = Some(0.5);
+        let e = r.validate().unwrap_err();
+        assert_eq!(e.field, "static.covariance_dof");
+        assert!(e.to_string().contains("leave the field out"), "{e}");
+        let mut r = sample::record("s1", 1);
+        r.dynamic.uncertainty_dof = Some(f64::NAN);
+        assert_eq!(r.validate().unwrap_err().field, "dynamic.uncertainty_dof");
+        let mut r = sample::record("s1", 1);
+        r.sensor.output_noise_dof = Some(-3.0);
+        assert_eq!(r.validate().unwrap_err().field, "sensor.output_noise_dof");
+        let mut r = sample::record("s1", 1);
+        r.static_set.coverage_probability = Some(95.0);
+        assert_eq!(
+            r.validate().unwrap_err().field,
+            "static.coverage_probability"
+        );
     }
 
     #[test]

@@ -260,6 +260,11 @@ pub struct DynamicFit {
     /// Standard deviation of the sensor's output noise per channel, output units, estimated
     /// from second differences of the raw outputs.
     pub output_noise: Vector3<f64>,
+    /// Degrees of freedom of `output_noise` ([`output_noise_dof`]).
+    pub output_noise_dof: f64,
+    /// Degrees of freedom of `lack_of_fit_mps2`: the residual cells less the 4 parameters
+    /// per axis fitted to them.
+    pub lack_of_fit_dof: f64,
     /// The same noise in m/s² (diagonal of S⁻¹·Σ·S⁻ᵀ, square-rooted).
     pub output_noise_mps2: Vector3<f64>,
     /// Residual covariance of the outputs at the calibration points, output units².
@@ -387,6 +392,8 @@ pub fn fit_with(
         recording_bias_mps2,
         lack_of_fit_mps2,
         output_noise,
+        output_noise_dof: output_noise_dof(recordings),
+        lack_of_fit_dof: cells.saturating_sub(4).max(1) as f64,
         output_noise_mps2,
         residual_cov: fit.residual_cov,
         prepared,
@@ -410,6 +417,17 @@ pub fn output_noise(recordings: &[Recording]) -> Vector3<f64> {
         return Vector3::zeros();
     }
     (sum / (6.0 * count as f64)).map(f64::sqrt)
+}
+
+/// Degrees of freedom of [`output_noise`]: `72/140` of the number of second differences. The
+/// differences overlap, so neighbours are correlated (autocovariances 6σ², −4σ², σ²), and
+/// their mean square has the variance of a χ² with `2·36n/140` degrees of freedom.
+pub fn output_noise_dof(recordings: &[Recording]) -> f64 {
+    let count: usize = recordings
+        .iter()
+        .map(|r| r.output.len().saturating_sub(2))
+        .sum();
+    (72.0 / 140.0 * count as f64).max(1.0)
 }
 
 /// Turns a failed design into a message about the recordings.

@@ -29,6 +29,9 @@ pub(crate) struct AffineFit {
     pub residual_cov: Matrix3<f64>,
     /// Degrees of freedom of the residuals (N − 4).
     pub dof: usize,
+    /// `(XᵀX)⁻¹` of the design `[a_x a_y a_z 1]`, for leverages and for
+    /// [`parameter_covariance`] with another residual covariance.
+    pub gram_inv: Matrix4<f64>,
 }
 
 /// Why the design could not be solved.
@@ -154,6 +157,25 @@ pub(crate) fn fit_affine(
         noise_prior.unwrap_or_else(Matrix3::zeros)
     };
 
+    let cov = parameter_covariance(&residual_cov, &gram_inv, &sensitivity_inv, &offset);
+    let calibration =
+        Calibration::new(sensitivity, offset, cov).map_err(|_| AffineFailure::Singular)?;
+    Ok(AffineFit {
+        calibration,
+        residual_cov,
+        dof,
+        gram_inv,
+    })
+}
+
+/// Covariance of (S row-major, q) from the residual covariance of the outputs: that of
+/// `(S, c)` is `Σ ⊗ (XᵀX)⁻¹`, mapped through the Jacobian of `q = −S⁻¹·c`.
+pub(crate) fn parameter_covariance(
+    residual_cov: &Matrix3<f64>,
+    gram_inv: &Matrix4<f64>,
+    sensitivity_inv: &Matrix3<f64>,
+    offset: &Vector3<f64>,
+) -> ParameterCovariance {
     // Covariance of θ = (S row-major, c).
     let index = |axis: usize, coeff: usize| {
         if coeff < 3 {
@@ -186,14 +208,7 @@ pub(crate) fn fit_affine(
         }
     }
     let cov = jac * cov_sc * jac.transpose();
-    let cov = (cov + cov.transpose()) * 0.5;
-    let calibration =
-        Calibration::new(sensitivity, offset, cov).map_err(|_| AffineFailure::Singular)?;
-    Ok(AffineFit {
-        calibration,
-        residual_cov,
-        dof,
-    })
+    (cov + cov.transpose()) * 0.5
 }
 
 #[cfg(test)]

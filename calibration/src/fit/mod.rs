@@ -37,7 +37,10 @@ pub use dynamic::{fit_dynamic, Bench, DynamicFit, Recording};
 pub use radius::{fit_radius, RadiusFit};
 pub use reference::{MotionLaw, ReferenceMethod};
 pub use repeatability::UncertaintyBudget;
-pub use static_fit::{fit_static, reference_from_angles, StaticFit, StaticObservation};
+pub use static_fit::{
+    fit_static, fit_static_with, reference_from_angles, ArmAngleUncertainty, StaticFit,
+    StaticObservation,
+};
 
 /// Covariance of the twelve calibration parameters, ordered S row-major (S_xx, S_xy, …, S_zz)
 /// then q (q_x, q_y, q_z); units (output/(m/s²))², output·m/s²·/(m/s²) and (m/s²)².

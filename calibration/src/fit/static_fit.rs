@@ -7,11 +7,35 @@
 //! largest deviation of the corrected output from the reference, both in-sample and, when there
 //! are orientations to spare, leaving each orientation out of its own fit (a fairer figure, since
 //! in-sample residuals shrink as the fit absorbs them).
+//!
+//! # Degrees of freedom
+//!
+//! The covariance comes from the residuals, estimated with N − 4 degrees of freedom: 6 for the
+//! usual ten orientations, where Student's t asks for k = 2.45 rather than 1.96. An operator
+//! who knows how well the arm sets its angles can say so ([`ArmAngleUncertainty`], a Type B
+//! statement with degrees of freedom of its own). The arm's angle errors tilt the true gravity
+//! vector away from the nominal one, which is what drives the residuals, so the statement
+//! predicts the residual covariance: `Σ_B = Σ_j (1 − h_jj)·S·Σ_a,j·Sᵀ / (N − 4)`, with `Σ_a,j`
+//! the covariance of orientation j's reference under independent roll and pitch errors and
+//! `h_jj` its leverage (what makes the expected residual covariance exactly that). The two
+//! estimates of one covariance are pooled, weighted by their degrees of freedom:
+//! `Σ = (ν_A·Σ_A + ν_B·Σ_B) / (ν_A + ν_B)` with `ν = ν_A + ν_B`. The noise of the
+//! orientation means is left to the residual part: averaged over a thousand samples it is far
+//! below what a tenth of a degree of arm error does.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3, Vector4};
 
-use super::linear::fit_affine;
+use super::linear::{fit_affine, parameter_covariance};
 use super::{rms, Calibration, FitError};
+
+/// What the operator knows of the arm: the standard uncertainty of each of its two angles
+/// (roll and pitch, independent), with the degrees of freedom of that statement (JCGM 100
+/// G.4.2: ν ≈ ½·(u/Δu)², so a value known to ±10 % has ν = 50).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArmAngleUncertainty {
+    pub angle_deg: f64,
+    pub dof: f64,
+}
 
 /// One orientation of the arm.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -36,14 +60,35 @@ pub struct StaticFit {
     /// The same check with each orientation predicted by a fit that did not see it; `None`
     /// with fewer than five orientations.
     pub leave_one_out_max_deviation_mps2: Option<f64>,
-    /// Residual degrees of freedom (orientations − 4); with none, the covariance is zero.
+    /// Residual degrees of freedom (orientations − 4); with none, the covariance is zero
+    /// unless the arm's angle uncertainty is stated.
     pub dof: usize,
+    /// Degrees of freedom of the covariance: `dof`, plus the arm statement's when stated.
+    pub covariance_dof: f64,
     /// Observations the caller should read, e.g. a covariance that could not be estimated.
     pub warnings: Vec<String>,
 }
 
-/// Fits S and q to the orientations.
+/// Fits S and q to the orientations, with the covariance from the residuals alone.
 pub fn fit_static(observations: &[StaticObservation]) -> Result<StaticFit, FitError> {
+    fit_static_with(observations, None)
+}
+
+/// Fits S and q to the orientations; with `arm`, the covariance pools the residuals with what
+/// the arm's angle uncertainty predicts (see the module's documentation).
+pub fn fit_static_with(
+    observations: &[StaticObservation],
+    arm: Option<ArmAngleUncertainty>,
+) -> Result<StaticFit, FitError> {
+    if let Some(a) = arm {
+        if !(a.angle_deg.is_finite() && a.angle_deg > 0.0 && a.dof.is_finite() && a.dof >= 1.0) {
+            return Err(FitError::Bench(format!(
+                "arm angle uncertainty {}° with {} degrees of freedom: need a positive angle \
+                 and at least 1 degree of freedom",
+                a.angle_deg, a.dof
+            )));
+        }
+    }
     for (index, obs) in observations.iter().enumerate() {
         if !obs.reference_mps2.iter().all(|x| x.is_finite()) {
             return Err(FitError::NonFinite {
@@ -61,14 +106,26 @@ pub fn fit_static(observations: &[StaticObservation]) -> Result<StaticFit, FitEr
     let refs: Vec<_> = observations.iter().map(|o| o.reference_mps2).collect();
     let outs: Vec<_> = observations.iter().map(|o| o.output).collect();
     let fit = fit_affine(&refs, &outs, None)?;
-    let calibration = fit.calibration;
+    let (calibration, covariance_dof) = match arm {
+        None => (fit.calibration.clone(), fit.dof as f64),
+        Some(arm) => {
+            let predicted = predicted_residual_cov(&fit.calibration, &refs, &fit.gram_inv, arm);
+            let nu_a = fit.dof as f64;
+            let pooled = (fit.residual_cov * nu_a + predicted * arm.dof) / (nu_a + arm.dof);
+            let c = &fit.calibration;
+            let cov =
+                parameter_covariance(&pooled, &fit.gram_inv, c.sensitivity_inv(), c.offset_mps2());
+            let calibration = Calibration::new(*c.sensitivity(), *c.offset_mps2(), cov)?;
+            (calibration, nu_a + arm.dof)
+        }
+    };
     let residuals_mps2: Vec<_> = observations
         .iter()
         .map(|o| calibration.correct(&o.output) - o.reference_mps2)
         .collect();
     let (max_deviation_orientation, max_deviation_mps2) = largest(&residuals_mps2);
     let mut warnings = Vec::new();
-    if fit.dof == 0 {
+    if fit.dof == 0 && arm.is_none() {
         warnings.push(
             "exactly 4 orientations leave no residual degrees of freedom: the parameter \
              covariance cannot be estimated and is reported as zero; measure more orientations"
@@ -111,8 +168,40 @@ pub fn fit_static(observations: &[StaticObservation]) -> Result<StaticFit, FitEr
         max_deviation_orientation,
         leave_one_out_max_deviation_mps2,
         dof: fit.dof,
+        covariance_dof,
         warnings,
     })
+}
+
+/// The residual covariance of the outputs that the arm's angle uncertainty predicts, output
+/// units²: `Σ_j (1 − h_jj)·S·Σ_a,j·Sᵀ / (N − 4)`, or the plain mean with no residual degrees of
+/// freedom.
+fn predicted_residual_cov(
+    calibration: &Calibration,
+    refs: &[Vector3<f64>],
+    gram_inv: &nalgebra::Matrix4<f64>,
+    arm: ArmAngleUncertainty,
+) -> Matrix3<f64> {
+    let u_rad = arm.angle_deg.to_radians();
+    let s = calibration.sensitivity();
+    let mut sum = Matrix3::zeros();
+    for a in refs {
+        let g = a.norm();
+        let (roll_deg, pitch_deg) = angles_from_reference(a);
+        let (sr, cr) = roll_deg.to_radians().sin_cos();
+        let (sp, cp) = pitch_deg.to_radians().sin_cos();
+        // ∂a/∂pitch and ∂a/∂roll of reference_from_angles.
+        let d_pitch = g * Vector3::new(cp, -sr * sp, -cr * sp);
+        let d_roll = g * Vector3::new(0.0, cr * cp, -sr * cp);
+        let sigma_a =
+            (d_pitch * d_pitch.transpose() + d_roll * d_roll.transpose()) * (u_rad * u_rad);
+        let x = Vector4::new(a.x, a.y, a.z, 1.0);
+        let leverage = (x.transpose() * gram_inv * x)[(0, 0)];
+        let weight = if refs.len() > 4 { 1.0 - leverage } else { 1.0 };
+        sum += s * sigma_a * s.transpose() * weight;
+    }
+    let dof = refs.len().saturating_sub(4);
+    sum / if dof > 0 { dof } else { refs.len() } as f64
 }
 
 fn largest(values: &[Vector3<f64>]) -> (usize, f64) {
