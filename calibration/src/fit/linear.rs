@@ -176,6 +176,18 @@ pub(crate) fn parameter_covariance(
     sensitivity_inv: &Matrix3<f64>,
     offset: &Vector3<f64>,
 ) -> ParameterCovariance {
+    parameter_covariance_of(&[(*residual_cov, *gram_inv)], sensitivity_inv, offset)
+}
+
+/// The general form: the covariance of `(S, c)` is `Σ_t Σ_t ⊗ W_t` over `terms` `(Σ_t, W_t)`.
+/// Homoscedastic residuals are the single term `(Σ, (XᵀX)⁻¹)`; residuals whose covariance
+/// `Σ_j` differs by row are the sandwich, one term `(Σ_j, G·x_j·x_jᵀ·G)` per row with
+/// `G = (XᵀX)⁻¹`.
+pub(crate) fn parameter_covariance_of(
+    terms: &[(Matrix3<f64>, Matrix4<f64>)],
+    sensitivity_inv: &Matrix3<f64>,
+    offset: &Vector3<f64>,
+) -> ParameterCovariance {
     // Covariance of θ = (S row-major, c).
     let index = |axis: usize, coeff: usize| {
         if coeff < 3 {
@@ -185,11 +197,13 @@ pub(crate) fn parameter_covariance(
         }
     };
     let mut cov_sc = ParameterCovariance::zeros();
-    for j in 0..3 {
-        for k in 0..3 {
-            for l in 0..4 {
-                for m in 0..4 {
-                    cov_sc[(index(j, l), index(k, m))] = residual_cov[(j, k)] * gram_inv[(l, m)];
+    for (sigma, weight) in terms {
+        for j in 0..3 {
+            for k in 0..3 {
+                for l in 0..4 {
+                    for m in 0..4 {
+                        cov_sc[(index(j, l), index(k, m))] += sigma[(j, k)] * weight[(l, m)];
+                    }
                 }
             }
         }

@@ -15,17 +15,19 @@
 //! who knows how well the arm sets its angles can say so ([`ArmAngleUncertainty`], a Type B
 //! statement with degrees of freedom of its own). The arm's angle errors tilt the true gravity
 //! vector away from the nominal one, which is what drives the residuals, so the statement
-//! predicts the residual covariance: `Σ_B = Σ_j (1 − h_jj)·S·Σ_a,j·Sᵀ / (N − 4)`, with `Σ_a,j`
-//! the covariance of orientation j's reference under independent roll and pitch errors and
-//! `h_jj` its leverage (what makes the expected residual covariance exactly that). The two
-//! estimates of one covariance are pooled, weighted by their degrees of freedom:
-//! `Σ = (ν_A·Σ_A + ν_B·Σ_B) / (ν_A + ν_B)` with `ν = ν_A + ν_B`. The noise of the
-//! orientation means is left to the residual part: averaged over a thousand samples it is far
-//! below what a tenth of a degree of arm error does.
+//! predicts each orientation's output error covariance `Σ_B,j = S·Σ_a,j·Sᵀ`, with `Σ_a,j` the
+//! covariance of orientation j's reference under independent roll and pitch errors. The two
+//! estimates are pooled, weighted by their degrees of freedom, `ν = ν_A + ν_B`:
+//! `Cov = (ν_A·Σ_A ⊗ G + ν_B·Σ_j Σ_B,j ⊗ G·x_j·x_jᵀ·G) / ν` with `G = (XᵀX)⁻¹`. The second
+//! term is the exact covariance of least squares under the arm's errors, which differ by
+//! orientation (none along gravity, all across it); the residuals' single `Σ_A` averages them,
+//! and understates the error near the orientations that the arm perturbs most, such as level.
+//! The noise of the orientation means is left to the residual part: averaged over a thousand
+//! samples it is far below what a tenth of a degree of arm error does.
 
 use nalgebra::{Matrix3, Vector3, Vector4};
 
-use super::linear::{fit_affine, parameter_covariance};
+use super::linear::{fit_affine, parameter_covariance_of};
 use super::{rms, Calibration, FitError};
 
 /// What the operator knows of the arm: the standard uncertainty of each of its two angles
@@ -109,12 +111,17 @@ pub fn fit_static_with(
     let (calibration, covariance_dof) = match arm {
         None => (fit.calibration.clone(), fit.dof as f64),
         Some(arm) => {
-            let predicted = predicted_residual_cov(&fit.calibration, &refs, &fit.gram_inv, arm);
             let nu_a = fit.dof as f64;
-            let pooled = (fit.residual_cov * nu_a + predicted * arm.dof) / (nu_a + arm.dof);
+            let nu = nu_a + arm.dof;
+            let s = fit.calibration.sensitivity();
+            let mut terms = vec![(fit.residual_cov * (nu_a / nu), fit.gram_inv)];
+            for a in &refs {
+                let gx = fit.gram_inv * Vector4::new(a.x, a.y, a.z, 1.0);
+                let sigma = s * reference_cov(a, arm) * s.transpose();
+                terms.push((sigma * (arm.dof / nu), gx * gx.transpose()));
+            }
             let c = &fit.calibration;
-            let cov =
-                parameter_covariance(&pooled, &fit.gram_inv, c.sensitivity_inv(), c.offset_mps2());
+            let cov = parameter_covariance_of(&terms, c.sensitivity_inv(), c.offset_mps2());
             let calibration = Calibration::new(*c.sensitivity(), *c.offset_mps2(), cov)?;
             (calibration, nu_a + arm.dof)
         }
@@ -173,35 +180,18 @@ pub fn fit_static_with(
     })
 }
 
-/// The residual covariance of the outputs that the arm's angle uncertainty predicts, output
-/// units²: `Σ_j (1 − h_jj)·S·Σ_a,j·Sᵀ / (N − 4)`, or the plain mean with no residual degrees of
-/// freedom.
-fn predicted_residual_cov(
-    calibration: &Calibration,
-    refs: &[Vector3<f64>],
-    gram_inv: &nalgebra::Matrix4<f64>,
-    arm: ArmAngleUncertainty,
-) -> Matrix3<f64> {
+/// Covariance of an orientation's reference (m/s²)² under independent errors of the arm's
+/// roll and pitch: `u²·(J_r·J_rᵀ + J_p·J_pᵀ)` with `J` the derivatives of
+/// [`reference_from_angles`].
+fn reference_cov(a: &Vector3<f64>, arm: ArmAngleUncertainty) -> Matrix3<f64> {
     let u_rad = arm.angle_deg.to_radians();
-    let s = calibration.sensitivity();
-    let mut sum = Matrix3::zeros();
-    for a in refs {
-        let g = a.norm();
-        let (roll_deg, pitch_deg) = angles_from_reference(a);
-        let (sr, cr) = roll_deg.to_radians().sin_cos();
-        let (sp, cp) = pitch_deg.to_radians().sin_cos();
-        // ∂a/∂pitch and ∂a/∂roll of reference_from_angles.
-        let d_pitch = g * Vector3::new(cp, -sr * sp, -cr * sp);
-        let d_roll = g * Vector3::new(0.0, cr * cp, -sr * cp);
-        let sigma_a =
-            (d_pitch * d_pitch.transpose() + d_roll * d_roll.transpose()) * (u_rad * u_rad);
-        let x = Vector4::new(a.x, a.y, a.z, 1.0);
-        let leverage = (x.transpose() * gram_inv * x)[(0, 0)];
-        let weight = if refs.len() > 4 { 1.0 - leverage } else { 1.0 };
-        sum += s * sigma_a * s.transpose() * weight;
-    }
-    let dof = refs.len().saturating_sub(4);
-    sum / if dof > 0 { dof } else { refs.len() } as f64
+    let g = a.norm();
+    let (roll_deg, pitch_deg) = angles_from_reference(a);
+    let (sr, cr) = roll_deg.to_radians().sin_cos();
+    let (sp, cp) = pitch_deg.to_radians().sin_cos();
+    let d_pitch = g * Vector3::new(cp, -sr * sp, -cr * sp);
+    let d_roll = g * Vector3::new(0.0, cr * cp, -sr * cp);
+    (d_pitch * d_pitch.transpose() + d_roll * d_roll.transpose()) * (u_rad * u_rad)
 }
 
 fn largest(values: &[Vector3<f64>]) -> (usize, f64) {
