@@ -863,6 +863,38 @@ mod tests {
         assert!(s.uncertainty_mps2.iter().all(|u| *u > 0.0 && *u < 0.1));
     }
 
+    /// The batch's k is Student's t at the smallest Welch–Satterthwaite ν of its samples: an
+    /// offset variance of 1e-4 m²/s⁴ with ν = 6 alone gives t₆ = 2.447; adding output noise of
+    /// the same variance with ν = ∞ gives ν = (2e-4)² / (1e-8/6) = 24, t₂₄ = 2.064.
+    #[test]
+    fn coverage_factor_follows_the_effective_degrees_of_freedom() {
+        let mut r = sample::record("k", 1);
+        r.static_set.sensitivity = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]];
+        r.static_set.uncertainty_mps2 = [0.0; 3];
+        let mut cov = [[0.0; 12]; 12];
+        cov[9][9] = 1e-4;
+        r.static_set.covariance = Some(Box::new(cov));
+        r.static_set.covariance_dof = Some(6.0);
+        r.sensor.output_noise = None;
+        let k_of = |r: &triax_protocol::CalibrationRecord| {
+            let c = Corrector::from_record(r).unwrap();
+            let mut k = SensorKernel::new(settings(CorrectionMode::Static));
+            let v = outputs_for(r, [0.3, -0.2, 9.81]);
+            let mut samples = vec![v; 20];
+            samples[3] = [f32::NAN; 3];
+            run(&mut k, Some(&c), &batch(0, samples))
+                .info
+                .coverage_factor
+        };
+        assert!((k_of(&r) - 2.447).abs() < 1e-3, "{}", k_of(&r));
+        // Noise of 0.001 V through S⁻¹ = 10: 0.01 m/s², variance 1e-4 on every axis.
+        r.sensor.output_noise = Some([0.001; 3]);
+        assert!((k_of(&r) - 2.064).abs() < 1e-3, "{}", k_of(&r));
+        // Without stated ν the record's own factor stands.
+        r.static_set.covariance_dof = None;
+        assert_eq!(k_of(&r), 2.0);
+    }
+
     #[test]
     fn uncalibrated_and_non_finite_are_flagged() {
         let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));

@@ -12,6 +12,7 @@ use std::process::Command;
 
 use time::OffsetDateTime;
 use triax_calibration::corrector::Corrector;
+use triax_calibration::fit::ArmAngleUncertainty;
 use triax_calibration::sim::{simulate, SensorTruth, SimConfig};
 use triax_lab::commands::{run_apply, run_dynamic, run_fit, run_simulate, FitOptions};
 use triax_lab::record::RecordMeta;
@@ -39,6 +40,7 @@ fn short_config(seed: u64, sensor: SensorTruth) -> SimConfig {
 fn options(report: bool) -> FitOptions {
     FitOptions {
         gravity_mps2: 9.80665,
+        arm: None,
         reference: None,
         points_per_cycle: None,
         report,
@@ -368,7 +370,7 @@ fn bad_static_file_is_named_and_the_binary_writes_nothing() {
 
     // A header without the reference columns.
     std::fs::write(&static_csv, "vx,vy,vz\n1,2,3\n").unwrap();
-    let msg = expect_err(triax_lab::commands::run_static(&static_csv, 9.80665));
+    let msg = expect_err(triax_lab::commands::run_static(&static_csv, 9.80665, None));
     assert!(
         msg.contains("static.csv, line 1: missing column(s) ax_ref, ay_ref, az_ref"),
         "{msg}"
@@ -415,4 +417,40 @@ fn bundled_sample_data_fits() {
     )
     .unwrap();
     Corrector::from_record(&out.record).unwrap();
+    // ν and k per set, in the record and in the summary: 10 orientations leave ν = 6, where
+    // Student's t says 2.447 at 95 %.
+    let r = &out.record;
+    assert_eq!(r.static_set.covariance_dof, Some(6.0));
+    assert!((r.static_set.coverage_factor - 2.447).abs() < 1e-3);
+    assert_eq!(r.static_set.coverage_probability, Some(0.95));
+    let nu_d = r.dynamic.covariance_dof.expect("dynamic ν");
+    assert!(nu_d > 100.0, "{nu_d}");
+    assert!(r.sensor.output_noise_dof.expect("noise ν") > 1000.0);
+    assert!(
+        out.summary.contains("covariance: ν = 6, k = 2.447 at 95 %"),
+        "{}",
+        out.summary
+    );
+    assert!(
+        out.summary
+            .contains(&format!("covariance: ν = {nu_d:.0}, k = 1.9")),
+        "{}",
+        out.summary
+    );
+    assert!(out.summary.contains("only 6 degrees of freedom"));
+    // Stating the arm's angle uncertainty pools it in: ν = 6 + 50.
+    let pooled = run_fit(
+        &data.join("static.csv"),
+        &data.join("bench.toml"),
+        &FitOptions {
+            arm: Some(ArmAngleUncertainty {
+                angle_deg: 0.2,
+                dof: 50.0,
+            }),
+            ..options(false)
+        },
+    )
+    .unwrap();
+    assert_eq!(pooled.record.static_set.covariance_dof, Some(56.0));
+    assert!(!pooled.summary.contains("only"), "{}", pooled.summary);
 }
