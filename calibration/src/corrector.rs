@@ -653,6 +653,31 @@ mod tests {
         );
     }
 
+    /// PROTOCOL.md §3.1's worked example: per axis, offset variance 1e-4 with ν = 6 and output
+    /// noise 0.001 V through S⁻¹ = 10 (variance 1e-4) with ν = 200: u = √2e-4 = 0.01414 m/s²,
+    /// ν_eff = (2e-4)² / (1e-8/6 + 1e-8/200) = 23.30, k = t₂₃ = 2.069.
+    #[test]
+    fn protocol_worked_example() {
+        use crate::student::t_quantile;
+        let path = format!(
+            "{}/../protocol/tests/golden/record_v1_dof.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let text = std::fs::read(path).unwrap();
+        let r: CalibrationRecord = triax_protocol::from_json(&text).unwrap();
+        let c = Corrector::from_record(&r).unwrap();
+        let set = c.set(SetKind::Static);
+        let (_, var, ws) = set.correct_with_dof([0.0, 0.0, 0.981]);
+        for k in 0..3 {
+            assert!((var[k].sqrt() - 0.014142).abs() < 1e-6, "{var:?}");
+            let nu = var[k] * var[k] / ws[k];
+            assert!((nu - 23.30).abs() < 0.01, "{nu}");
+            let k = set.coverage_factor_at(nu);
+            assert_eq!(k, t_quantile(23, 0.95));
+            assert!((k - 2.069).abs() < 5e-4, "{k}");
+        }
+    }
+
     /// Filtering scales the output noise by the noise gain and nothing else: at gain 1 it is
     /// the single sample's covariance; at gain 0 the noise is gone while the stated part stays;
     /// an extra output variance goes through S⁻¹ like noise (hand-computed on a diagonal S).

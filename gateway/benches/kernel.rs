@@ -6,6 +6,8 @@
 //! - `batch/<mode>`: the gateway's whole per-batch path for a 100-sample batch: read from the
 //!   payload, correct, flag (clipping, amplitude, expiry, frequency detector), write the corrected
 //!   batch into a reused buffer.
+//! - `batch/<mode>_dof`: the same with a record that states degrees of freedom, so that every
+//!   sample's Welch–Satterthwaite ν is found and the batch's k looked up from it.
 //!
 //! Run: `cargo bench -p triax-gateway --bench kernel`.
 
@@ -97,6 +99,29 @@ fn bench(c: &mut Criterion) {
                 // Encoded just above by the protocol's own encoder.
                 let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
                 black_box(kernel.correct_batch(&view, Some(&corrector), 0, &mut scratch, &mut out));
+            })
+        });
+    }
+    // The same with degrees of freedom stated: ν per sample, k per batch.
+    let mut with_dof = r.clone();
+    with_dof.static_set.covariance_dof = Some(6.0);
+    with_dof.dynamic.covariance_dof = Some(1196.0);
+    with_dof.dynamic.uncertainty_dof = Some(76.0);
+    with_dof.sensor.output_noise_dof = Some(20_000.0);
+    let with_dof = Corrector::from_record(&with_dof).expect("bench record loads");
+    for mode in [CorrectionMode::Static, CorrectionMode::Split] {
+        let mut kernel = SensorKernel::new(SensorSettings {
+            mode,
+            tilt: mode == CorrectionMode::Split,
+            ..SensorSettings::default()
+        });
+        let mut out = Vec::with_capacity(4096);
+        g.bench_function(format!("batch/{mode:?}_dof").to_lowercase(), |b| {
+            b.iter(|| {
+                out.clear();
+                // Encoded just above by the protocol's own encoder.
+                let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
+                black_box(kernel.correct_batch(&view, Some(&with_dof), 0, &mut scratch, &mut out));
             })
         });
     }

@@ -85,6 +85,47 @@ fn record_json_golden() {
     );
 }
 
+/// A record that states degrees of freedom (PROTOCOL.md §3.1's worked example): the layout
+/// of the optional fields, and what they say.
+#[test]
+fn record_with_degrees_of_freedom_golden() {
+    let path = format!(
+        "{}/tests/golden/record_v1_dof.json",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let text = std::fs::read(&path).unwrap();
+    let record: triax_protocol::CalibrationRecord = triax_protocol::from_json(&text).unwrap();
+    record.validate().unwrap();
+    assert_eq!(record.sensor.output_noise_dof, Some(200.0));
+    for set in [&record.static_set, &record.dynamic] {
+        assert_eq!(set.covariance_dof, Some(6.0));
+        assert_eq!(set.uncertainty_dof, None);
+        assert_eq!(set.coverage_probability, Some(0.95));
+        assert_eq!(set.coverage_factor, 2.447);
+    }
+    assert_eq!(
+        triax_protocol::to_json_pretty(&record),
+        text,
+        "JSON layout changed"
+    );
+    // The same record without the new fields is a valid version-1 record: absent means
+    // infinitely many degrees of freedom.
+    let mut v: serde_json::Value = serde_json::from_slice(&text).unwrap();
+    v["sensor"]
+        .as_object_mut()
+        .unwrap()
+        .remove("output_noise_dof");
+    for set in ["static", "dynamic"] {
+        let o = v[set].as_object_mut().unwrap();
+        o.remove("covariance_dof");
+        o.remove("coverage_probability");
+    }
+    let old: triax_protocol::CalibrationRecord =
+        triax_protocol::from_json(&serde_json::to_vec(&v).unwrap()).unwrap();
+    old.validate().unwrap();
+    assert_eq!(old.static_set.covariance_dof, None);
+}
+
 /// The worked examples in PROTOCOL.md are the golden vectors, byte for byte.
 #[test]
 fn protocol_md_examples_match_golden_vectors() {
