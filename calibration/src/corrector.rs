@@ -25,6 +25,16 @@
 //! ([`SetCorrector::coverage_factor_at`]). A set that states no ν at all keeps the coverage
 //! factor it states, as records always did.
 //!
+//! # Temperature
+//!
+//! A record with a [`TemperatureModel`] is corrected per batch at the batch's temperature:
+//! [`SetCorrector::at_temperature`] returns the set with `S⁻¹·diag(1/(1 + c_g·ΔT))` in place of
+//! `S⁻¹`, `q + c_q·ΔT` in place of `q`, and the coefficients' covariance added to the parameter
+//! part. With `a′` the scaled output, `∂a_k/∂c_q,m = ΔT·δ_km` and
+//! `∂a_k/∂c_g,j = −ΔT·(S⁻¹)_kj·(S·a′)_j`, so that part is again a quadratic form in `(a′, 1)`,
+//! scaled by ΔT² and precomputed at load: the sample path costs what it did. Its degrees of
+//! freedom join the parameter part's as the smaller of the two, which only lowers ν_eff.
+//!
 //! Everything that can be wrong with a record is found when it is loaded
 //! ([`Corrector::from_record`]): wrong shape or non-finite values (by
 //! [`CalibrationRecord::validate`]), a sensitivity matrix with condition number above
@@ -34,7 +44,9 @@
 use std::sync::Arc;
 
 use nalgebra::{Matrix3, SMatrix, SymmetricEigen};
-use triax_protocol::record::{CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind};
+use triax_protocol::record::{
+    CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind, TemperatureModel,
+};
 use triax_protocol::SensorId;
 
 use crate::student::{CoverageTable, DEFAULT_COVERAGE_PROBABILITY};
@@ -149,6 +161,35 @@ pub struct SetCorrector {
     /// Student's t factors at the set's coverage probability; `None` when the set states no
     /// degrees of freedom, and its own coverage factor applies.
     coverage_table: Option<Arc<CoverageTable>>,
+    /// The record's temperature model for this set; `None` without one, and in a set already
+    /// taken to a temperature.
+    thermal: Option<Arc<Thermal>>,
+}
+
+/// A temperature model applied to one set (see the module's documentation).
+#[derive(Debug, Clone, PartialEq)]
+struct Thermal {
+    reference_c: f64,
+    range_c: [f64; 2],
+    offset_per_c: [f64; 3],
+    gain_per_c: [f64; 3],
+    /// The coefficients' part of Cov(a_k, a_l) per °C² of ΔT², as forms in (a′, 1).
+    forms: [QuadForm; 6],
+    inv_dof: f64,
+}
+
+/// Where a batch's temperature stands against a record's temperature model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TemperatureCheck {
+    /// The record has no temperature model: nothing to do.
+    NotModelled,
+    /// Inside the calibrated range: corrected for it.
+    Inside,
+    /// Outside the calibrated range: corrected by extrapolation, and flagged.
+    Outside,
+    /// The record needs a temperature and the batch has none (or a non-finite one): not
+    /// corrected for temperature, and flagged.
+    Missing,
 }
 
 /// Reciprocals of the degrees of freedom of a set's three contributions (0: infinitely many).
@@ -306,6 +347,24 @@ impl SetCorrector {
             )
         });
 
+        if let Some(t) = &record.temperature {
+            let sigma = SMatrix::<f64, 6, 6>::from_fn(|i, j| t.covariance[i][j]);
+            let eigenvalues = SymmetricEigen::new(sigma).eigenvalues;
+            let (min, max) = (eigenvalues.min(), eigenvalues.max().max(0.0));
+            if min < -PSD_TOLERANCE * max.max(f64::MIN_POSITIVE) {
+                return Err(LoadError::CovarianceNotPositive {
+                    sensor_id: record.sensor_id.clone(),
+                    version: record.version,
+                    set: "temperature",
+                    min_eigenvalue: min,
+                });
+            }
+        }
+        let thermal = record
+            .temperature
+            .as_ref()
+            .map(|t| Arc::new(Thermal::new(t, &s, &s_inv)));
+
         Ok(SetCorrector {
             kind,
             s_inv: s_inv.transpose().into(),
@@ -319,7 +378,50 @@ impl SetCorrector {
             domain: set.domain,
             coverage_factor: set.coverage_factor,
             coverage_table,
+            thermal,
         })
+    }
+
+    /// Whether the record corrects for temperature, and where `temperature_c` stands.
+    pub fn temperature_check(&self, temperature_c: Option<f64>) -> TemperatureCheck {
+        match (&self.thermal, temperature_c.filter(|t| t.is_finite())) {
+            (None, _) => TemperatureCheck::NotModelled,
+            (Some(_), None) => TemperatureCheck::Missing,
+            (Some(t), Some(c)) if (t.range_c[0]..=t.range_c[1]).contains(&c) => {
+                TemperatureCheck::Inside
+            }
+            (Some(_), Some(_)) => TemperatureCheck::Outside,
+        }
+    }
+
+    /// The set at a sensor temperature of `temperature_c` (see the module's documentation);
+    /// `None` when the record has no temperature model or the temperature is not finite.
+    pub fn at_temperature(&self, temperature_c: f64) -> Option<SetCorrector> {
+        let t = self.thermal.as_ref()?;
+        if !temperature_c.is_finite() {
+            return None;
+        }
+        let dt = temperature_c - t.reference_c;
+        let mut set = SetCorrector {
+            thermal: None,
+            ..self.clone()
+        };
+        for (row, s_row) in set.s_inv.iter_mut().zip(&self.s_inv) {
+            for j in 0..3 {
+                row[j] = s_row[j] / (1.0 + t.gain_per_c[j] * dt);
+            }
+        }
+        for k in 0..3 {
+            set.offset_mps2[k] += t.offset_per_c[k] * dt;
+        }
+        let dt2 = (dt * dt) as f32;
+        for (form, extra) in set.param_cov.iter_mut().zip(&t.forms) {
+            for (c, e) in form.iter_mut().zip(extra) {
+                *c += e * dt2;
+            }
+        }
+        set.inv_dof.parameters = set.inv_dof.parameters.max(t.inv_dof);
+        Some(set)
     }
 
     /// Whether the set states degrees of freedom, so that its coverage factor depends on the
@@ -503,6 +605,37 @@ impl SetCorrector {
     }
 }
 
+impl Thermal {
+    fn new(model: &TemperatureModel, s: &Matrix3<f64>, s_inv: &Matrix3<f64>) -> Thermal {
+        let sigma = SMatrix::<f64, 6, 6>::from_fn(|i, j| model.covariance[i][j]);
+        // Row k of ∂a/∂(c_q, c_g) per unit ΔT, as xᵀ·B_k with x = (a′, 1).
+        let b = |k: usize| {
+            let mut m = SMatrix::<f64, 4, 6>::zeros();
+            m[(3, k)] = 1.0;
+            for j in 0..3 {
+                for i in 0..3 {
+                    m[(i, 3 + j)] = -s_inv[(k, j)] * s[(j, i)];
+                }
+            }
+            m
+        };
+        let mut forms = [[0.0f32; 10]; 6];
+        for k in 0..3 {
+            for l in k..3 {
+                forms[pair(k, l)] = quad_form(&(b(k) * sigma * b(l).transpose()));
+            }
+        }
+        Thermal {
+            reference_c: model.reference_c,
+            range_c: model.range_c,
+            offset_per_c: model.offset_mps2_per_c,
+            gain_per_c: model.gain_per_c.unwrap_or([0.0; 3]),
+            forms,
+            inv_dof: inverse(model.covariance_dof),
+        }
+    }
+}
+
 /// Whether a record is in force at a given time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Validity {
@@ -678,7 +811,59 @@ mod tests {
         }
     }
 
-    /// Filtering scales the output noise by the noise gain and nothing else: at gain 1 it is
+    /// Hand-computed on S = diag(2, 4, 5), q = (0.1, 0.2, 0.3), T₀ = 20 °C, c_q = (0.01, 0, 0)
+    /// m/s²/°C, c_g = (0, 0.001, 0) /°C, Var(c_q,x) = 1e-6, Var(c_g,y) = 1e-8, at 30 °C:
+    /// V = (2, 4, 5) reads V₀ = (2, 4/1.01, 5) at T₀, so a = (1.2, 1/1.01 + 0.2, 1.3); the
+    /// added variances are 10²·1e-6 on x and (10·¼·4/1.01)²·1e-8 on y.
+    #[test]
+    fn temperature_by_hand() {
+        use triax_protocol::record::TemperatureModel;
+        let mut r = diag_record();
+        let mut cov = [[0.0; 6]; 6];
+        cov[0][0] = 1e-6;
+        cov[4][4] = 1e-8;
+        r.temperature = Some(TemperatureModel {
+            reference_c: 20.0,
+            range_c: [15.0, 35.0],
+            offset_mps2_per_c: [0.01, 0.0, 0.0],
+            gain_per_c: Some([0.0, 0.001, 0.0]),
+            covariance: cov,
+            covariance_dof: Some(4.0),
+        });
+        let c = Corrector::from_record(&r).unwrap();
+        let set = c.set(SetKind::Static);
+        assert_eq!(set.temperature_check(Some(30.0)), TemperatureCheck::Inside);
+        assert_eq!(set.temperature_check(Some(40.0)), TemperatureCheck::Outside);
+        assert_eq!(set.temperature_check(None), TemperatureCheck::Missing);
+        assert_eq!(
+            set.temperature_check(Some(f64::NAN)),
+            TemperatureCheck::Missing
+        );
+        let warm = set.at_temperature(30.0).unwrap();
+        let out = warm.correct([2.0, 4.0, 5.0]);
+        let expect = [1.2, 1.0 / 1.01 + 0.2, 1.3];
+        for k in 0..3 {
+            assert!((out.accel_mps2[k] - expect[k]).abs() < 1e-12, "{out:?}");
+        }
+        assert!((out.uncertainty_mps2[0] - 0.01).abs() < 1e-8, "{out:?}");
+        let u_y = (10.0 * 0.25 * 4.0 / 1.01) * 1e-4;
+        assert!((out.uncertainty_mps2[1] - u_y).abs() < 1e-9, "{out:?}");
+        assert_eq!(out.uncertainty_mps2[2], 0.0);
+        // At the reference temperature nothing changes; the coefficients' ν joins in.
+        let same = set.at_temperature(20.0).unwrap();
+        assert_eq!(same.correct([2.0, 4.0, 5.0]), set.correct([2.0, 4.0, 5.0]));
+        assert_eq!(warm.inverse_dof().parameters, 0.25);
+        assert!(
+            warm.at_temperature(25.0).is_none(),
+            "taken to a temperature once"
+        );
+        // A covariance that is not positive semi-definite is refused by name.
+        r.temperature.as_mut().unwrap().covariance[0][1] = 1e-5;
+        r.temperature.as_mut().unwrap().covariance[1][0] = 1e-5;
+        let e = Corrector::from_record(&r).unwrap_err();
+        assert!(e.to_string().contains("temperature.covariance"), "{e}");
+    }
+
     /// the single sample's covariance; at gain 0 the noise is gone while the stated part stays;
     /// an extra output variance goes through S⁻¹ like noise (hand-computed on a diagonal S).
     #[test]

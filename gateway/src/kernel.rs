@@ -64,7 +64,7 @@
 //! missing stretch is not signal), and duplicate batches bypass it.
 
 use serde::{Deserialize, Serialize};
-use triax_calibration::corrector::{Corrector, SetCorrector, Validity};
+use triax_calibration::corrector::{Corrector, SetCorrector, TemperatureCheck, Validity};
 use triax_protocol::batch::{flags, CorrectedBatchWriter, CorrectedSample, CorrectionInfo, Mode};
 use triax_protocol::record::SetKind;
 use triax_protocol::RawBatchView;
@@ -156,6 +156,10 @@ pub struct TiltState {
     /// Once the low pass has settled from its start (see [`crate::tilt`]).
     pub ready: bool,
     pub low_band: LowBandError,
+    /// The sensor's temperature in the last in-sequence batch, for a record that corrects for
+    /// it. Not checkpointed: every batch sets it before a tilt estimate can use it.
+    #[serde(skip)]
+    pub temperature_c: Option<f64>,
 }
 
 /// Per-sensor memory of the sample path.
@@ -200,6 +204,7 @@ impl SensorKernel {
                 timestamp_ns: 0,
                 ready: false,
                 low_band: LowBandError::default(),
+                temperature_c: None,
             },
         }
     }
@@ -388,8 +393,28 @@ impl SensorKernel {
             }
         }
 
-        let static_set = c.set(SetKind::Static);
-        let dynamic_set = c.set(SetKind::Dynamic);
+        // Temperature: both sets taken to the batch's, when the record models it.
+        let temperature_c = raw.temperature_c.map(f64::from);
+        let static_base = c.set(SetKind::Static);
+        match static_base.temperature_check(temperature_c) {
+            TemperatureCheck::Outside | TemperatureCheck::Missing => {
+                common |= flags::OUTSIDE_TEMPERATURE
+            }
+            TemperatureCheck::Inside | TemperatureCheck::NotModelled => {}
+        }
+        if in_sequence {
+            self.tilt.temperature_c = temperature_c;
+        }
+        let warm = temperature_c.and_then(|t| {
+            Some((
+                static_base.at_temperature(t)?,
+                c.set(SetKind::Dynamic).at_temperature(t)?,
+            ))
+        });
+        let (static_set, dynamic_set) = match &warm {
+            Some((s, d)) => (s, d),
+            None => (static_base, c.set(SetKind::Dynamic)),
+        };
         // Corrected values and per-sample flags into the scratch arrays, and the batch's
         // coverage factor: the largest of its samples', so that every interval is at least
         // right.
@@ -893,6 +918,51 @@ mod tests {
         // Without stated ν the record's own factor stands.
         r.static_set.covariance_dof = None;
         assert_eq!(k_of(&r), 2.0);
+    }
+
+    /// A record with an offset drift of 0.01 m/s²/°C on x around 20 °C, calibrated over
+    /// 10–30 °C: at 25 °C x reads 0.05 m/s² more than at 20 °C, unflagged; at 35 °C it is
+    /// extrapolated and flagged; with no temperature it is not corrected for it, and flagged.
+    #[test]
+    fn temperature_is_corrected_and_flagged_outside_its_range() {
+        use triax_protocol::record::TemperatureModel;
+        let mut r = sample::record("k", 1);
+        r.temperature = Some(TemperatureModel {
+            reference_c: 20.0,
+            range_c: [10.0, 30.0],
+            offset_mps2_per_c: [0.01, 0.0, 0.0],
+            gain_per_c: None,
+            covariance: [[0.0; 6]; 6],
+            covariance_dof: None,
+        });
+        let c = Corrector::from_record(&r).unwrap();
+        let v = outputs_for(&r, [0.3, -0.2, 9.81]);
+        let at = |seq: u64, t: Option<f32>| {
+            let bytes = RawBatch {
+                temperature_c: t,
+                ..RawBatch::decode(&batch(seq, vec![v; 10])).unwrap()
+            }
+            .encode();
+            let mut k = SensorKernel::new(settings(CorrectionMode::Static));
+            run(&mut k, Some(&c), &bytes)
+        };
+        let reference = at(0, Some(20.0));
+        assert_eq!(reference.batch_flags, 0);
+        assert!((reference.samples[0].accel_mps2[0] - 0.3).abs() < 1e-5);
+        let warm = at(1, Some(25.0));
+        assert_eq!(warm.batch_flags, 0);
+        let shift = warm.samples[0].accel_mps2[0] - reference.samples[0].accel_mps2[0];
+        assert!((shift - 0.05).abs() < 1e-5, "{shift}");
+        let hot = at(2, Some(35.0));
+        assert_eq!(hot.batch_flags, flags::OUTSIDE_TEMPERATURE);
+        assert_eq!(hot.samples[3].flags, flags::OUTSIDE_TEMPERATURE);
+        assert!((hot.samples[0].accel_mps2[0] - 0.45).abs() < 1e-5);
+        let unknown = at(3, None);
+        assert_eq!(unknown.batch_flags, flags::OUTSIDE_TEMPERATURE);
+        assert_eq!(
+            unknown.samples[0].accel_mps2,
+            reference.samples[0].accel_mps2
+        );
     }
 
     #[test]

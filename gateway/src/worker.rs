@@ -557,7 +557,9 @@ impl SensorState {
         if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
-                let est = tilt(corrector.set(SetKind::Static), t.output_lp, &t.low_band);
+                let base = corrector.set(SetKind::Static);
+                let warm = t.temperature_c.and_then(|c| base.at_temperature(c));
+                let est = tilt(warm.as_ref().unwrap_or(base), t.output_lp, &t.low_band);
                 let sample = TiltSample {
                     format_version: JSON_FORMAT_VERSION,
                     sensor_id: self.entry.id.clone(),

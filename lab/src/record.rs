@@ -238,5 +238,6 @@ pub fn build_record(
         },
         static_set,
         dynamic: dynamic_set,
+        temperature: None,
     }
 }

@@ -49,12 +49,15 @@ pub mod flags {
     pub const CLIPPED: u16 = 1 << 6;
     /// This batch repeats or precedes a sequence number already seen.
     pub const DUPLICATE: u16 = 1 << 7;
+    /// The record corrects for temperature and the batch's temperature lies outside its
+    /// calibrated range, or the batch carries none.
+    pub const OUTSIDE_TEMPERATURE: u16 = 1 << 8;
     /// Every defined bit; the others are reserved and must be zero.
-    pub const ALL: u16 = (1 << 8) - 1;
+    pub const ALL: u16 = (1 << 9) - 1;
 
     /// Names of the set bits, for logs and reports.
     pub fn names(bits: u16) -> Vec<&'static str> {
-        const NAMES: [&str; 8] = [
+        const NAMES: [&str; 9] = [
             "uncalibrated",
             "calibration_expired",
             "outside_amplitude",
@@ -63,8 +66,9 @@ pub mod flags {
             "non_finite_input",
             "clipped",
             "duplicate",
+            "outside_temperature",
         ];
-        (0..8)
+        (0..9)
             .filter(|i| bits & (1 << i) != 0)
             .map(|i| NAMES[i])
             .collect()

@@ -59,7 +59,41 @@ pub struct CalibrationRecord {
     pub static_set: CalibrationSet,
     /// Set for vibration: from the rotary table.
     pub dynamic: CalibrationSet,
+    /// First-order temperature correction of both sets, when the lab measured at two or more
+    /// temperatures; none means the sets hold whatever the temperature.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub temperature: Option<TemperatureModel>,
 }
+
+/// How the sensor's offset and gains move with its temperature, to first order:
+/// `V(T) = (1 + c_g·ΔT)·V(T₀)` per output channel and `q(T) = q + c_q·ΔT`, with
+/// `ΔT = T − reference_c`. The gateway corrects a batch that carries `temperature_c` as
+/// `a = S⁻¹·(V / (1 + c_g·ΔT)) + q + c_q·ΔT`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TemperatureModel {
+    /// Temperature at which both sets' S and q hold, °C.
+    pub reference_c: f64,
+    /// Lowest and highest temperature the lab measured at, °C.
+    pub range_c: [f64; 2],
+    /// c_q: change of the offset q per °C, per axis, m/s² per °C.
+    pub offset_mps2_per_c: [f64; 3],
+    /// c_g: relative change of each output channel's gain per °C; none means not measured
+    /// (taken as 0 with no uncertainty).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gain_per_c: Option<[f64; 3]>,
+    /// Covariance of (c_q x, y, z, c_g x, y, z), an array of six rows of six; the c_g part is
+    /// zero when `gain_per_c` is absent.
+    pub covariance: [[f64; 6]; 6],
+    /// Degrees of freedom of `covariance`; none means infinitely many.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance_dof: Option<f64>,
+}
+
+/// Largest accepted |c_q|, m/s² per °C: a hundred times what cheap MEMS parts drift.
+pub const MAX_OFFSET_MPS2_PER_C: f64 = 0.5;
+/// Largest accepted |c_g|, per °C (1 % per °C).
+pub const MAX_GAIN_PER_C: f64 = 0.01;
 
 impl JsonMessage for CalibrationRecord {
     const WHAT: &'static str = "calibration record";
@@ -234,6 +268,77 @@ impl CalibrationRecord {
         for (name, set) in [("static", &self.static_set), ("dynamic", &self.dynamic)] {
             set.validate()
                 .map_err(|(field, problem)| err(&format!("{name}.{field}"), problem))?;
+        }
+        if let Some(t) = &self.temperature {
+            t.validate()
+                .map_err(|(field, problem)| err(&format!("temperature.{field}"), problem))?;
+        }
+        Ok(())
+    }
+}
+
+impl TemperatureModel {
+    fn validate(&self) -> Result<(), (String, String)> {
+        let [low, high] = self.range_c;
+        if !(low.is_finite() && high.is_finite() && low < high) {
+            return Err((
+                "range_c".into(),
+                format!("[{low}, {high}] is not a finite range with min < max"),
+            ));
+        }
+        if !(self.reference_c.is_finite() && (low..=high).contains(&self.reference_c)) {
+            return Err((
+                "reference_c".into(),
+                format!("{} is not inside range_c [{low}, {high}]", self.reference_c),
+            ));
+        }
+        for (i, c) in self.offset_mps2_per_c.iter().enumerate() {
+            if !(c.is_finite() && c.abs() <= MAX_OFFSET_MPS2_PER_C) {
+                return Err((
+                    format!("offset_mps2_per_c[{i}]"),
+                    format!("{c} is not a finite number within ±{MAX_OFFSET_MPS2_PER_C}"),
+                ));
+            }
+        }
+        for (i, c) in self.gain_per_c.iter().flatten().enumerate() {
+            if !(c.is_finite() && c.abs() <= MAX_GAIN_PER_C) {
+                return Err((
+                    format!("gain_per_c[{i}]"),
+                    format!("{c} is not a finite number within ±{MAX_GAIN_PER_C}"),
+                ));
+            }
+        }
+        for i in 0..6 {
+            for j in 0..6 {
+                let (v, w) = (self.covariance[i][j], self.covariance[j][i]);
+                if !v.is_finite() {
+                    return Err((
+                        format!("covariance[{i}][{j}]"),
+                        format!("{v} is not finite"),
+                    ));
+                }
+                if (v - w).abs() > 1e-9 * v.abs().max(w.abs()) {
+                    return Err((
+                        format!("covariance[{i}][{j}]"),
+                        format!("{v} differs from covariance[{j}][{i}] = {w}: not symmetric"),
+                    ));
+                }
+            }
+            if self.covariance[i][i] < 0.0 {
+                return Err((
+                    format!("covariance[{i}][{i}]"),
+                    format!("variance {} is negative", self.covariance[i][i]),
+                ));
+            }
+            if i >= 3 && self.gain_per_c.is_none() && self.covariance[i][i] != 0.0 {
+                return Err((
+                    format!("covariance[{i}][{i}]"),
+                    "the gain part must be zero when gain_per_c is absent".into(),
+                ));
+            }
+        }
+        if let Some(nu) = self.covariance_dof {
+            check_dof(nu).map_err(|problem| ("covariance_dof".to_string(), problem))?;
         }
         Ok(())
     }
@@ -424,6 +529,7 @@ pub mod sample {
                 "static multi-orientation least squares",
             ),
             dynamic: set([0.102, 0.103, 0.101], "rotary table least squares"),
+            temperature: None,
         }
     }
 }
@@ -491,6 +597,26 @@ mod tests {
         let mut r = sample::record("s1", 1);
         r.sensor.output_noise_dof = Some(-3.0);
         assert_eq!(r.validate().unwrap_err().field, "sensor.output_noise_dof");
+        let mut r = sample::record("s1", 1);
+        r.temperature = Some(TemperatureModel {
+            reference_c: 21.0,
+            range_c: [10.0, 30.0],
+            offset_mps2_per_c: [0.003, -0.002, 0.001],
+            gain_per_c: None,
+            covariance: [[0.0; 6]; 6],
+            covariance_dof: None,
+        });
+        r.validate().unwrap();
+        r.temperature.as_mut().unwrap().reference_c = 35.0;
+        assert_eq!(r.validate().unwrap_err().field, "temperature.reference_c");
+        r.temperature.as_mut().unwrap().reference_c = 21.0;
+        r.temperature.as_mut().unwrap().covariance[4][4] = 1e-8;
+        let e = r.validate().unwrap_err();
+        assert_eq!(e.field, "temperature.covariance[4][4]");
+        assert!(e.to_string().contains("gain_per_c is absent"), "{e}");
+        r.temperature.as_mut().unwrap().gain_per_c = Some([0.0, 0.2, 0.0]);
+        assert_eq!(r.validate().unwrap_err().field, "temperature.gain_per_c[1]");
+
         let mut r = sample::record("s1", 1);
         r.static_set.coverage_probability = Some(95.0);
         assert_eq!(
