@@ -42,7 +42,14 @@ pub struct SensorTruth {
     pub dynamic_sensitivity: Matrix3<f64>,
     /// Standard deviation of the white output noise per sample, V.
     pub noise_v: Vector3<f64>,
+    /// Drift of the offset with temperature, m/s² per °C, around [`REFERENCE_C`].
+    pub offset_drift_mps2_per_c: Vector3<f64>,
+    /// Relative drift of each output channel's gain per °C, around [`REFERENCE_C`].
+    pub gain_drift_per_c: Vector3<f64>,
 }
+
+/// The temperature at which [`SensorTruth`]'s S and q hold, °C; the rotary table runs at it.
+pub const REFERENCE_C: f64 = 21.0;
 
 impl SensorTruth {
     /// A sensor like the paper's: (9) and (10) negated, (11), all divided by 100 for volts.
@@ -56,7 +63,28 @@ impl SensorTruth {
                 9.948, 0.2576, -0.3657, -0.5342, 10.97, -0.6611, -0.4454, 1.614, 10.83,
             ) / 100.0,
             noise_v: Vector3::repeat(0.005),
+            offset_drift_mps2_per_c: Vector3::zeros(),
+            gain_drift_per_c: Vector3::zeros(),
         }
+    }
+
+    /// The paper's sensor with a thermal drift typical of cheap MEMS parts: offsets of a few
+    /// tenths of a milli-g per °C and gains of a few hundred ppm per °C.
+    pub fn drifting() -> Self {
+        Self {
+            offset_drift_mps2_per_c: Vector3::new(0.004, -0.003, 0.005),
+            gain_drift_per_c: Vector3::new(2e-4, -1.5e-4, 3e-4),
+            ..Self::matched()
+        }
+    }
+
+    /// Noise-free output at temperature `temperature_c` for a sensor at rest reading `a`:
+    /// `V = diag(1 + c_g·ΔT)·S_S·(a − q_S − c_q·ΔT)`.
+    pub fn output_at(&self, a_mps2: &Vector3<f64>, temperature_c: f64) -> Vector3<f64> {
+        let dt = temperature_c - REFERENCE_C;
+        let v = self.static_sensitivity
+            * (a_mps2 - self.static_offset_mps2 - self.offset_drift_mps2_per_c * dt);
+        v.component_mul(&self.gain_drift_per_c.map(|c| 1.0 + c * dt))
     }
 
     /// The paper's static parameters for both parts of the input: eq. (1) holds exactly.
@@ -101,6 +129,9 @@ pub struct SimConfig {
     pub static_angle_error_deg: f64,
     /// Samples averaged per static orientation.
     pub static_samples: usize,
+    /// Temperatures of the static runs, °C: every orientation is measured at each. Empty: one
+    /// run at [`REFERENCE_C`], with no temperature column.
+    pub static_temperatures_c: Vec<f64>,
     pub points_per_cycle: usize,
     pub reference: ReferenceMethod,
     /// Spacer-block thicknesses, mm.
@@ -129,6 +160,7 @@ impl Default for SimConfig {
             static_orientations: 10,
             static_angle_error_deg: 0.2,
             static_samples: 1000,
+            static_temperatures_c: Vec::new(),
             points_per_cycle: 20,
             reference: ReferenceMethod::FiniteDifference,
             spacers_mm: (0..=8).map(|i| 5.0 * i as f64).collect(),
@@ -147,6 +179,8 @@ pub struct SimBench {
     pub static_angles_deg: Vec<(f64, f64)>,
     /// True reference of each orientation (nominal plus the arm's angle error).
     pub static_truth_mps2: Vec<Vector3<f64>>,
+    /// Temperature of each static row, when the config asks for several runs.
+    pub static_temperatures_c: Option<Vec<f64>>,
     pub bench: Bench,
     pub recordings: Vec<Recording>,
     /// True specific force at every sample of every recording.
@@ -160,23 +194,46 @@ pub fn simulate(config: &SimConfig) -> SimBench {
     let mut rng = Rng::new(config.seed);
     let sensor = &config.sensor;
 
-    let nominal = static_attitudes(config.static_orientations);
-    let mut static_observations = Vec::with_capacity(nominal.len());
-    let mut static_truth_mps2 = Vec::with_capacity(nominal.len());
+    let one_run = [REFERENCE_C];
+    let runs: &[f64] = if config.static_temperatures_c.is_empty() {
+        &one_run
+    } else {
+        &config.static_temperatures_c
+    };
+    let attitudes = static_attitudes(config.static_orientations);
+    let mut nominal = Vec::new();
+    let mut static_observations = Vec::new();
+    let mut static_truth_mps2 = Vec::new();
+    let mut temperatures = Vec::new();
     let averaged_noise = sensor.noise_v / (config.static_samples.max(1) as f64).sqrt();
-    for &(roll, pitch) in &nominal {
-        let err = config.static_angle_error_deg;
-        let actual = reference_from_angles(
-            roll + err * rng.normal(),
-            pitch + err * rng.normal(),
-            config.gravity_mps2,
-        );
-        let noise = averaged_noise.map(|s| s * rng.normal());
-        static_observations.push(StaticObservation {
-            reference_mps2: reference_from_angles(roll, pitch, config.gravity_mps2),
-            output: sensor.output(&actual, &actual) + noise,
-        });
-        static_truth_mps2.push(actual);
+    // The arm returns to the same positions in every run: its angle errors belong to the
+    // position, not to the run.
+    let mut actuals = Vec::with_capacity(attitudes.len());
+    for (run, &temperature_c) in runs.iter().enumerate() {
+        for (position, &(roll, pitch)) in attitudes.iter().enumerate() {
+            if run == 0 {
+                let err = config.static_angle_error_deg;
+                actuals.push(reference_from_angles(
+                    roll + err * rng.normal(),
+                    pitch + err * rng.normal(),
+                    config.gravity_mps2,
+                ));
+            }
+            let actual = actuals[position];
+            let noise = averaged_noise.map(|s| s * rng.normal());
+            let output = if temperature_c == REFERENCE_C {
+                sensor.output(&actual, &actual)
+            } else {
+                sensor.output_at(&actual, temperature_c)
+            };
+            static_observations.push(StaticObservation {
+                reference_mps2: reference_from_angles(roll, pitch, config.gravity_mps2),
+                output: output + noise,
+            });
+            static_truth_mps2.push(actual);
+            nominal.push((roll, pitch));
+            temperatures.push(temperature_c);
+        }
     }
 
     let bench = Bench {
@@ -244,6 +301,7 @@ pub fn simulate(config: &SimConfig) -> SimBench {
         static_observations,
         static_angles_deg: nominal,
         static_truth_mps2,
+        static_temperatures_c: (!config.static_temperatures_c.is_empty()).then_some(temperatures),
         bench,
         recordings,
         truth_mps2,

@@ -543,7 +543,11 @@ fn correct_all_with_dof(
         for k in 0..3 {
             // Round-off can take a zero variance a hair below zero.
             u[k] = var[k].max(0.0).sqrt();
-            worst = worst.max(ws[k] / (var[k] * var[k]));
+            // ws/var² > worst without a division per sample; NaN compares false.
+            let var2 = var[k] * var[k];
+            if ws[k] > worst * var2 {
+                worst = ws[k] / var2;
+            }
         }
     }
     worst

@@ -513,15 +513,31 @@ pub fn run_simulate(config: &SimConfig) -> (SimBench, Vec<(PathBuf, String)>) {
     let sim = simulate(config);
     let mut files = Vec::new();
 
-    let mut st = String::from("roll_deg,pitch_deg,ax_ref,ay_ref,az_ref,vx,vy,vz\n");
-    for (obs, (roll, pitch)) in sim.static_observations.iter().zip(&sim.static_angles_deg) {
+    let mut st = String::from("roll_deg,pitch_deg,ax_ref,ay_ref,az_ref,vx,vy,vz");
+    st.push_str(if sim.static_temperatures_c.is_some() {
+        ",temperature_c\n"
+    } else {
+        "\n"
+    });
+    for (i, (obs, (roll, pitch))) in sim
+        .static_observations
+        .iter()
+        .zip(&sim.static_angles_deg)
+        .enumerate()
+    {
         let a = obs.reference_mps2;
         let v = obs.output;
-        let _ = writeln!(
+        let _ = write!(
             st,
             "{roll:.4},{pitch:.4},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7}",
             a.x, a.y, a.z, v.x, v.y, v.z
         );
+        match &sim.static_temperatures_c {
+            Some(t) => {
+                let _ = writeln!(st, ",{:.2}", t[i]);
+            }
+            None => st.push('\n'),
+        }
     }
     files.push((PathBuf::from("static.csv"), st));
 

@@ -29,6 +29,7 @@ pub mod reference;
 pub mod repeatability;
 pub mod static_fit;
 pub mod tables;
+pub mod thermal;
 
 use nalgebra::{Matrix3, SMatrix, Vector3};
 use thiserror::Error;
@@ -93,6 +94,9 @@ pub enum FitError {
     /// Spacer-block data that cannot give a radius.
     #[error("radius: {0}")]
     Radius(String),
+    /// Static runs at several temperatures that cannot give a temperature model.
+    #[error("temperature: {0}")]
+    Temperature(String),
 }
 
 /// A fitted calibration: `a = S⁻¹·V + q` with the covariance of its twelve parameters.
