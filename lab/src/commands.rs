@@ -14,12 +14,13 @@ use triax_calibration::fit::tables::{
     compare_references, rms_against_reference, rms_vs_points, PointsRow, ReferenceComparison,
     RmsFigure,
 };
+use triax_calibration::fit::thermal::fit_thermal;
 use triax_calibration::fit::{
     fit_radius, fit_static_with, ArmAngleUncertainty, DynamicFit, RadiusFit, ReferenceMethod,
     StaticFit, StaticObservation,
 };
 use triax_calibration::sim::{simulate, SimBench, SimConfig};
-use triax_protocol::record::{CalibrationRecord, SetKind};
+use triax_protocol::record::{CalibrationRecord, SetKind, TemperatureModel};
 use triax_protocol::{from_json, to_json_pretty};
 
 use crate::input::{read_bench, read_output_series, read_spacers, read_static, LoadedBench};
@@ -36,8 +37,14 @@ pub const TABLE1_POINTS: [usize; 5] = [14, 21, 28, 35, 42];
 /// The static step.
 pub struct StaticResult {
     pub path: PathBuf,
+    /// The rows the static set was fitted to: all of them, or the reference run's when the
+    /// file has runs at several temperatures.
     pub observations: Vec<StaticObservation>,
     pub fit: StaticFit,
+    /// The temperature of the rows the set was fitted to, when the file says.
+    pub temperature_c: Option<f64>,
+    /// Runs at several temperatures: the model, and the runs' temperatures and sizes.
+    pub thermal: Option<(TemperatureModel, Vec<(f64, usize)>)>,
 }
 
 pub fn run_static(
@@ -45,15 +52,40 @@ pub fn run_static(
     gravity_mps2: f64,
     arm: Option<ArmAngleUncertainty>,
 ) -> Result<StaticResult, LabError> {
-    let observations = read_static(path, gravity_mps2)?;
-    let fit = fit_static_with(&observations, arm).map_err(|source| LabError::Fit {
+    let rows = read_static(path, gravity_mps2)?;
+    let fit_error = |source| LabError::Fit {
         file: path.to_path_buf(),
         source,
-    })?;
+    };
+    let Some(temperatures_c) = rows.temperatures_c else {
+        let fit = fit_static_with(&rows.observations, arm).map_err(fit_error)?;
+        return Ok(StaticResult {
+            path: path.to_path_buf(),
+            observations: rows.observations,
+            fit,
+            temperature_c: None,
+            thermal: None,
+        });
+    };
+    let t = fit_thermal(&rows.observations, &temperatures_c, arm).map_err(fit_error)?;
+    let reference = &t.runs[t.reference];
     Ok(StaticResult {
         path: path.to_path_buf(),
-        observations,
-        fit,
+        observations: reference
+            .rows
+            .iter()
+            .map(|&i| rows.observations[i])
+            .collect(),
+        fit: t.reference_fit,
+        temperature_c: Some(reference.temperature_c),
+        thermal: t.model.map(|m| {
+            let runs = t
+                .runs
+                .iter()
+                .map(|r| (r.temperature_c, r.rows.len()))
+                .collect();
+            (m, runs)
+        }),
     })
 }
 
@@ -172,6 +204,8 @@ pub fn run_fit(
         dynamic_set(&dynamic.fit, &dynamic.budget, dynamic.bench(), &alphas, at),
         dynamic.fit.output_noise,
         dynamic.fit.output_noise_dof,
+        stat.temperature_c,
+        stat.thermal.as_ref().map(|(m, _)| m.clone()),
     );
     record
         .validate()
@@ -277,6 +311,35 @@ pub fn static_summary(stat: &StaticResult) -> String {
     }
     if let Some(w) = low_dof_warning(fit) {
         let _ = writeln!(s, "  warning: {w}");
+    }
+    if let Some((m, runs)) = &stat.thermal {
+        let list: Vec<String> = runs
+            .iter()
+            .map(|(t, n)| format!("{t:.1} °C ({n} rows)"))
+            .collect();
+        let _ = writeln!(
+            s,
+            "  temperature: runs at {}; reference {:.1} °C; ν = {}",
+            list.join(", "),
+            m.reference_c,
+            m.covariance_dof
+                .map_or("∞".to_string(), |nu| format!("{nu:.0}"))
+        );
+        let u = |i: usize| m.covariance[i][i].max(0.0).sqrt();
+        let _ = writeln!(
+            s,
+            "    offset drift [m/s² per °C]: {}   u: {}",
+            fmt_vec(&Vector3::from(m.offset_mps2_per_c), 6),
+            fmt_vec(&Vector3::new(u(0), u(1), u(2)), 6)
+        );
+        if let Some(g) = m.gain_per_c {
+            let _ = writeln!(
+                s,
+                "    gain drift [per °C]:        {}   u: {}",
+                fmt_vec(&Vector3::from(g), 7),
+                fmt_vec(&Vector3::new(u(3), u(4), u(5)), 7)
+            );
+        }
     }
     s
 }
@@ -584,7 +647,7 @@ pub fn run_simulate(config: &SimConfig) -> (SimBench, Vec<(PathBuf, String)>) {
     let s = &sim.config.sensor;
     let row = |m: &Matrix3<f64>, i: usize| format!("[{}, {}, {}]", m[(i, 0)], m[(i, 1)], m[(i, 2)]);
     let mat = |m: &Matrix3<f64>| format!("[{}, {}, {}]", row(m, 0), row(m, 1), row(m, 2));
-    let truth = format!(
+    let mut truth = format!(
         "# The simulated sensor and bench (what the fits should find).\n\
          static_sensitivity = {}\nstatic_offset_mps2 = [{}, {}, {}]\ndynamic_sensitivity = {}\n\
          noise_v = [{}, {}, {}]\nradius_m = {}\nstated_radius_m = {}\n",
@@ -599,6 +662,21 @@ pub fn run_simulate(config: &SimConfig) -> (SimBench, Vec<(PathBuf, String)>) {
         sim.config.radius_m,
         sim.bench.radius_m
     );
+    if s.offset_drift_mps2_per_c != Vector3::zeros() || s.gain_drift_per_c != Vector3::zeros() {
+        let (q, g) = (&s.offset_drift_mps2_per_c, &s.gain_drift_per_c);
+        let _ = write!(
+            truth,
+            "reference_c = {}\noffset_drift_mps2_per_c = [{}, {}, {}]\n\
+             gain_drift_per_c = [{}, {}, {}]\n",
+            triax_calibration::sim::REFERENCE_C,
+            q.x,
+            q.y,
+            q.z,
+            g.x,
+            g.y,
+            g.z
+        );
+    }
     files.push((PathBuf::from("truth.toml"), truth));
     (sim, files)
 }

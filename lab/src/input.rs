@@ -192,10 +192,24 @@ impl RawCsv {
     }
 }
 
+/// The static CSV's rows.
+#[derive(Debug, Clone)]
+pub struct StaticRows {
+    pub observations: Vec<StaticObservation>,
+    /// The `temperature_c` column, when the file has one.
+    pub temperatures_c: Option<Vec<f64>>,
+}
+
 /// Reads the static CSV: `ax_ref,ay_ref,az_ref,vx,vy,vz`, or `roll_deg,pitch_deg,vx,vy,vz`
-/// (used only when the three reference columns are absent) with `gravity_mps2`.
-pub fn read_static(path: &Path, gravity_mps2: f64) -> Result<Vec<StaticObservation>, InputError> {
+/// (used only when the three reference columns are absent) with `gravity_mps2`; an optional
+/// `temperature_c` column gives each row's sensor temperature, °C.
+pub fn read_static(path: &Path, gravity_mps2: f64) -> Result<StaticRows, InputError> {
     let raw = RawCsv::read(path)?;
+    let temperatures_c = if raw.has("temperature_c") {
+        Some(raw.numeric(&["temperature_c"])?.columns.remove(0))
+    } else {
+        None
+    };
     let outputs = ["vx", "vy", "vz"];
     let explicit = ["ax_ref", "ay_ref", "az_ref"];
     let angles = ["roll_deg", "pitch_deg"];
@@ -221,7 +235,10 @@ pub fn read_static(path: &Path, gravity_mps2: f64) -> Result<Vec<StaticObservati
             }
         })
         .collect();
-    Ok(observations)
+    Ok(StaticRows {
+        observations,
+        temperatures_c,
+    })
 }
 
 /// A recording with the file line of each sample, so that errors found later by sample index

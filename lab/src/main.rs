@@ -191,6 +191,14 @@ enum Command {
         /// A sensor that follows eq. (1) exactly (same response to constant and varying input).
         #[arg(long)]
         matched: bool,
+        /// A sensor whose offsets and gains drift with temperature (follows eq. (1) at 21 °C);
+        /// its drift is in truth.toml.
+        #[arg(long, conflicts_with = "matched")]
+        thermal_drift: bool,
+        /// Run the static bench at each of these temperatures, °C (comma-separated): static.csv
+        /// gains a temperature_c column. Default: one run at 21 °C, no column.
+        #[arg(long, value_delimiter = ',', value_name = "C,C,…")]
+        static_temperatures: Vec<f64>,
         #[arg(long, value_enum, default_value = "savitzky-golay")]
         reference: Reference,
     },
@@ -512,10 +520,15 @@ fn main() -> anyhow::Result<()> {
             duration_s,
             alphas,
             matched,
+            thermal_drift,
+            static_temperatures,
             reference,
         } => {
             if !(duration_s.is_finite() && duration_s > 0.0) {
                 anyhow::bail!("--duration-s must be positive");
+            }
+            if let Some(t) = static_temperatures.iter().find(|t| !t.is_finite()) {
+                anyhow::bail!("--static-temperatures: {t} is not a temperature");
             }
             let config = SimConfig {
                 seed,
@@ -523,9 +536,12 @@ fn main() -> anyhow::Result<()> {
                 alphas_deg: alphas,
                 sensor: if matched {
                     SensorTruth::matched()
+                } else if thermal_drift {
+                    SensorTruth::drifting()
                 } else {
                     SensorTruth::paper()
                 },
+                static_temperatures_c: static_temperatures,
                 reference: reference.into(),
                 ..SimConfig::default()
             };

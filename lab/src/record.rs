@@ -26,7 +26,7 @@ use triax_calibration::fit::repeatability::UncertaintyBudget;
 use triax_calibration::fit::{Bench, Calibration, DynamicFit, StaticFit, StaticObservation};
 use triax_calibration::student::{t_quantile, welch_satterthwaite, MAX_DOF};
 use triax_protocol::record::{
-    CalibrationRecord, CalibrationSet, Certificate, Domain, Lab, SensorInfo,
+    CalibrationRecord, CalibrationSet, Certificate, Domain, Lab, SensorInfo, TemperatureModel,
 };
 use triax_protocol::{SensorId, JSON_FORMAT_VERSION};
 
@@ -210,6 +210,8 @@ pub fn build_record(
     dynamic_set: CalibrationSet,
     output_noise: Vector3<f64>,
     output_noise_dof: f64,
+    temperature_c: Option<f64>,
+    temperature: Option<TemperatureModel>,
 ) -> CalibrationRecord {
     CalibrationRecord {
         format_version: JSON_FORMAT_VERSION,
@@ -225,7 +227,7 @@ pub fn build_record(
         },
         certificate: Certificate {
             id: meta.certificate_id.clone(),
-            temperature_c: None,
+            temperature_c,
             notes: None,
         },
         sensor: SensorInfo {
@@ -238,6 +240,6 @@ pub fn build_record(
         },
         static_set,
         dynamic: dynamic_set,
-        temperature: None,
+        temperature,
     }
 }

@@ -454,3 +454,45 @@ fn bundled_sample_data_fits() {
     assert_eq!(pooled.record.static_set.covariance_dof, Some(56.0));
     assert!(!pooled.summary.contains("only"), "{}", pooled.summary);
 }
+
+/// Static runs at 6, 21 and 36 °C of a drifting sensor: the record carries a temperature model
+/// whose coefficients are the simulator's within 3u, with the reference run's temperature on
+/// the certificate, and the gateway's corrector takes it.
+#[test]
+fn runs_at_several_temperatures_give_a_temperature_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = SimConfig {
+        static_temperatures_c: vec![6.0, 21.0, 36.0],
+        ..short_config(31, SensorTruth::drifting())
+    };
+    write_sim(dir.path(), &config);
+    let out = run_fit(
+        &dir.path().join("static.csv"),
+        &dir.path().join("bench.toml"),
+        &options(false),
+    )
+    .unwrap();
+    let r = &out.record;
+    assert_eq!(r.certificate.temperature_c, Some(21.0));
+    let m = r.temperature.as_ref().expect("a temperature model");
+    assert_eq!((m.reference_c, m.range_c), (21.0, [6.0, 36.0]));
+    let truth = &config.sensor;
+    for k in 0..3 {
+        let err = m.offset_mps2_per_c[k] - truth.offset_drift_mps2_per_c[k];
+        assert!(
+            err.abs() < 3.0 * m.covariance[k][k].sqrt(),
+            "c_q[{k}] off by {err}"
+        );
+        let err = m.gain_per_c.unwrap()[k] - truth.gain_drift_per_c[k];
+        let u = m.covariance[3 + k][3 + k].sqrt();
+        assert!(err.abs() < 3.0 * u, "c_g[{k}] off by {err}");
+    }
+    assert!(
+        out.summary
+            .contains("temperature: runs at 6.0 °C (10 rows)"),
+        "{}",
+        out.summary
+    );
+    let c = Corrector::from_record(r).unwrap();
+    assert!(c.set(SetKind::Static).at_temperature(30.0).is_some());
+}

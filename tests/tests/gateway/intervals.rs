@@ -84,6 +84,8 @@ fn calibrate(seed: u64, arm: Option<ArmAngleUncertainty>) -> (SimConfig, Calibra
         dynamic_set(&dynamic, &budget, &sim.bench, &config.alphas_deg, at),
         dynamic.output_noise,
         dynamic.output_noise_dof,
+        None,
+        None,
     );
     (config, record)
 }
