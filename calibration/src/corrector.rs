@@ -689,6 +689,11 @@ impl Corrector {
         self.valid_until_ns
     }
 
+    /// Whether the record carries a temperature model.
+    pub fn models_temperature(&self) -> bool {
+        self.static_set.thermal.is_some()
+    }
+
     pub fn set(&self, kind: SetKind) -> &SetCorrector {
         match kind {
             SetKind::Static => &self.static_set,

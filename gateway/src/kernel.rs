@@ -71,13 +71,13 @@ use triax_protocol::RawBatchView;
 
 use crate::config::{CorrectionMode, SensorSettings};
 use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients, HighPass4x32, Lanes};
-use crate::tilt::{LowBandError, TiltFilter};
+use crate::tilt::{tilt, LowBandError, Tilt, TiltFilter};
 
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
 
 /// Format of [`SensorKernel::checkpoint`]: changes whenever the kernel's state changes shape.
-const CHECKPOINT_FORMAT: u8 = 2;
+const CHECKPOINT_FORMAT: u8 = 3;
 
 /// Content slower than this is the constant part of the signal (gravity, offsets, drift over
 /// minutes), which every calibrated domain includes: the lower band check ignores it.
@@ -156,10 +156,24 @@ pub struct TiltState {
     /// Once the low pass has settled from its start (see [`crate::tilt`]).
     pub ready: bool,
     pub low_band: LowBandError,
-    /// The sensor's temperature in the last in-sequence batch, for a record that corrects for
-    /// it. Not checkpointed: every batch sets it before a tilt estimate can use it.
+    /// The sensor's temperature through the tilt's low pass, for a record that corrects for
+    /// it. Not checkpointed: the filter is, and every batch sets this from it.
     #[serde(skip)]
     pub temperature_c: Option<f64>,
+}
+
+impl TiltState {
+    /// The tilt estimate from this state with `corrector`'s static set, taken to the
+    /// low-passed temperature when the record models temperature.
+    pub fn estimate(&self, corrector: &Corrector) -> Tilt {
+        let base = corrector.set(SetKind::Static);
+        let warm = self.temperature_c.and_then(|c| base.at_temperature(c));
+        tilt(
+            warm.as_ref().unwrap_or(base),
+            self.output_lp,
+            &self.low_band,
+        )
+    }
 }
 
 /// Per-sensor memory of the sample path.
@@ -381,6 +395,11 @@ impl SensorKernel {
                 self.tilt.output_lp = t.step(*v);
                 last = Some(i);
             }
+            let temperature = raw.temperature_c.map(f64::from).filter(|t| t.is_finite());
+            if let (Some(temp), true) = (temperature, c.models_temperature()) {
+                t.step_temperature(temp, n);
+            }
+            self.tilt.temperature_c = t.temperature_c();
             if let Some(i) = last {
                 self.tilt.ready = t.settled();
                 self.tilt.low_band = t.error();
@@ -401,9 +420,6 @@ impl SensorKernel {
                 common |= flags::OUTSIDE_TEMPERATURE
             }
             TemperatureCheck::Inside | TemperatureCheck::NotModelled => {}
-        }
-        if in_sequence {
-            self.tilt.temperature_c = temperature_c;
         }
         let warm = temperature_c.and_then(|t| {
             Some((
@@ -1190,7 +1206,7 @@ mod tests {
     }
 
     /// Length and FNV-1a of `busy_kernel`'s checkpoint in format [`CHECKPOINT_FORMAT`].
-    const PINNED_CHECKPOINT: (usize, u64) = (663, 218_612_266_170_998_216);
+    const PINNED_CHECKPOINT: (usize, u64) = (664, 13_293_393_449_937_968_399);
 
     #[test]
     fn content_below_the_band_is_flagged_and_gravity_is_not() {

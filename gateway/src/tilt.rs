@@ -117,6 +117,10 @@ pub struct TiltFilter {
     ripple_var: [f64; 3],
     /// Per channel: the decaying envelope of slope changes, V/s.
     rate_change: [f64; 3],
+    /// The sensor's temperature through the same low pass (lane 0) and its latest output, so
+    /// that a record's temperature model is applied at the temperature of the instant the tilt
+    /// describes.
+    temperature: Option<(Biquad3, f64)>,
 }
 
 /// Sums for a least-squares line through one second of filtered output, taken relative to
@@ -156,7 +160,24 @@ impl TiltFilter {
             last_slope: None,
             ripple_var: [0.0; 3],
             rate_change: [0.0; 3],
+            temperature: None,
         }
+    }
+
+    /// Takes a batch's temperature through the low pass, once per sample it stood for.
+    pub fn step_temperature(&mut self, temperature_c: f64, samples: usize) {
+        let c = *self.lp.coefficients();
+        let (lp, out) = self
+            .temperature
+            .get_or_insert_with(|| (Biquad3::new(c), temperature_c));
+        for _ in 0..samples {
+            *out = lp.step([temperature_c; 3])[0];
+        }
+    }
+
+    /// The low-passed temperature, °C: that of the instant the filtered outputs describe.
+    pub fn temperature_c(&self) -> Option<f64> {
+        self.temperature.as_ref().map(|(_, t)| *t)
     }
 
     pub fn is_primed(&self) -> bool {

@@ -27,8 +27,6 @@ use crate::inbox::{Inbox, Next};
 use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
-use crate::tilt::tilt;
-use triax_protocol::record::SetKind;
 use triax_protocol::{keys, BuildingId};
 
 /// What every worker shares.
@@ -557,9 +555,7 @@ impl SensorState {
         if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
-                let base = corrector.set(SetKind::Static);
-                let warm = t.temperature_c.and_then(|c| base.at_temperature(c));
-                let est = tilt(warm.as_ref().unwrap_or(base), t.output_lp, &t.low_band);
+                let est = t.estimate(corrector);
                 let sample = TiltSample {
                     format_version: JSON_FORMAT_VERSION,
                     sensor_id: self.entry.id.clone(),
