@@ -339,7 +339,11 @@ impl SetCorrector {
         });
         let states_dof = set.covariance_dof.is_some()
             || set.uncertainty_dof.is_some()
-            || record.sensor.output_noise_dof.is_some();
+            || record.sensor.output_noise_dof.is_some()
+            || record
+                .temperature
+                .as_ref()
+                .is_some_and(|t| t.covariance_dof.is_some());
         let coverage_table = states_dof.then(|| {
             CoverageTable::shared(
                 set.coverage_probability
