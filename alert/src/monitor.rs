@@ -66,12 +66,16 @@ struct Sent {
 struct TimedSample {
     t_ns: i64,
     sample: CorrectedSample,
+    /// The coverage factor of the sample's batch.
+    k: f32,
 }
 
 #[derive(Debug, Clone, Copy)]
 struct TiltBaseline {
     roll_deg: Estimate,
     pitch_deg: Estimate,
+    /// The largest coverage factor of the samples behind it.
+    k: f64,
 }
 
 #[derive(Debug, Default)]
@@ -395,6 +399,7 @@ impl Monitor {
             state.window.push_back(TimedSample {
                 t_ns: h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64),
                 sample,
+                k: batch.info.coverage_factor,
             });
         }
         let window_ns = (settings.window_s * 1e9) as i64;
@@ -454,6 +459,11 @@ impl Monitor {
                     ts.baseline = Some(TiltBaseline {
                         roll_deg,
                         pitch_deg,
+                        k: ts
+                            .collecting
+                            .iter()
+                            .map(|t| t.coverage_factor)
+                            .fold(0.0, f64::max),
                     });
                     ts.collecting = Vec::new();
                     tracing::info!(
@@ -524,8 +534,15 @@ impl Monitor {
         };
         let clean_change = change(&clean);
         let flagged_change = (all.len() > clean.len()).then(|| change(&all)).flatten();
+        // The stream's own k where it asks for more than the configured one (few degrees of
+        // freedom): the decision is at least as safe as each tilt sample's interval.
+        let k = ts
+            .window
+            .iter()
+            .map(|t| t.coverage_factor)
+            .fold(settings.coverage_factor.max(baseline.k), f64::max);
         let j = judge(
-            settings.coverage_factor,
+            k,
             limit,
             clean_change.map(|c| c.0),
             flagged_change.map(|c| c.0),
@@ -541,7 +558,7 @@ impl Monitor {
         let key = (building.clone(), sensor);
         let ctx = Context {
             key: &key,
-            k: settings.coverage_factor,
+            k,
             window_s: window_span_s(ts.window.front(), ts.window.back()),
             flagged_fraction: (n - clean.len()) as f64 / n as f64,
             flag_bits,
@@ -683,15 +700,21 @@ fn evaluate_window(
     } else {
         None
     };
+    // The stream's own k where it asks for more than the configured one (few degrees of
+    // freedom): the decision is at least as safe as each sample's interval.
+    let k = state
+        .window
+        .iter()
+        .map(|t| f64::from(t.k))
+        .fold(settings.coverage_factor, f64::max);
     let ctx = Context {
         key,
-        k: settings.coverage_factor,
+        k,
         window_s: n as f64 / rate,
         flagged_fraction: (n - clean.len()) as f64 / n as f64,
         flag_bits,
         now,
     };
-    let k = settings.coverage_factor;
     let basis_stats = |j: &Judgement| -> Option<&WindowStats> {
         match j.basis {
             Basis::Clean => clean_stats.as_ref(),

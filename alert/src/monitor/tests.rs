@@ -45,6 +45,8 @@ fn config_with_limits(limits: &str) -> Config {
 struct Script {
     sequence: u64,
     sample_index: i64,
+    /// The coverage factor the batches carry.
+    k: f32,
 }
 
 impl Script {
@@ -52,6 +54,7 @@ impl Script {
         Script {
             sequence: 0,
             sample_index: 0,
+            k: 2.0,
         }
     }
 
@@ -95,7 +98,7 @@ impl Script {
                     3
                 },
                 mode: Mode::Dynamic,
-                coverage_factor: 2.0,
+                coverage_factor: self.k,
             },
             samples,
         }
@@ -190,6 +193,28 @@ fn peak_crossing_the_threshold_shows_the_three_regimes() {
     assert_eq!(&back, a);
     // And back down again: nothing.
     assert!(s.run(&mut m, 3.0, 0.40, 2.0, 0).is_empty());
+}
+
+/// A stream whose batches carry k = 3 (few degrees of freedom behind its uncertainty) is
+/// judged with it, not with the configured 2: a peak of 0.56 ± 0.02 against 0.5 is `exceeded`
+/// at k = 2 but only `possible` at k = 3.
+#[test]
+fn the_streams_coverage_factor_widens_the_guard_band() {
+    let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
+    let mut s = Script::new();
+    let at_two = s.run(&mut m, 3.0, 0.56, 2.0, 0);
+    assert_eq!(
+        levels(&at_two, AlertKind::PeakAcceleration),
+        [AlertLevel::Exceeded]
+    );
+    assert_eq!(at_two[0].coverage_factor, 2.0);
+    s.k = 3.0;
+    let at_three = s.run(&mut m, 3.0, 0.56, 2.0, 0);
+    assert_eq!(
+        levels(&at_three, AlertKind::PeakAcceleration),
+        [AlertLevel::Possible]
+    );
+    assert_eq!(at_three[0].coverage_factor, 3.0);
 }
 
 #[test]
