@@ -580,13 +580,11 @@ impl SetCorrector {
             }
             c
         };
-        let mut parameters = [[0.0; 3]; 3];
+        let parameters =
+            [0, 1, 2].map(|k| [0, 1, 2].map(|l| eval(&self.param_cov[pair(k, l)], scaled, 1.0)));
         let mut stated = [[0.0; 3]; 3];
-        for k in 0..3 {
-            for l in 0..3 {
-                parameters[k][l] = eval(&self.param_cov[pair(k, l)], scaled, 1.0);
-            }
-            stated[k][k] = self.stated_var[k];
+        for (k, row) in stated.iter_mut().enumerate() {
+            row[k] = self.stated_var[k];
         }
         CovarianceParts {
             parameters,
@@ -851,8 +849,8 @@ mod tests {
         let warm = set.at_temperature(30.0).unwrap();
         let out = warm.correct([2.0, 4.0, 5.0]);
         let expect = [1.2, 1.0 / 1.01 + 0.2, 1.3];
-        for k in 0..3 {
-            assert!((out.accel_mps2[k] - expect[k]).abs() < 1e-12, "{out:?}");
+        for (a, e) in out.accel_mps2.iter().zip(expect) {
+            assert!((a - e).abs() < 1e-12, "{out:?}");
         }
         assert!((out.uncertainty_mps2[0] - 0.01).abs() < 1e-8, "{out:?}");
         let u_y = (10.0 * 0.25 * 4.0 / 1.01) * 1e-4;

@@ -39,7 +39,7 @@ const GRID: [u32; 58] = [
 fn cos_power_integrals(n: u32, theta: f64) -> (f64, f64) {
     let (s, c) = theta.sin_cos();
     // Start from n = 0 or n = 1 according to parity.
-    let (mut i, mut w, mut m, mut c_pow) = if n % 2 == 0 {
+    let (mut i, mut w, mut m, mut c_pow) = if n.is_multiple_of(2) {
         (theta, std::f64::consts::FRAC_PI_2, 0u32, 1.0)
     } else {
         (s, 1.0, 1u32, c)

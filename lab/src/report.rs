@@ -8,7 +8,8 @@ use time::OffsetDateTime;
 use triax_calibration::fit::dynamic::prepare;
 use triax_calibration::fit::ReferenceMethod;
 
-use crate::commands::{parameter_sigmas, DynamicResult, StaticResult, Tables};
+use crate::commands::{low_dof_warning, parameter_sigmas, DynamicResult, StaticResult, Tables};
+use crate::record::{coverage_factor, dynamic_dof, COVERAGE_PROBABILITY};
 use crate::svg::{line_plot, Series};
 
 /// Everything the report shows.
@@ -105,10 +106,13 @@ fn static_section(h: &mut String, stat: &StaticResult) {
     let _ = write!(
         h,
         "<h2>Static calibration</h2><p>{} orientations from {}, {} residual degrees of \
-         freedom.</p>",
+         freedom. Covariance: ν = {:.0}, so k = {:.3} for {:.0} % intervals (Student's t).</p>",
         fit.residuals_mps2.len(),
         esc(&stat.path.display().to_string()),
-        fit.dof
+        fit.dof,
+        fit.covariance_dof,
+        coverage_factor(fit.covariance_dof),
+        COVERAGE_PROBABILITY * 100.0
     );
     h.push_str(&matrix_table(
         "S_S [output/(m/s²)] ± standard uncertainty",
@@ -167,8 +171,8 @@ fn static_section(h: &mut String, stat: &StaticResult) {
         );
     }
     h.push_str("</p>");
-    for w in &fit.warnings {
-        let _ = write!(h, "<p><strong>Warning:</strong> {}</p>", esc(w));
+    for w in fit.warnings.iter().cloned().chain(low_dof_warning(fit)) {
+        let _ = write!(h, "<p><strong>Warning:</strong> {}</p>", esc(&w));
     }
 }
 
@@ -177,6 +181,7 @@ fn dynamic_section(h: &mut String, d: &DynamicResult) {
     let b = &d.budget;
     let bench = d.bench();
     let (su, qu) = parameter_sigmas(&b.calibration);
+    let dof = dynamic_dof(fit, b);
     let alphas: Vec<String> = d
         .loaded
         .recordings
@@ -186,7 +191,8 @@ fn dynamic_section(h: &mut String, d: &DynamicResult) {
     let _ = write!(
         h,
         "<h2>Dynamic calibration</h2><p>Reference: {}; n = {} points per cycle; {} points \
-         from {} cycles of {} recordings: {}. r = {} m (u(r) = {} m), sine {} Hz, {} rad.</p>",
+         from {} cycles of {} recordings: {}. r = {} m (u(r) = {} m), sine {} Hz, {} rad. \
+         Covariance: ν = {:.0}, so k = {:.3} for {:.0} % intervals; uncertainty_mps2: ν = {}.</p>",
         fit.method,
         fit.points_per_cycle,
         fit.n_points,
@@ -196,7 +202,12 @@ fn dynamic_section(h: &mut String, d: &DynamicResult) {
         bench.radius_m,
         bench.radius_uncertainty_m,
         bench.motion.frequency_hz,
-        bench.motion.amplitude_rad
+        bench.motion.amplitude_rad,
+        dof.covariance.unwrap_or(f64::INFINITY),
+        coverage_factor(dof.covariance.unwrap_or(f64::INFINITY)),
+        COVERAGE_PROBABILITY * 100.0,
+        dof.uncertainty
+            .map_or("∞".to_string(), |nu| format!("{nu:.0}"))
     );
     h.push_str(&matrix_table(
         "S_D [output/(m/s²)] ± standard uncertainty",

@@ -272,12 +272,12 @@ mod tests {
         assert_eq!(m.covariance_dof, Some(22.0));
         let truth = &config.sensor;
         let gain = m.gain_per_c.unwrap();
-        for k in 0..3 {
+        for (k, g) in gain.iter().enumerate() {
             let u_q = m.covariance[k][k].sqrt();
             let u_g = m.covariance[3 + k][3 + k].sqrt();
             let (eq, eg) = (
                 m.offset_mps2_per_c[k] - truth.offset_drift_mps2_per_c[k],
-                gain[k] - truth.gain_drift_per_c[k],
+                g - truth.gain_drift_per_c[k],
             );
             assert!(eq.abs() < 3.0 * u_q, "c_q[{k}] off by {eq} with u {u_q}");
             assert!(eg.abs() < 3.0 * u_g, "c_g[{k}] off by {eg} with u {u_g}");

@@ -51,6 +51,15 @@ impl Coverage {
         self.total += 1;
         self.inside += usize::from(error.abs() <= half_width);
     }
+    /// The first sample of a corrected batch against the truth, per axis, at the batch's k.
+    fn add_sample(&mut self, batch: &CorrectedBatch, truth: [f64; 3]) {
+        let k = f64::from(batch.info.coverage_factor);
+        let s = batch.samples[0];
+        for ((a, u), t) in s.accel_mps2.iter().zip(s.uncertainty_mps2).zip(truth) {
+            self.add(f64::from(*a) - t, k * f64::from(u));
+        }
+    }
+
     fn share(&self) -> f64 {
         self.inside as f64 / self.total.max(1) as f64
     }
@@ -176,14 +185,7 @@ fn run(arm: Option<ArmAngleUncertainty>) -> Results {
         let a = random_unit(&mut rng).map(|x| x * g);
         let v = noisy(sensor, output(sensor, a), 1.0, &mut rng);
         let out = kernel_sample(&corrector, CorrectionMode::Static, v);
-        let k = f64::from(out.info.coverage_factor);
-        let s = out.samples[0];
-        for axis in 0..3 {
-            r.static_sample.add(
-                f64::from(s.accel_mps2[axis]) - a[axis],
-                k * f64::from(s.uncertainty_mps2[axis]),
-            );
-        }
+        r.static_sample.add_sample(&out, a);
 
         // One dynamic sample: gravity plus up to 3 m/s² of motion.
         let motion = random_unit(&mut rng).map(|x| x * 3.0 * rng.gen::<f64>());
@@ -193,14 +195,7 @@ fn run(arm: Option<ArmAngleUncertainty>) -> Results {
         };
         let v = noisy(sensor, output(sensor, a_d), 1.0, &mut rng);
         let out = kernel_sample(&corrector, CorrectionMode::Dynamic, v);
-        let k = f64::from(out.info.coverage_factor);
-        let s = out.samples[0];
-        for axis in 0..3 {
-            r.dynamic_sample.add(
-                f64::from(s.accel_mps2[axis]) - a_d[axis],
-                k * f64::from(s.uncertainty_mps2[axis]),
-            );
-        }
+        r.dynamic_sample.add_sample(&out, a_d);
 
         // A 1 s average at a random attitude: 100 samples, noise reduced tenfold.
         let static_set = corrector.set(SetKind::Static);
