@@ -8,6 +8,8 @@
 //!   batch into a reused buffer.
 //! - `batch/<mode>_dof`: the same with a record that states degrees of freedom, so that every
 //!   sample's Welch–Satterthwaite ν is found and the batch's k looked up from it.
+//! - `batch/static_temperature`: `static_dof` with a temperature model and a batch that carries
+//!   its temperature, so that both sets are taken to it first.
 //!
 //! Run: `cargo bench -p triax-gateway --bench kernel`.
 
@@ -16,7 +18,7 @@ use triax_calibration::corrector::Corrector;
 use triax_gateway::kernel::{Scratch, SensorKernel};
 use triax_gateway::{CorrectionMode, SensorSettings};
 use triax_protocol::batch::{BatchHeader, RawBatch};
-use triax_protocol::record::{sample, CalibrationRecord, SetKind};
+use triax_protocol::record::{sample, CalibrationRecord, SetKind, TemperatureModel};
 use triax_protocol::{RawBatchView, SensorId};
 
 const N: usize = 100;
@@ -125,6 +127,41 @@ fn bench(c: &mut Criterion) {
             })
         });
     }
+    // The same at a temperature, with the record's temperature model.
+    let mut thermal = r.clone();
+    thermal.static_set.covariance_dof = Some(6.0);
+    thermal.sensor.output_noise_dof = Some(20_000.0);
+    let mut t_cov = [[0.0; 6]; 6];
+    for (i, row) in t_cov.iter_mut().enumerate() {
+        row[i] = if i < 3 { 1e-8 } else { 1e-10 };
+    }
+    thermal.temperature = Some(TemperatureModel {
+        reference_c: 21.0,
+        range_c: [5.0, 37.0],
+        offset_mps2_per_c: [0.004, -0.003, 0.005],
+        gain_per_c: Some([2e-4, -1.5e-4, 3e-4]),
+        covariance: t_cov,
+        covariance_dof: Some(22.0),
+    });
+    let thermal = Corrector::from_record(&thermal).expect("bench record loads");
+    let warm_payload = RawBatch {
+        temperature_c: Some(28.5),
+        ..RawBatch::decode(&payload).expect("valid batch")
+    }
+    .encode();
+    let mut kernel = SensorKernel::new(SensorSettings {
+        mode: CorrectionMode::Static,
+        ..SensorSettings::default()
+    });
+    let mut out = Vec::with_capacity(4096);
+    g.bench_function("batch/static_temperature", |b| {
+        b.iter(|| {
+            out.clear();
+            // Encoded just above by the protocol's own encoder.
+            let view = RawBatchView::parse(black_box(&warm_payload)).expect("valid batch");
+            black_box(kernel.correct_batch(&view, Some(&thermal), 0, &mut scratch, &mut out));
+        })
+    });
     // The same without the frequency detector: a band reaching Nyquist leaves nothing to detect.
     let mut wide = r.clone();
     wide.dynamic.domain.frequency_max_hz = 50.0;
