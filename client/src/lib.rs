@@ -6,7 +6,9 @@
 
 pub mod follow;
 pub mod history;
+pub mod mseed;
 pub mod parquet;
+pub mod stationxml;
 
 pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters};
 pub use history::{HistoryRequest, Recovered};
