@@ -639,7 +639,7 @@ async fn an_sds_export_reads_back_identically_in_obspy() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let v1 = sample::record("ms-1", 1);
-    util::seed_store(&store, &[v1.clone()]);
+    util::seed_store(&store, std::slice::from_ref(&v1));
     let gw = util::start(util::config("ms", &store)).await;
     let session = util::client(&gw.endpoint).await;
     let sub = session
