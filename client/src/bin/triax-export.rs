@@ -92,7 +92,7 @@ struct Sds {
     #[arg(long = "station", value_name = "SENSOR=CODE")]
     stations: Vec<String>,
     /// Calibration records (JSON files, or directories of them, not recursive) for the
-    /// StationXML file `<out>/<network>.<building>.xml`, one epoch per version; none: no
+    /// StationXML file `<out>/<NETWORK>.<building>.xml`, one epoch per version; none: no
     /// StationXML.
     #[arg(long = "records", value_name = "FILE|DIR")]
     records: Vec<PathBuf>,
