@@ -23,6 +23,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 /// Largest degrees of freedom the tables distinguish; more counts as this many.
 pub const MAX_DOF: u32 = 10_000;
 
+/// Distinct coverage probabilities whose tables are kept for sharing; a record asking for yet
+/// another gets a table of its own, so that no sequence of records can grow the cache.
+const MAX_SHARED_TABLES: usize = 64;
+
 /// Coverage probability assumed when a record states none.
 pub const DEFAULT_COVERAGE_PROBABILITY: f64 = 0.95;
 
@@ -111,7 +115,9 @@ impl CoverageTable {
             probability,
             factors: GRID.map(|nu| t_quantile(nu, probability)),
         });
-        tables.push(table.clone());
+        if tables.len() < MAX_SHARED_TABLES {
+            tables.push(table.clone());
+        }
         table
     }
 
