@@ -15,6 +15,7 @@
 //! never leaves a partial output behind and tests need no disk for the outputs.
 
 pub mod commands;
+pub mod dcc;
 pub mod input;
 pub mod keypair;
 pub mod net;

@@ -164,6 +164,21 @@ enum Command {
         #[arg(long)]
         input: PathBuf,
     },
+    /// A calibration record as a Digital Calibration Certificate (PTB DCC 3, D-SI 2 quantities):
+    /// both sets' S and q with expanded uncertainties, the 12×12 covariances, the coverage
+    /// factors and probability, methods, references and conditions (README.md).
+    Dcc {
+        /// The calibration record (JSON), as `fit` writes it.
+        #[arg(long)]
+        record: PathBuf,
+        /// The DCC XML to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// ISO 3166-1 alpha-2 code of the lab's country (a record does not say); ZZ is the
+        /// user-assigned "unknown".
+        #[arg(long, default_value = "ZZ")]
+        country: String,
+    },
     /// Offline correction of t_s,vx,vy,vz data with the gateway's corrector.
     Apply {
         #[arg(long)]
@@ -499,6 +514,30 @@ fn main() -> anyhow::Result<()> {
         Command::Radius { input } => {
             let (_, summary) = run_radius(&input)?;
             print!("{summary}");
+        }
+        Command::Dcc {
+            record,
+            out,
+            country,
+        } => {
+            if !(country.len() == 2 && country.chars().all(|c| c.is_ascii_uppercase())) {
+                anyhow::bail!("--country {country:?}: two capital letters (ISO 3166-1 alpha-2)");
+            }
+            let bytes =
+                std::fs::read(&record).map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
+            let r: triax_protocol::CalibrationRecord = triax_protocol::from_json(&bytes)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
+            r.validate()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
+            let xml = triax_lab::dcc::dcc_xml(
+                &r,
+                &triax_lab::dcc::DccOptions {
+                    country,
+                    software_release: env!("CARGO_PKG_VERSION").to_string(),
+                },
+            );
+            write_file(&out, xml.as_bytes())?;
+            println!("wrote {}", out.display());
         }
         Command::Apply {
             record,

@@ -785,3 +785,143 @@ async fn an_sds_export_reads_back_identically_in_obspy() {
     session.close().await.unwrap();
     gw.stop().await;
 }
+
+/// Validates a DCC document with lxml against the schema written from the DCC and D-SI element
+/// definitions, then against four spoiled copies (each must be refused), and prints the numbers
+/// it carries as JSON.
+const CHECK_DCC: &str = r#"
+import json, sys
+from lxml import etree
+xsd, path = sys.argv[1:3]
+schema = etree.XMLSchema(etree.parse(xsd))
+doc = etree.parse(path)
+ns = {"dcc": "https://ptb.de/dcc", "si": "https://ptb.de/si"}
+valid = schema.validate(doc)
+errors = [str(e) for e in schema.error_log]
+def spoiled(edit):
+    d = etree.parse(path)
+    edit(d)
+    return schema.validate(d)
+def drop_id(d):
+    e = d.find(".//dcc:uniqueIdentifier", ns); e.getparent().remove(e)
+def bad_unit(d):
+    d.find(".//si:unitXMLList", ns).text = "m/s^2 m/s^2 m/s^2"
+def nan_value(d):
+    d.find(".//si:valueXMLList", ns).text = "NaN 1 2"
+def no_cov_unit(d):
+    e = d.find(".//si:covariance/si:unit", ns); e.getparent().remove(e)
+results = {}
+for r in doc.iterfind(".//dcc:measurementResult", ns):
+    set_name = r.find("dcc:name/dcc:content", ns).text
+    for res in r.iterfind("dcc:results/dcc:result", ns):
+        name = res.find("dcc:name/dcc:content", ns).text
+        lst = res.find(".//si:realListXMLList", ns)
+        entry = {"values": [float(v) for v in lst.find("si:valueXMLList", ns).text.split()]}
+        unc = lst.find("si:expandedUncXMLList", ns)
+        if unc is not None:
+            entry["expanded"] = [float(v) for v in unc.find("si:uncertaintyXMLList", ns).text.split()]
+            entry["k"] = float(unc.find("si:coverageFactorXMLList", ns).text.split()[0])
+        cov = lst.find("si:ellipsoidalRegionXMLList/si:covarianceMatrix", ns)
+        if cov is not None:
+            entry["covariance_columns"] = [
+                [float(c.find("si:value", ns).text) for c in col.iterfind("si:covariance", ns)]
+                for col in cov.iterfind("si:column", ns)
+            ]
+        results[f"{set_name}/{name}"] = entry
+print(json.dumps({
+    "valid": valid,
+    "errors": errors[:5],
+    "spoiled": [spoiled(f) for f in (drop_id, bad_unit, nan_value, no_cov_unit)],
+    "id": doc.find(".//dcc:uniqueIdentifier", ns).text,
+    "results": results,
+}))
+"#;
+
+/// The bundled lab data's record as a DCC: valid against the derived schema (lxml), refused
+/// when spoiled, and carrying S, q, their expanded uncertainties and the 12×12 covariance of
+/// each set exactly as the record states them.
+#[test]
+fn a_dcc_validates_and_carries_the_record() {
+    let py = python_interpreter();
+    let data = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../lab/data");
+    let meta = triax_lab::record::RecordMeta {
+        sensor_id: SensorId::new("acc-01").unwrap(),
+        version: 3,
+        issued_at: time::OffsetDateTime::from_unix_timestamp(1_795_000_000).unwrap(),
+        lab_name: "Triax lab <test> & co".into(),
+        certificate_id: "TRIAX-acc-01-3".into(),
+        output_unit: "V".into(),
+    };
+    let out = triax_lab::commands::run_fit(
+        &data.join("static.csv"),
+        &data.join("bench.toml"),
+        &triax_lab::commands::FitOptions {
+            gravity_mps2: 9.80665,
+            arm: None,
+            reference: None,
+            points_per_cycle: None,
+            report: false,
+            meta,
+        },
+    )
+    .unwrap();
+    let record = out.record;
+    let xml = triax_lab::dcc::dcc_xml(
+        &record,
+        &triax_lab::dcc::DccOptions {
+            country: "ZZ".into(),
+            software_release: "test".into(),
+        },
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("acc-01.dcc.xml");
+    std::fs::write(&path, &xml).unwrap();
+    let xsd = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../lab/dcc/dcc-subset.xsd");
+    let out = Command::new(&py)
+        .args(["-c", CHECK_DCC])
+        .arg(&xsd)
+        .arg(&path)
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "lxml: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).expect("python prints JSON");
+    assert_eq!(v["valid"], true, "{}", v["errors"]);
+    assert_eq!(
+        v["spoiled"],
+        serde_json::json!([false, false, false, false])
+    );
+    assert_eq!(v["id"], "TRIAX-acc-01-3");
+    for (name, set) in [
+        ("static set", &record.static_set),
+        ("dynamic set", &record.dynamic),
+    ] {
+        let r = &v["results"];
+        let s: Vec<f64> = set.sensitivity.iter().flatten().copied().collect();
+        assert_eq!(f64_list(&r[format!("{name}/sensitivity")]["values"]), s);
+        assert_eq!(f64_list(&r[format!("{name}/offset")]["values"]), set.offset);
+        let cov = set.covariance.as_ref().unwrap();
+        let k = set.coverage_factor;
+        assert_eq!(r[format!("{name}/offset")]["k"].as_f64(), Some(k));
+        let expanded = f64_list(&r[format!("{name}/offset")]["expanded"]);
+        for (i, e) in expanded.iter().enumerate() {
+            assert_eq!(*e, k * cov[9 + i][9 + i].sqrt(), "{name} q[{i}]");
+        }
+        let columns = r[format!("{name}/parameters")]["covariance_columns"]
+            .as_array()
+            .unwrap();
+        assert_eq!(columns.len(), 12);
+        for (j, col) in columns.iter().enumerate() {
+            for (i, c) in f64_list(col).iter().enumerate() {
+                assert_eq!(*c, cov[i][j], "{name} covariance[{i}][{j}]");
+            }
+        }
+        assert_eq!(
+            f64_list(&r[format!("{name}/statedUncertainty")]["values"]),
+            set.uncertainty_mps2
+        );
+    }
+}
