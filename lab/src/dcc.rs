@@ -17,7 +17,9 @@
 //!     (`si:covarianceMatrix`, columns of `si:covariance` with value and unit), the coverage
 //!     factor and probability;
 //!   - `statedUncertainty`: `uncertainty_mps2`, standard uncertainties (k = 1);
-//!   and the domain (amplitude, frequency band) and the degrees of freedom as text.
+//!   - `domain`: the amplitude and frequency band the set covers;
+//!
+//!   and the degrees of freedom in the descriptions.
 //!
 //! Units are D-SI strings: m/s² is `\metre\second\tothe{-2}`; S is the output unit per m/s², so
 //! `\volt\metre\tothe{-1}\second\tothe{2}` for volts and `\one\metre\tothe{-1}\second\tothe{2}`
@@ -106,9 +108,9 @@ pub fn dcc_xml(record: &CalibrationRecord, options: &DccOptions) -> String {
          <dcc:administrativeData>\n<dcc:dccSoftware><dcc:software>"
     );
     text(&mut x, "name", "triax-lab");
-    let _ = write!(
+    let _ = writeln!(
         x,
-        "<dcc:release>{}</dcc:release></dcc:software></dcc:dccSoftware>\n",
+        "<dcc:release>{}</dcc:release></dcc:software></dcc:dccSoftware>",
         esc(&options.software_release)
     );
     let dates = [r.static_set.calibrated_at, r.dynamic.calibrated_at];
@@ -116,7 +118,7 @@ pub fn dcc_xml(record: &CalibrationRecord, options: &DccOptions) -> String {
         dates.iter().min().copied().unwrap_or(r.issued_at),
         dates.iter().max().copied().unwrap_or(r.issued_at),
     );
-    let _ = write!(
+    let _ = writeln!(
         x,
         "<dcc:coreData><dcc:countryCodeISO3166_1>{}</dcc:countryCodeISO3166_1>\
          <dcc:usedLangCodeISO639_1>en</dcc:usedLangCodeISO639_1>\
@@ -124,7 +126,7 @@ pub fn dcc_xml(record: &CalibrationRecord, options: &DccOptions) -> String {
          <dcc:uniqueIdentifier>{}</dcc:uniqueIdentifier>\
          <dcc:beginPerformanceDate>{}</dcc:beginPerformanceDate>\
          <dcc:endPerformanceDate>{}</dcc:endPerformanceDate>\
-         <dcc:performanceLocation>laboratory</dcc:performanceLocation></dcc:coreData>\n",
+         <dcc:performanceLocation>laboratory</dcc:performanceLocation></dcc:coreData>",
         esc(&options.country),
         esc(&r.certificate.id),
         date(begin),
@@ -255,7 +257,7 @@ fn measurement_result(x: &mut String, r: &CalibrationRecord, name: &str, set: &C
         &s_text,
         &labels_s,
         &s,
-        &vec![s_unit; 9],
+        &[s_unit; 9],
         &(0..9).map(|i| k * sd(i)).collect::<Vec<_>>(),
         k,
         p,
