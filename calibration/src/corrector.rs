@@ -399,13 +399,21 @@ impl SetCorrector {
     }
 
     /// The set at a sensor temperature of `temperature_c` (see the module's documentation);
-    /// `None` when the record has no temperature model or the temperature is not finite.
+    /// `None` when the record has no temperature model, or the temperature is not finite or
+    /// lies more than one calibrated span beyond the calibrated range, or would change a gain
+    /// by more than half: a first-order model says nothing that far out, and a hostile
+    /// temperature must not divide by a gain of zero.
     pub fn at_temperature(&self, temperature_c: f64) -> Option<SetCorrector> {
         let t = self.thermal.as_ref()?;
-        if !temperature_c.is_finite() {
+        let [low, high] = t.range_c;
+        let span = high - low;
+        if !(temperature_c >= low - span && temperature_c <= high + span) {
             return None;
         }
         let dt = temperature_c - t.reference_c;
+        if t.gain_per_c.iter().any(|g| (g * dt).abs() > 0.5) {
+            return None;
+        }
         let mut set = SetCorrector {
             thermal: None,
             ..self.clone()
@@ -864,6 +872,11 @@ mod tests {
             warm.at_temperature(25.0).is_none(),
             "taken to a temperature once"
         );
+        // Beyond one span (20 °C) past the range, and for a hostile value: not applied.
+        assert!(set.at_temperature(54.9).is_some());
+        assert!(set.at_temperature(55.1).is_none());
+        assert!(set.at_temperature(f64::MAX).is_none());
+        assert!(set.at_temperature(f64::NAN).is_none());
         // A covariance that is not positive semi-definite is refused by name.
         r.temperature.as_mut().unwrap().covariance[0][1] = 1e-5;
         r.temperature.as_mut().unwrap().covariance[1][0] = 1e-5;

@@ -45,6 +45,8 @@ pub enum MseedError {
     },
     #[error("--station {0:?}: a station code is 1 to 5 letters or digits")]
     BadStation(String),
+    #[error("sensor {sensor}: its id has no letter or digit to make a station code of; give it one with --station SENSOR=CODE")]
+    NoStation { sensor: String },
     #[error("--network {0:?}: a network code is 1 or 2 letters or digits")]
     BadNetwork(String),
     #[error("sensor {sensor}: a sample rate of {rate_hz} Hz cannot be written as miniSEED 2's factor and multiplier")]
@@ -199,7 +201,9 @@ impl SdsWriter {
             .cloned()
             .unwrap_or_else(|| default_station(sensor));
         if !valid_code(&code, 5) {
-            return Err(MseedError::BadStation(code));
+            return Err(MseedError::NoStation {
+                sensor: sensor.to_string(),
+            });
         }
         if let Some((other, _)) = self.stations.iter().find(|(_, s)| **s == code) {
             return Err(MseedError::StationClash {
@@ -241,7 +245,9 @@ impl SdsWriter {
             for (i, s) in batch.samples.iter().enumerate() {
                 let p = self.pending.entry(key.clone()).or_default();
                 if p.values.is_empty() {
-                    p.start_ns = h.timestamp_ns + (i as f64 * period_ns).round() as i64;
+                    p.start_ns = h
+                        .timestamp_ns
+                        .saturating_add((i as f64 * period_ns).round() as i64);
                     p.period_ns = period_ns;
                     p.version = version;
                     p.factor = factor;
@@ -284,8 +290,10 @@ impl SdsWriter {
             let Some(p) = self.pending.get_mut(key) else {
                 return Ok(());
             };
-            let next_midnight = (p.start_ns.div_euclid(DAY_NS) + 1) * DAY_NS;
-            let fit = ((next_midnight - p.start_ns) as f64 / p.period_ns)
+            // In i128: a timestamp near the end of i64's range has no midnight after it there.
+            let next_midnight =
+                (i128::from(p.start_ns).div_euclid(DAY_NS.into()) + 1) * i128::from(DAY_NS);
+            let fit = ((next_midnight - i128::from(p.start_ns)) as f64 / p.period_ns)
                 .ceil()
                 .max(1.0) as usize;
             let closed = p.values.len() >= SAMPLES_PER_RECORD.min(fit);
@@ -297,7 +305,9 @@ impl SdsWriter {
             let flag_bits = p.flags.drain(..take).fold(0, |a, f| a | f);
             let start_ns = p.start_ns;
             let factor = p.factor;
-            p.start_ns += (take as f64 * p.period_ns).round() as i64;
+            p.start_ns = p
+                .start_ns
+                .saturating_add((take as f64 * p.period_ns).round() as i64);
             let channel = channels()[key.1];
             self.sequence = self.sequence % 999_999 + 1;
             let record = record(
@@ -383,9 +393,10 @@ fn record(
     padded(&mut r, network, 2);
     // BTIME to the nearest 100 µs; blockette 1001 carries the microseconds from there, −50 to
     // +49 as the format asks (what lies below a microsecond is dropped).
+    let start_ns = i128::from(start_ns);
     let rounded_ns = (start_ns + 50_000).div_euclid(100_000) * 100_000;
     let offset_us = (start_ns - rounded_ns).div_euclid(1000) as i8;
-    let t = time::OffsetDateTime::from_unix_timestamp_nanos(i128::from(rounded_ns))
+    let t = time::OffsetDateTime::from_unix_timestamp_nanos(rounded_ns)
         .unwrap_or(time::OffsetDateTime::UNIX_EPOCH);
     r.extend_from_slice(&(t.year() as u16).to_be_bytes());
     r.extend_from_slice(&t.ordinal().to_be_bytes());
@@ -545,6 +556,13 @@ mod tests {
         let e = w.station(&SensorId::new("incl-02").unwrap()).unwrap_err();
         assert!(e.to_string().contains("INCL0"), "{e}");
         assert!(e.to_string().contains("--station"), "{e}");
+        let e = w.station(&SensorId::new("---").unwrap()).unwrap_err();
+        assert!(e.to_string().contains("sensor ---"), "{e}");
+        // A timestamp at the end of i64's range is written, not a panic.
+        let mut b = batch(1, i64::MAX - 1_000, 3, 0);
+        b.header.sensor_id = SensorId::new("end-1").unwrap();
+        w.push(&b).unwrap();
+        w.finish().unwrap();
         assert!(SdsWriter::new(dir.path(), "X-", BTreeMap::new()).is_err());
         let bad = BTreeMap::from([("a".to_string(), "TOOLONG".to_string())]);
         assert!(SdsWriter::new(dir.path(), "XX", bad).is_err());

@@ -73,6 +73,9 @@ use crate::config::{CorrectionMode, SensorSettings};
 use crate::filter::{realisable, Biquad3, Butterworth4, Coefficients, HighPass4x32, Lanes};
 use crate::tilt::{tilt, LowBandError, Tilt, TiltFilter};
 
+/// Temperatures a sensor can report, °C; others never enter the tilt's temperature filter.
+const PLAUSIBLE_TEMPERATURE_C: std::ops::RangeInclusive<f64> = -273.15..=1000.0;
+
 /// Margin between the record's band edge and the detector's corner.
 pub const FREQUENCY_MARGIN: f64 = 1.25;
 
@@ -395,7 +398,12 @@ impl SensorKernel {
                 self.tilt.output_lp = t.step(*v);
                 last = Some(i);
             }
-            let temperature = raw.temperature_c.map(f64::from).filter(|t| t.is_finite());
+            // A temperature no sensor can have (a hostile node's 1e38) would overflow the
+            // filter's state and poison it for good: it is passed over, like a missing one.
+            let temperature = raw
+                .temperature_c
+                .map(f64::from)
+                .filter(|t| (PLAUSIBLE_TEMPERATURE_C).contains(t));
             if let (Some(temp), true) = (temperature, c.models_temperature()) {
                 t.step_temperature(temp, n);
             }
