@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Vector3};
 use time::OffsetDateTime;
-use triax_calibration::corrector::Corrector;
+use triax_calibration::corrector::{Corrector, TemperatureCheck};
 use triax_calibration::fit::dynamic::{fit_with, Bench};
 use triax_calibration::fit::repeatability::{evaluate, UncertaintyBudget};
 use triax_calibration::fit::tables::{
@@ -556,17 +556,32 @@ pub fn run_apply(
     let corrector = Corrector::from_record(&record)?;
     let set = corrector.set(set);
     let series = read_output_series(input_path)?;
+    // A record with a temperature model corrects each row at its temperature and says, per
+    // row, whether that was outside what the lab calibrated (PROTOCOL.md §3.1).
+    let thermal = corrector.models_temperature();
     let mut out = String::with_capacity(series.t_s.len() * 80);
-    out.push_str("t_s,ax,ay,az,ux,uy,uz\n");
-    for (t, v) in series.t_s.iter().zip(&series.output) {
-        let c = set.correct(*v);
+    out.push_str(if thermal {
+        "t_s,ax,ay,az,ux,uy,uz,outside_temperature\n"
+    } else {
+        "t_s,ax,ay,az,ux,uy,uz\n"
+    });
+    for (i, (t, v)) in series.t_s.iter().zip(&series.output).enumerate() {
+        let temperature = series.temperature_c.as_ref().map(|c| c[i]);
+        let warm = temperature.and_then(|c| set.at_temperature(c));
+        let c = warm.as_ref().unwrap_or(set).correct(*v);
         let a = c.accel_mps2;
         let u = c.uncertainty_mps2;
-        let _ = writeln!(
+        let _ = write!(
             out,
             "{t},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6}",
             a[0], a[1], a[2], u[0], u[1], u[2]
         );
+        if thermal {
+            let outside = !matches!(set.temperature_check(temperature), TemperatureCheck::Inside)
+                || warm.is_none();
+            let _ = write!(out, ",{}", u8::from(outside));
+        }
+        out.push('\n');
     }
     Ok((out, series.t_s.len()))
 }

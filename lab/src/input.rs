@@ -303,6 +303,8 @@ pub fn map_sample_error(
 pub struct OutputSeries {
     pub t_s: Vec<f64>,
     pub output: Vec<[f64; 3]>,
+    /// The optional `temperature_c` column, °C.
+    pub temperature_c: Option<Vec<f64>>,
 }
 
 pub fn read_output_series(path: &Path) -> Result<OutputSeries, InputError> {
@@ -314,11 +316,17 @@ pub fn read_output_series(path: &Path) -> Result<OutputSeries, InputError> {
     }
     check_time_axis(&path.display().to_string(), &c[0], false)
         .map_err(|e| map_sample_error(path, &table.lines, e))?;
+    let temperature_c = if raw.has("temperature_c") {
+        Some(raw.numeric(&["temperature_c"])?.columns.remove(0))
+    } else {
+        None
+    };
     Ok(OutputSeries {
         output: (0..c[0].len())
             .map(|i| [c[1][i], c[2][i], c[3][i]])
             .collect(),
         t_s: c[0].clone(),
+        temperature_c,
     })
 }
 

@@ -179,7 +179,9 @@ enum Command {
         #[arg(long, default_value = "ZZ")]
         country: String,
     },
-    /// Offline correction of t_s,vx,vy,vz data with the gateway's corrector.
+    /// Offline correction of t_s,vx,vy,vz data (and an optional temperature_c column) with the
+    /// gateway's corrector: writes t_s,ax,ay,az,ux,uy,uz, plus outside_temperature (0 or 1)
+    /// when the record has a temperature model.
     Apply {
         #[arg(long)]
         record: PathBuf,

@@ -495,4 +495,32 @@ fn runs_at_several_temperatures_give_a_temperature_model() {
     );
     let c = Corrector::from_record(r).unwrap();
     assert!(c.set(SetKind::Static).at_temperature(30.0).is_some());
+
+    // `apply` with a temperature column: the sensor level at 30 °C reads g on z within its
+    // interval and unflagged; at 100 °C (beyond one span past 6–36 °C) it is not corrected
+    // for temperature and says so.
+    let record_path = dir.path().join("record.json");
+    std::fs::write(&record_path, &out.json).unwrap();
+    let level = nalgebra::Vector3::new(0.0, 0.0, 9.80665);
+    let mut input = String::from("t_s,vx,vy,vz,temperature_c\n");
+    for (i, t) in [30.0, 100.0].iter().enumerate() {
+        let v = truth.output_at(&level, *t);
+        input.push_str(&format!("{i},{},{},{},{t}\n", v.x, v.y, v.z));
+    }
+    let input_path = dir.path().join("warm.csv");
+    std::fs::write(&input_path, input).unwrap();
+    let (csv, rows) = run_apply(&record_path, SetKind::Static, &input_path).unwrap();
+    assert_eq!(rows, 2);
+    let lines: Vec<Vec<f64>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert!(csv.starts_with("t_s,ax,ay,az,ux,uy,uz,outside_temperature\n"));
+    let k = r.static_set.coverage_factor;
+    for axis in 0..3 {
+        let err = lines[0][1 + axis] - level[axis];
+        assert!(err.abs() < k * lines[0][4 + axis], "axis {axis}: {err}");
+    }
+    assert_eq!((lines[0][7], lines[1][7]), (0.0, 1.0));
 }
