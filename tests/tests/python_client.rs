@@ -451,6 +451,62 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         .unwrap();
 }
 
+/// A gateway for `building` whose one sensor (record version 1) streamed `n_batches` batches of
+/// 50 samples at 100 Hz, batch `skipped` left out (a gap after it) and one non-finite sample at
+/// (batch, sample) `nan_at`; returns the gateway, a client session and the sensor's history as
+/// the gateway answers it.
+async fn streamed_history(
+    dir: &std::path::Path,
+    building: &str,
+    sensor: &str,
+    n_batches: u64,
+    skipped: u64,
+    nan_at: (u64, u64),
+) -> (util::Running, zenoh::Session, Vec<CorrectedBatch>) {
+    let store = dir.join("store");
+    util::seed_store(&store, &[sample::record(sensor, 1)]);
+    let gw = util::start(util::config(building, &store)).await;
+    let session = util::client(&gw.endpoint).await;
+    let sub = session
+        .declare_subscriber(util::key_corrected(building, sensor))
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .await
+        .unwrap();
+    let publisher = util::blocking_publisher(&session, util::key_raw(building, sensor)).await;
+    for seq in (0..n_batches).filter(|&s| s != skipped) {
+        let samples = (0..50)
+            .map(|i| {
+                let t = (seq * 50 + i) as f32 / 100.0;
+                if (seq, i) == nan_at {
+                    [f32::NAN, 0.0, 0.98]
+                } else {
+                    [
+                        0.03 * (9.0 * t).sin(),
+                        -0.01 * t,
+                        0.98 + 0.001 * (3.0 * t).cos(),
+                    ]
+                }
+            })
+            .collect();
+        publisher
+            .put(util::raw(sensor, seq, samples))
+            .await
+            .unwrap();
+    }
+    util::collect(&sub, n_batches as usize - 1).await;
+    let request = triax_client::HistoryRequest::sensor(
+        &BuildingId::new(building).unwrap(),
+        &SensorId::new(sensor).unwrap(),
+    );
+    let mut batches = Vec::new();
+    triax_client::history::fetch(&session, &request, util::TIMEOUT, &mut |r| {
+        batches.push(r.batch)
+    })
+    .await
+    .expect("history answered");
+    (gw, session, batches)
+}
+
 /// Reads the Parquet file with pandas and prints, as JSON, every column (floats as the bits of
 /// their f32, so NaN and exact values survive) and the file's `triax.units` metadata.
 const READ_PARQUET: &str = r#"
@@ -480,56 +536,16 @@ print(json.dumps(out))
 async fn a_parquet_export_reads_back_identically_in_pandas() {
     let py = python_interpreter();
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("store");
-    util::seed_store(&store, &[sample::record("pq-1", 1)]);
-    let gw = util::start(util::config("pq", &store)).await;
-    let session = util::client(&gw.endpoint).await;
-    let sub = session
-        .declare_subscriber(util::key_corrected("pq", "pq-1"))
-        .with(zenoh::handlers::FifoChannel::new(1000))
-        .await
-        .unwrap();
-    let publisher = util::blocking_publisher(&session, util::key_raw("pq", "pq-1")).await;
     let n_batches = 40u64;
-    for seq in 0..n_batches {
-        // Sequence 20 skipped: a gap flag; one non-finite sample.
-        if seq == 20 {
-            continue;
-        }
-        let samples = (0..50)
-            .map(|i| {
-                let t = (seq * 50 + i) as f32 / 100.0;
-                if seq == 7 && i == 3 {
-                    [f32::NAN, 0.0, 0.98]
-                } else {
-                    [
-                        0.03 * (9.0 * t).sin(),
-                        -0.01 * t,
-                        0.98 + 0.001 * (3.0 * t).cos(),
-                    ]
-                }
-            })
-            .collect();
-        publisher
-            .put(util::raw("pq-1", seq, samples))
-            .await
-            .unwrap();
-    }
-    util::collect(&sub, n_batches as usize - 1).await;
-    let request = triax_client::HistoryRequest::sensor(
-        &BuildingId::new("pq").unwrap(),
-        &SensorId::new("pq-1").unwrap(),
-    );
+    // Sequence 20 skipped: a gap flag; one non-finite sample.
+    let (gw, session, batches) =
+        streamed_history(dir.path(), "pq", "pq-1", n_batches, 20, (7, 3)).await;
     let path = dir.path().join("pq-1.parquet");
     let mut writer =
         triax_client::parquet::ParquetWriter::new(std::fs::File::create(&path).unwrap()).unwrap();
-    let mut batches = Vec::new();
-    triax_client::history::fetch(&session, &request, util::TIMEOUT, &mut |r| {
-        writer.push(&r.batch).unwrap();
-        batches.push(r.batch);
-    })
-    .await
-    .expect("history answered");
+    for b in &batches {
+        writer.push(b).unwrap();
+    }
     let rows = writer.finish().unwrap();
     assert_eq!(batches.len(), n_batches as usize - 1);
     assert_eq!(rows, 50 * batches.len() as u64);
@@ -637,51 +653,15 @@ print(json.dumps({
 async fn an_sds_export_reads_back_identically_in_obspy() {
     let py = python_interpreter();
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("store");
-    let v1 = sample::record("ms-1", 1);
-    util::seed_store(&store, std::slice::from_ref(&v1));
-    let gw = util::start(util::config("ms", &store)).await;
-    let session = util::client(&gw.endpoint).await;
-    let sub = session
-        .declare_subscriber(util::key_corrected("ms", "ms-1"))
-        .with(zenoh::handlers::FifoChannel::new(1000))
-        .await
-        .unwrap();
-    let publisher = util::blocking_publisher(&session, util::key_raw("ms", "ms-1")).await;
     let n_batches = 12u64;
-    for seq in 0..n_batches {
-        if seq == 6 {
-            continue;
-        }
-        let samples = (0..50)
-            .map(|i| {
-                let t = (seq * 50 + i) as f32 / 100.0;
-                if seq == 3 && i == 7 {
-                    [f32::NAN, 0.0, 0.98]
-                } else {
-                    [0.03 * (9.0 * t).sin(), -0.01 * t, 0.98]
-                }
-            })
-            .collect();
-        publisher
-            .put(util::raw("ms-1", seq, samples))
-            .await
-            .unwrap();
-    }
-    util::collect(&sub, n_batches as usize - 1).await;
-    let request = triax_client::HistoryRequest::sensor(
-        &BuildingId::new("ms").unwrap(),
-        &SensorId::new("ms-1").unwrap(),
-    );
+    let (gw, session, batches) =
+        streamed_history(dir.path(), "ms", "ms-1", n_batches, 6, (3, 7)).await;
+    assert_eq!(batches.len(), n_batches as usize - 1);
     let root = dir.path().join("sds");
     let mut writer = triax_client::mseed::SdsWriter::new(&root, "XX", BTreeMap::new()).unwrap();
-    let mut batches = Vec::new();
-    triax_client::history::fetch(&session, &request, util::TIMEOUT, &mut |r| {
-        writer.push(&r.batch).unwrap();
-        batches.push(r.batch);
-    })
-    .await
-    .expect("history answered");
+    for b in &batches {
+        writer.push(b).unwrap();
+    }
     let stations = writer.stations().clone();
     writer.finish().unwrap();
     let mut v2 = sample::record("ms-1", 2);
@@ -694,7 +674,7 @@ async fn an_sds_export_reads_back_identically_in_obspy() {
             &BuildingId::new("ms").unwrap(),
             &stations,
             &BTreeMap::from([(SensorId::new("ms-1").unwrap(), 100.0)]),
-            &[v1, v2],
+            &[sample::record("ms-1", 1), v2],
             time::OffsetDateTime::now_utc(),
         ),
     )
