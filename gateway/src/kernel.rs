@@ -392,6 +392,7 @@ impl SensorKernel {
                 common |= flags::OUTSIDE_FREQUENCY;
             }
         }
+        let temperature_c = raw.temperature_c.map(f64::from);
         if let Some(t) = design.tilt.as_mut().filter(|_| in_sequence) {
             let mut last = None;
             for (i, v) in scratch.v.iter().enumerate().filter(|(_, v)| finite(**v)) {
@@ -400,10 +401,7 @@ impl SensorKernel {
             }
             // A temperature no sensor can have (a hostile node's 1e38) would overflow the
             // filter's state and poison it for good: it is passed over, like a missing one.
-            let temperature = raw
-                .temperature_c
-                .map(f64::from)
-                .filter(|t| (PLAUSIBLE_TEMPERATURE_C).contains(t));
+            let temperature = temperature_c.filter(|t| PLAUSIBLE_TEMPERATURE_C.contains(t));
             if let (Some(temp), true) = (temperature, c.models_temperature()) {
                 t.step_temperature(temp, n);
             }
@@ -421,7 +419,6 @@ impl SensorKernel {
         }
 
         // Temperature: both sets taken to the batch's, when the record models it.
-        let temperature_c = raw.temperature_c.map(f64::from);
         let static_base = c.set(SetKind::Static);
         match static_base.temperature_check(temperature_c) {
             TemperatureCheck::Outside | TemperatureCheck::Missing => {

@@ -525,14 +525,18 @@ fn main() -> anyhow::Result<()> {
             if !(country.len() == 2 && country.chars().all(|c| c.is_ascii_uppercase())) {
                 anyhow::bail!("--country {country:?}: two capital letters (ISO 3166-1 alpha-2)");
             }
-            let bytes =
-                std::fs::read(&record).map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
-            let r: triax_protocol::CalibrationRecord = triax_protocol::from_json(&bytes)
-                .map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
+            let records = read_records(std::slice::from_ref(&record))?;
+            let [r] = records.as_slice() else {
+                anyhow::bail!(
+                    "--record {}: {} records; give one record file",
+                    record.display(),
+                    records.len()
+                );
+            };
             r.validate()
                 .map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
             let xml = triax_lab::dcc::dcc_xml(
-                &r,
+                r,
                 &triax_lab::dcc::DccOptions {
                     country,
                     software_release: env!("CARGO_PKG_VERSION").to_string(),
