@@ -159,8 +159,8 @@ pub struct SdsWriter {
     overrides: BTreeMap<String, String>,
     pending: BTreeMap<(String, usize), Pending>,
     sequence: u32,
-    /// Records written per file, for the summary.
-    pub records: BTreeMap<PathBuf, usize>,
+    /// Records written per file; `finish` hands them over.
+    records: BTreeMap<PathBuf, usize>,
 }
 
 impl SdsWriter {
