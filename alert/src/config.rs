@@ -5,7 +5,8 @@
 //! coverage_factor = 2.0        # k of the guard band
 //! stale_after_s = 30.0         # no data for this long: a `stale` alert
 //! repeat_interval_s = 60.0     # the same alert (kind and level) at most once per interval
-//! noise_share = 0.0            # share of each sample's variance taken as independent noise
+//! noise_share = 0.0            # share of each sample's stated variance that is noise
+//! highpass_hz = 0.1            # vibration baseline: high pass corner (2nd-order Butterworth)
 //! tilt_baseline_samples = 10   # clean tilt samples averaged into the baseline
 //! frequency_min_rms_mps2 = 0.005  # below this RMS the dominant frequency is noise: not judged
 //! watch_all_buildings = false  # also watch buildings not listed, with [defaults]
@@ -123,6 +124,9 @@ pub struct Settings {
     pub stale_after_s: f64,
     pub repeat_interval_s: f64,
     pub noise_share: f64,
+    /// Corner of the high pass that takes the baseline out of the acceleration
+    /// ([`crate::highpass`]).
+    pub highpass_hz: f64,
     pub tilt_baseline_samples: usize,
     pub frequency_min_rms_mps2: f64,
 }
@@ -135,6 +139,7 @@ impl Default for Settings {
             stale_after_s: 30.0,
             repeat_interval_s: 60.0,
             noise_share: 0.0,
+            highpass_hz: 0.1,
             tilt_baseline_samples: 10,
             frequency_min_rms_mps2: 0.005,
         }
@@ -205,6 +210,7 @@ struct FileConfig {
     stale_after_s: Option<f64>,
     repeat_interval_s: Option<f64>,
     noise_share: Option<f64>,
+    highpass_hz: Option<f64>,
     tilt_baseline_samples: Option<usize>,
     frequency_min_rms_mps2: Option<f64>,
     #[serde(default)]
@@ -241,6 +247,7 @@ impl FileConfig {
             stale_after_s: self.stale_after_s.unwrap_or(d.stale_after_s),
             repeat_interval_s: self.repeat_interval_s.unwrap_or(d.repeat_interval_s),
             noise_share: self.noise_share.unwrap_or(d.noise_share),
+            highpass_hz: self.highpass_hz.unwrap_or(d.highpass_hz),
             tilt_baseline_samples: self
                 .tilt_baseline_samples
                 .unwrap_or(d.tilt_baseline_samples),
@@ -278,6 +285,14 @@ impl FileConfig {
         }
         if !(0.0..=1.0).contains(&settings.noise_share) {
             return Err(ConfigError::invalid("noise_share", "must be within 0..=1"));
+        }
+        // Below 0.001 Hz the filter would take half an hour to settle; above 10 Hz it would cut
+        // into the sway it is meant to keep.
+        if !(0.001..=10.0).contains(&settings.highpass_hz) {
+            return Err(ConfigError::invalid(
+                "highpass_hz",
+                "must be within 0.001..=10 Hz",
+            ));
         }
         if settings.tilt_baseline_samples == 0 {
             return Err(ConfigError::invalid("tilt_baseline_samples", "must be ≥ 1"));
@@ -394,6 +409,7 @@ mod tests {
             ("[buildings.hq]\npga_mps = 1.0", "pga_mps"),
             ("coverage_factor = 0.0\n[buildings.hq]", "coverage_factor"),
             ("noise_share = 1.5\n[buildings.hq]", "noise_share"),
+            ("highpass_hz = 0.0\n[buildings.hq]", "highpass_hz"),
             ("[buildings.hq.sensors.acc-01]\nrms_mps2 = -1.0", "rms_mps2"),
             ("[buildings.\"h q\"]", "buildings"),
             ("window_s = 10.0", "buildings"),

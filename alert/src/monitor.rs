@@ -24,7 +24,8 @@ use triax_protocol::{flags, BuildingId, CorrectedBatch, CorrectedSample, SensorI
 
 use crate::config::{Config, Limits, Settings};
 use crate::decision::{decide, rule_text, severity, Direction, Estimate, Limit};
-use crate::stats::{window_stats, Propagation, WindowStats, AXIS_NAMES};
+use crate::highpass::HighPass;
+use crate::stats::{window_stats, Method, Point, Propagation, Request, WindowStats, AXIS_NAMES};
 
 /// Most samples one sensor's window holds; a longer window is shortened to its newest samples.
 /// About 7 MB a sensor, four minutes at 1 kHz.
@@ -66,6 +67,10 @@ struct Sent {
 struct TimedSample {
     t_ns: i64,
     sample: CorrectedSample,
+    /// The high-passed acceleration; NaN for a sample that is not usable.
+    vibration: [f32; 3],
+    /// Whether the high pass had settled when this sample went through it.
+    settled: bool,
     /// The coverage factor of the sample's batch.
     k: f32,
 }
@@ -91,6 +96,10 @@ struct SensorState {
     limits: Limits,
     window: VecDeque<TimedSample>,
     sample_rate_hz: f64,
+    /// The vibration baseline, restarted with the window; None until the first usable sample.
+    highpass: Option<HighPass>,
+    /// Calibration version of the samples in the window.
+    calibration_version: Option<u64>,
     /// Wall-clock arrival of the last message; None before the first.
     last_data: Option<OffsetDateTime>,
     /// When watching began: the reference for a sensor that never sent anything.
@@ -106,6 +115,8 @@ impl SensorState {
             limits,
             window: VecDeque::new(),
             sample_rate_hz: 0.0,
+            highpass: None,
+            calibration_version: None,
             last_data: None,
             watched_since: now,
             tilt: TiltState::default(),
@@ -381,24 +392,42 @@ impl Monitor {
         let newest_ns = state.window.back().map(|s| s.t_ns);
         let rate_changed = (state.sample_rate_hz - h.sample_rate_hz).abs()
             > 1e-9 * h.sample_rate_hz.max(state.sample_rate_hz);
-        if rate_changed || newest_ns.is_some_and(|t| h.timestamp_ns <= t) {
+        // A new calibration moves offsets and gains: the baseline filter would ring on the step.
+        let version_changed = state
+            .calibration_version
+            .is_some_and(|v| v != batch.info.calibration_version);
+        if rate_changed || version_changed || newest_ns.is_some_and(|t| h.timestamp_ns <= t) {
             if !state.window.is_empty() {
                 tracing::info!(
                     sample_rate_hz = h.sample_rate_hz,
                     timestamp_ns = h.timestamp_ns,
-                    "sample rate changed or time went back: window restarted"
+                    calibration_version = batch.info.calibration_version,
+                    "sample rate or calibration changed, or time went back: window and baseline \
+                     restarted"
                 );
             }
             state.window.clear();
+            state.highpass = None;
             state.sample_rate_hz = h.sample_rate_hz;
         }
+        state.calibration_version = Some(batch.info.calibration_version);
         let batch_level = batch.batch_flags & flags::SEQUENCE_GAP;
         for (i, s) in batch.samples.iter().enumerate() {
             let mut sample = *s;
             sample.flags |= batch_level;
+            let vibration = if usable(&sample) {
+                let hp = state
+                    .highpass
+                    .get_or_insert_with(|| HighPass::new(settings.highpass_hz, h.sample_rate_hz));
+                hp.apply(sample.accel_mps2.map(f64::from)).map(|v| v as f32)
+            } else {
+                [f32::NAN; 3]
+            };
             state.window.push_back(TimedSample {
                 t_ns: h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64),
                 sample,
+                vibration,
+                settled: state.highpass.as_ref().is_some_and(HighPass::settled),
                 k: batch.info.coverage_factor,
             });
         }
@@ -666,40 +695,39 @@ fn evaluate_window(
     now: OffsetDateTime,
 ) -> Vec<Alert> {
     let n = state.window.len();
-    if n == 0 {
+    let (Some(first), Some(last)) = (state.window.front(), state.window.back()) else {
         return Vec::new();
-    }
-    // Only whole windows are judged: a window shorter than `window_s` (the first seconds of a
-    // stream, or after a restart of the window) holds a fraction of a cycle, whose mean is not
-    // the baseline, and its demeaned peak reads up to a fifth high.
-    let period_ns = 1e9 / state.sample_rate_hz;
-    let span_ns = match (state.window.front(), state.window.back()) {
-        (Some(first), Some(last)) => (last.t_ns - first.t_ns) as f64 + period_ns,
-        _ => 0.0,
     };
-    if span_ns < settings.window_s * 1e9 - 0.5 * period_ns {
+    // Only whole windows are judged, and only once the baseline filter has settled before the
+    // window's first sample: a window shorter than `window_s` (the first seconds of a stream,
+    // or after a restart) or one that still holds the filter's start-up transient would be
+    // judged on something other than the motion.
+    let period_ns = 1e9 / state.sample_rate_hz;
+    let span_ns = (last.t_ns - first.t_ns) as f64 + period_ns;
+    if span_ns < settings.window_s * 1e9 - 0.5 * period_ns || !first.settled {
         return Vec::new();
     }
-    let all: Vec<CorrectedSample> = state
+    let grid_len = (span_ns / period_ns).round() as u32;
+    let point = |t: &TimedSample| Point {
+        index: (((t.t_ns - first.t_ns) as f64 / period_ns).round() as u32).min(grid_len - 1),
+        accel_mps2: t.sample.accel_mps2,
+        vibration_mps2: t.vibration,
+        uncertainty_mps2: t.sample.uncertainty_mps2,
+    };
+    let all: Vec<Point> = state
         .window
         .iter()
-        .map(|t| t.sample)
-        .filter(usable)
+        .filter(|t| usable(&t.sample))
+        .map(point)
         .collect();
-    let clean: Vec<CorrectedSample> = all.iter().copied().filter(|s| s.flags == 0).collect();
+    let clean: Vec<Point> = state
+        .window
+        .iter()
+        .filter(|t| t.sample.flags == 0 && usable(&t.sample))
+        .map(point)
+        .collect();
     let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.sample.flags);
-    let propagation = Propagation {
-        noise_share: settings.noise_share,
-    };
     let rate = state.sample_rate_hz;
-    let with_frequency = state.limits.frequency().next().is_some();
-    let clean_stats = window_stats(&clean, rate, propagation, with_frequency);
-    // Only worth a second look when flagged samples add something to the clean ones.
-    let flagged_stats = if all.len() > clean.len() {
-        window_stats(&all, rate, propagation, with_frequency)
-    } else {
-        None
-    };
     // The stream's own k where it asks for more than the configured one (few degrees of
     // freedom): the decision is at least as safe as each sample's interval.
     let k = state
@@ -707,10 +735,28 @@ fn evaluate_window(
         .iter()
         .map(|t| f64::from(t.k))
         .fold(settings.coverage_factor, f64::max);
+    let request = Request {
+        sample_rate_hz: rate,
+        grid_len,
+        propagation: Propagation {
+            noise_share: settings.noise_share,
+        },
+        k,
+        peak_threshold: state.limits.pga().map(|l| l.threshold),
+        rms_threshold: state.limits.rms().map(|l| l.threshold),
+        frequency: state.limits.frequency().next().is_some(),
+    };
+    let clean_stats = window_stats(&clean, &request);
+    // Only worth a second look when flagged samples add something to the clean ones.
+    let flagged_stats = if all.len() > clean.len() {
+        window_stats(&all, &request)
+    } else {
+        None
+    };
     let ctx = Context {
         key,
         k,
-        window_s: n as f64 / rate,
+        window_s: f64::from(grid_len) / rate,
         flagged_fraction: (n - clean.len()) as f64 / n as f64,
         flag_bits,
         now,
@@ -724,20 +770,18 @@ fn evaluate_window(
     let mut alerts = Vec::new();
 
     if let Some(limit) = state.limits.pga() {
-        let pick = |w: &WindowStats| w.peak.estimate;
+        let pick = |w: &WindowStats| w.peak.map(|p| p.estimate);
         if let Some(j) = judge(
             k,
             limit,
-            clean_stats.as_ref().map(pick),
-            flagged_stats.as_ref().map(pick),
+            clean_stats.as_ref().and_then(pick),
+            flagged_stats.as_ref().and_then(pick),
         ) {
             let w = basis_stats(&j);
-            let detail = format!(
-                "peak |a − mean| on axis {} over {} sample(s); u is that sample's own standard \
-                 uncertainty",
-                w.map_or("?", |w| AXIS_NAMES[w.peak.axis]),
-                w.map_or(0, |w| w.n_samples),
-            );
+            let detail = match w.and_then(|w| w.peak.map(|p| (w.n_samples, p))) {
+                Some((n, p)) => method_detail("peak", n, p.axis, p.method),
+                None => String::new(),
+            };
             alerts.push(make_alert(
                 &ctx,
                 AlertKind::PeakAcceleration,
@@ -749,22 +793,23 @@ fn evaluate_window(
     }
 
     if let Some(limit) = state.limits.rms() {
-        let pick = |w: &WindowStats| w.rms.estimate;
+        let pick = |w: &WindowStats| w.rms.map(|p| p.estimate);
         if let Some(j) = judge(
             k,
             limit,
-            clean_stats.as_ref().map(pick),
-            flagged_stats.as_ref().map(pick),
+            clean_stats.as_ref().and_then(pick),
+            flagged_stats.as_ref().and_then(pick),
         ) {
             let w = basis_stats(&j);
-            let detail = format!(
-                "RMS of a − mean on axis {} over {} sample(s); u by linear propagation with \
-                 {:.0} % of each sample's variance taken as independent noise and the rest as \
-                 calibration error fully correlated over the window",
-                w.map_or("?", |w| AXIS_NAMES[w.rms.axis]),
-                w.map_or(0, |w| w.n_samples),
-                100.0 * settings.noise_share,
-            );
+            let detail = match w.and_then(|w| w.rms.map(|p| (w.n_samples, p))) {
+                Some((n, p)) => format!(
+                    "{}; {:.0} % of each sample's stated variance taken as noise \
+                     (noise_share), the rest as calibration error common to the window",
+                    method_detail("RMS", n, p.axis, p.method),
+                    100.0 * settings.noise_share
+                ),
+                None => String::new(),
+            };
             alerts.push(make_alert(
                 &ctx,
                 AlertKind::RmsAcceleration,
@@ -777,8 +822,8 @@ fn evaluate_window(
 
     // A quiet window's spectrum peak is noise; judging it would alarm on nothing.
     let frequency_of = |w: &WindowStats| {
-        (w.rms.estimate.value >= settings.frequency_min_rms_mps2)
-            .then_some(w.dominant_frequency)
+        (w.vibration_rms_mps2 >= settings.frequency_min_rms_mps2)
+            .then_some(w.dominant_frequency.map(|f| f.estimate))
             .flatten()
     };
     // A flagged sample left out of the clean set leaves a hole that distorts the spectrum.
@@ -799,11 +844,11 @@ fn evaluate_window(
         );
     }
     if let Some(j) = frequency_judgement {
-        let detail = format!(
-            "highest peak of the summed spectra of the three axes over {:.2} s; u = 1/(T·√12) \
-             from the window length T (the line lies anywhere within one resolution bin)",
-            ctx.window_s
-        );
+        let detail =
+            match basis_stats(&j).and_then(|w| w.dominant_frequency.map(|p| (w.n_samples, p))) {
+                Some((n, p)) => method_detail("frequency", n, p.axis, p.method),
+                None => String::new(),
+            };
         alerts.push(make_alert(
             &ctx,
             AlertKind::DominantFrequency,
@@ -815,5 +860,54 @@ fn evaluate_window(
     alerts
 }
 
+/// How a statistic was estimated, in words, for the alert's statement.
+fn method_detail(what: &str, n_samples: usize, axis: usize, method: Method) -> String {
+    let axis = AXIS_NAMES[axis];
+    match (what, method) {
+        (
+            "peak",
+            Method::Sine {
+                frequency_hz,
+                noise_mps2,
+            },
+        ) => format!(
+            "the window on axis {axis} is one sway at {frequency_hz:.3} Hz: peak = amplitude of \
+             the sinusoid fitted to its {n_samples} samples (noise {noise_mps2:.4} m/s^2 left \
+             over); u from the least-squares covariance"
+        ),
+        (
+            "peak",
+            Method::Samples {
+                noise_mps2,
+                candidates,
+            },
+        ) => format!(
+            "largest |a| of the high-passed axis {axis} over {n_samples} samples, corrected for \
+             noise on a maximum ({candidates} sample(s) within 4 noise deviations of it, noise \
+             {noise_mps2:.4} m/s^2) and for a crest between samples; a bound that holds for any \
+             motion"
+        ),
+        ("RMS", Method::Sine { frequency_hz, .. }) => format!(
+            "the window on axis {axis} is one sway at {frequency_hz:.3} Hz: RMS of the fitted \
+             sinusoid over the window's sample times"
+        ),
+        ("RMS", Method::Samples { noise_mps2, .. }) => format!(
+            "RMS of the high-passed axis {axis} over {n_samples} samples with the noise \
+             ({noise_mps2:.4} m/s^2) taken out"
+        ),
+        (_, Method::Sine { noise_mps2, .. }) => format!(
+            "the window on axis {axis} is one sway: frequency of the sinusoid fitted to its \
+             {n_samples} samples (noise {noise_mps2:.4} m/s^2 left over); u from the \
+             least-squares covariance"
+        ),
+        (_, Method::Samples { .. }) => format!(
+            "highest peak of the summed spectra of the three high-passed axes over {n_samples} \
+             samples; u = bin/√12 (the line lies anywhere within one resolution bin)"
+        ),
+    }
+}
+
+#[cfg(test)]
+mod monte_carlo;
 #[cfg(test)]
 mod tests;

@@ -106,7 +106,7 @@ async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
         .unwrap();
 
     let mut config = Config::from_toml(
-        "window_s = 1.0\nstale_after_s = 1.0\nrepeat_interval_s = 30.0\n\
+        "window_s = 1.0\nstale_after_s = 1.0\nrepeat_interval_s = 30.0\nhighpass_hz = 1.0\n\
          [buildings.hq.sensors.acc-01]\npga_mps2 = 0.5\n\
          [buildings.hq.sensors.acc-02]\n",
     )

@@ -27,7 +27,8 @@ fn acc() -> SensorId {
 
 fn config(extra: &str) -> Config {
     Config::from_toml(&format!(
-        "window_s = 2.0\nstale_after_s = 30.0\nrepeat_interval_s = 0.0\n{extra}\n\
+        "window_s = 2.0\nstale_after_s = 30.0\nrepeat_interval_s = 0.0\nhighpass_hz = 1.0\n\
+         {extra}\n\
          [buildings.hq.sensors.acc-01]\n"
     ))
     .unwrap()
@@ -35,7 +36,7 @@ fn config(extra: &str) -> Config {
 
 fn config_with_limits(limits: &str) -> Config {
     Config::from_toml(&format!(
-        "window_s = 2.0\nstale_after_s = 30.0\nrepeat_interval_s = 0.0\n\
+        "window_s = 2.0\nstale_after_s = 30.0\nrepeat_interval_s = 0.0\nhighpass_hz = 1.0\n\
          [buildings.hq.sensors.acc-01]\n{limits}\n"
     ))
     .unwrap()
@@ -132,11 +133,14 @@ fn levels(alerts: &[Alert], kind: AlertKind) -> Vec<AlertLevel> {
         .collect()
 }
 
-/// A window shorter than `window_s` is not judged: its mean is not the baseline, and the first
-/// half second of a 1.3 Hz sine demeaned over itself reads far above its amplitude. Once the
-/// window is whole (2 s here), the same stream is judged.
+/// Seconds before the high pass of these tests (1 Hz) has settled: ln(1000)/(2π/√2).
+const SETTLE_S: f64 = 1.5548;
+
+/// A window is judged only when it is whole and the baseline filter had settled before its
+/// first sample: 1.55 s of settling, then a whole 2 s window. The first judgement comes with
+/// the first batch that ends after 3.55 s.
 #[test]
-fn only_whole_windows_are_judged() {
+fn only_whole_settled_windows_are_judged() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
     let mut s = Script::new();
     let mut judged_at_s = None;
@@ -144,7 +148,7 @@ fn only_whole_windows_are_judged() {
         let b = s.batch(0.9, 1.3, 0);
         let alerts = m.on_corrected(&hq(), &b, at(s.time_s()));
         let peak = levels(&alerts, AlertKind::PeakAcceleration);
-        if s.time_s() < 2.0 {
+        if s.time_s() < SETTLE_S + 2.0 {
             assert!(peak.is_empty(), "judged at {} s: {alerts:?}", s.time_s());
         } else if judged_at_s.is_none() && !peak.is_empty() {
             judged_at_s = Some(s.time_s());
@@ -153,8 +157,8 @@ fn only_whole_windows_are_judged() {
     }
     assert_eq!(
         judged_at_s,
-        Some(2.0),
-        "judged as soon as the window is whole"
+        Some(4.0),
+        "judged as soon as the window is whole and settled"
     );
 }
 
@@ -163,7 +167,7 @@ fn peak_crossing_the_threshold_shows_the_three_regimes() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
     let mut s = Script::new();
     // Truth 0.40: the interval [0.36, 0.44] is below 0.5.
-    let quiet = s.run(&mut m, 3.0, 0.40, 2.0, 0);
+    let quiet = s.run(&mut m, SETTLE_S + 3.0, 0.40, 2.0, 0);
     assert!(quiet.is_empty(), "{quiet:?}");
     // Truth 0.49: [0.45, 0.53] straddles 0.5.
     let near = s.run(&mut m, 3.0, 0.49, 2.0, 0);
@@ -178,8 +182,18 @@ fn peak_crossing_the_threshold_shows_the_three_regimes() {
         [AlertLevel::Exceeded]
     );
     let a = &over[0];
-    assert!((a.value - 0.60).abs() < 0.01, "{a:?}");
-    assert_eq!(a.standard_uncertainty, f64::from(U));
+    // One sway, fitted exactly: the value is the amplitude, and u the stated u, all taken as
+    // calibration error by default (noise_share = 0).
+    assert!((a.value - 0.60).abs() < 1e-5, "{a:?}");
+    assert!(
+        (a.standard_uncertainty - f64::from(U)).abs() < 1e-5,
+        "{a:?}"
+    );
+    assert!(
+        a.statement.contains("one sway at 2.000 Hz"),
+        "{}",
+        a.statement
+    );
     assert_eq!(a.threshold, 0.5);
     assert_eq!(a.unit, UNIT_MPS2);
     assert_eq!(a.flagged_fraction, 0.0);
@@ -196,20 +210,20 @@ fn peak_crossing_the_threshold_shows_the_three_regimes() {
 }
 
 /// A stream whose batches carry k = 3 (few degrees of freedom behind its uncertainty) is
-/// judged with it, not with the configured 2: a peak of 0.56 ± 0.02 against 0.5 is `exceeded`
+/// judged with it, not with the configured 2: a peak of 0.555 ± 0.02 against 0.5 is `exceeded`
 /// at k = 2 but only `possible` at k = 3.
 #[test]
 fn the_streams_coverage_factor_widens_the_guard_band() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
     let mut s = Script::new();
-    let at_two = s.run(&mut m, 3.0, 0.56, 2.0, 0);
+    let at_two = s.run(&mut m, SETTLE_S + 3.0, 0.555, 2.0, 0);
     assert_eq!(
         levels(&at_two, AlertKind::PeakAcceleration),
         [AlertLevel::Exceeded]
     );
     assert_eq!(at_two[0].coverage_factor, 2.0);
     s.k = 3.0;
-    let at_three = s.run(&mut m, 3.0, 0.56, 2.0, 0);
+    let at_three = s.run(&mut m, 3.0, 0.555, 2.0, 0);
     assert_eq!(
         levels(&at_three, AlertKind::PeakAcceleration),
         [AlertLevel::Possible]
@@ -225,7 +239,7 @@ fn rms_and_dominant_frequency_regimes() {
         t0(),
     );
     let mut s = Script::new();
-    let calm = s.run(&mut m, 3.0, 0.3, 2.5, 0);
+    let calm = s.run(&mut m, SETTLE_S + 3.0, 0.3, 2.5, 0);
     assert!(calm.is_empty(), "rms 0.21, 2.5 Hz: {calm:?}");
     let near = s.run(&mut m, 3.0, 0.43, 2.5, 0);
     assert_eq!(
@@ -237,7 +251,7 @@ fn rms_and_dominant_frequency_regimes() {
         levels(&over, AlertKind::RmsAcceleration),
         [AlertLevel::Exceeded]
     );
-    // A 2 s window resolves 0.5 Hz: u(f) = 0.5/√12 ≈ 0.14 Hz, k·u ≈ 0.29 Hz.
+    // One sway, fitted: the frequency to the fit's precision.
     let softer = s.run(&mut m, 3.0, 0.2, 1.0, 0);
     assert_eq!(
         levels(&softer, AlertKind::DominantFrequency),
@@ -247,19 +261,31 @@ fn rms_and_dominant_frequency_regimes() {
         .iter()
         .find(|a| a.kind == AlertKind::DominantFrequency)
         .unwrap();
-    assert!((f.value - 1.0).abs() < 0.2, "{f:?}");
-    assert!((f.standard_uncertainty - 0.5 / 12f64.sqrt()).abs() < 1e-9);
+    assert!((f.value - 1.0).abs() < 1e-6, "{f:?}");
+    assert!(f.standard_uncertainty < 1e-6, "{f:?}");
     assert!(
         f.statement.contains("value + k·u < threshold"),
         "{}",
         f.statement
     );
-    // 1.75 Hz against 1.8 Hz is within the resolution: possible.
-    let borderline = s.run(&mut m, 3.0, 0.2, 1.75, 0);
+    // A window that is not one sway (its amplitude steps down halfway) is judged from its
+    // spectrum, to half a bin: 256 bins of 100 Hz give u = 0.39/√12 ≈ 0.11 Hz, and 1.85 Hz
+    // against 1.8 Hz is within k·u: possible.
+    s.run(&mut m, 3.0, 0.2, 1.85, 0);
+    let borderline = s.run(&mut m, 1.0, 0.05, 1.85, 0);
     assert_eq!(
         levels(&borderline, AlertKind::DominantFrequency),
         [AlertLevel::Possible]
     );
+    let f = borderline
+        .iter()
+        .find(|a| a.kind == AlertKind::DominantFrequency)
+        .unwrap();
+    assert!(
+        (f.standard_uncertainty - 100.0 / 256.0 / 12f64.sqrt()).abs() < 1e-9,
+        "{f:?}"
+    );
+    assert!(f.statement.contains("summed spectra"), "{}", f.statement);
 }
 
 #[test]
@@ -269,7 +295,7 @@ fn flagged_only_data_is_at_most_possible() {
     // Far above both limits, but every sample is clipped and outside the calibrated amplitude.
     let alerts = s.run(
         &mut m,
-        3.0,
+        SETTLE_S + 3.0,
         5.0,
         2.0,
         flags::CLIPPED | flags::OUTSIDE_AMPLITUDE,
@@ -302,7 +328,7 @@ fn flagged_only_data_is_at_most_possible() {
 fn a_few_flagged_samples_do_not_stop_a_clean_decision() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
     let mut s = Script::new();
-    s.run(&mut m, 1.5, 0.8, 2.0, 0);
+    s.run(&mut m, SETTLE_S + 1.5, 0.8, 2.0, 0);
     let alerts = s.run(&mut m, 0.5, 0.8, 2.0, flags::OUTSIDE_FREQUENCY);
     assert_eq!(
         levels(&alerts, AlertKind::PeakAcceleration),
@@ -353,6 +379,7 @@ fn repeated_alerts_are_rate_limited_but_escalations_pass() {
     c.settings.repeat_interval_s = 60.0;
     let mut m = Monitor::new(c, t0());
     let mut s = Script::new();
+    s.run(&mut m, SETTLE_S, 0.49, 2.0, 0);
     let mut got = Vec::new();
     for _ in 0..6 {
         let b = s.batch(0.49, 2.0, 0);
