@@ -30,7 +30,7 @@
 //! tilt_change_deg = 0.05
 //! ```
 //!
-//! Limits: `pga_mps2`, `rms_mps2` (m/s², demeaned), `tilt_change_deg` (largest of roll and
+//! Limits: `pga_mps2`, `rms_mps2` (m/s², of the motion above the baseline), `tilt_change_deg` (largest of roll and
 //! pitch change from the baseline), `frequency_below_hz` and `frequency_above_hz`. A limit left
 //! out is not checked. Unknown fields are refused, so a misspelt limit is an error rather than a
 //! silently unchecked one.

@@ -226,8 +226,8 @@ fn statement(
         Direction::Below => "below",
     };
     let what = match kind {
-        AlertKind::PeakAcceleration => "peak acceleration (demeaned)",
-        AlertKind::RmsAcceleration => "RMS acceleration (demeaned)",
+        AlertKind::PeakAcceleration => "peak acceleration of the motion",
+        AlertKind::RmsAcceleration => "RMS acceleration of the motion",
         AlertKind::DominantFrequency => "dominant frequency",
         AlertKind::TiltChange => "tilt change from baseline",
         AlertKind::Stale => "silence",
@@ -373,6 +373,23 @@ impl Monitor {
         batch: &CorrectedBatch,
         now: OffsetDateTime,
     ) -> Vec<Alert> {
+        self.take_corrected(building, batch, now, true)
+    }
+
+    /// A batch that was judged before (by this service before a restart): it goes into the
+    /// window and the baseline filter, so that the batches after it are judged on a settled
+    /// baseline and a whole window, but raises nothing.
+    pub fn prime(&mut self, building: &BuildingId, batch: &CorrectedBatch, now: OffsetDateTime) {
+        self.take_corrected(building, batch, now, false);
+    }
+
+    fn take_corrected(
+        &mut self,
+        building: &BuildingId,
+        batch: &CorrectedBatch,
+        now: OffsetDateTime,
+        judge: bool,
+    ) -> Vec<Alert> {
         let settings = self.settings();
         let sensor = batch.header.sensor_id.clone();
         let Some(state) = self.state(building, &sensor, now) else {
@@ -440,6 +457,9 @@ impl Monitor {
         }
         while state.window.len() > MAX_WINDOW_SAMPLES {
             state.window.pop_front();
+        }
+        if !judge {
+            return Vec::new();
         }
 
         let key = (building.clone(), sensor);

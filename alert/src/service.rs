@@ -5,9 +5,11 @@
 //! the building, or restarted) is read back from the history and fed to the monitor in order
 //! before the live batch that showed the gap, so every window is judged on complete data, and an
 //! alert raised from such data says it is late. The last sequence number handled per sensor is
-//! kept in `state_path` (written every [`STATE_PERIOD`] and at shutdown): a restarted service
-//! resumes from it. With `watch_all_buildings`, buildings are found by their gateways'
-//! heartbeats.
+//! kept in `state_path` (written every [`STATE_PERIOD`] and at shutdown), with how many batches
+//! before it the baseline filter needs to settle and the window to fill: a restarted service
+//! reads those batches again without judging them (they were judged before it stopped), then
+//! judges what follows as if it had never stopped. With `watch_all_buildings`, buildings are
+//! found by their gateways' heartbeats.
 //!
 //! Tilt samples are not kept in the histories; they arrive through a plain subscription whose
 //! callback only copies into a bounded channel (`try_send`, counted when full). One task owns the
@@ -25,7 +27,7 @@ use tokio::sync::mpsc;
 use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, TiltSample};
-use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId};
+use triax_protocol::{from_json, to_json, BuildingId, CorrectedBatch, Key, SensorId};
 
 use crate::config::Config;
 use crate::monitor::Monitor;
@@ -63,8 +65,66 @@ enum Inbound {
     Building(BuildingId),
 }
 
-/// The last sequence number handled, per building and sensor.
-type Positions = BTreeMap<BuildingId, BTreeMap<SensorId, u64>>;
+/// Where a sensor's stream was left.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(untagged)]
+enum Position {
+    /// The last sequence number handled, and how many batches before it a restarted service
+    /// reads again to settle the baseline filter and fill the window.
+    WithLeadIn { judged: u64, lead_in_batches: u64 },
+    /// A state file written before lead-ins: the sequence number alone.
+    Judged(u64),
+}
+
+impl Position {
+    fn judged(self) -> u64 {
+        match self {
+            Position::WithLeadIn { judged, .. } | Position::Judged(judged) => judged,
+        }
+    }
+
+    /// Where the history is read from on a restart.
+    fn resume_after(self) -> u64 {
+        match self {
+            Position::WithLeadIn {
+                judged,
+                lead_in_batches,
+            } => judged.saturating_sub(lead_in_batches),
+            Position::Judged(judged) => judged,
+        }
+    }
+}
+
+/// The last position per building and sensor.
+type Positions = BTreeMap<BuildingId, BTreeMap<SensorId, Position>>;
+
+/// Most batches read again on a restart, whatever the stream's batches: bounds the history a
+/// restart reads per sensor.
+const MAX_LEAD_IN_BATCHES: u64 = 100_000;
+
+/// Batches of this stream's size that span the baseline's settling and a whole window.
+fn lead_in_batches(config: &Config, batch: &CorrectedBatch) -> u64 {
+    let s = &config.settings;
+    let batch_s = batch.samples.len() as f64 / batch.header.sample_rate_hz;
+    let span_s = crate::highpass::settle_s(s.highpass_hz) + s.window_s;
+    // An empty batch says nothing of the stream's pace.
+    if batch_s.is_nan() || batch_s <= 0.0 {
+        return MAX_LEAD_IN_BATCHES;
+    }
+    ((span_s / batch_s).ceil() as u64 + 1).min(MAX_LEAD_IN_BATCHES)
+}
+
+fn resume_points(positions: &Positions, building: &BuildingId) -> BTreeMap<SensorId, u64> {
+    positions
+        .get(building)
+        .map(|sensors| {
+            sensors
+                .iter()
+                .map(|(s, p)| (s.clone(), p.resume_after()))
+                .collect()
+        })
+        .unwrap_or_default()
+}
 
 /// Reads the resume state; none if the file does not exist.
 fn load_state(path: &Path) -> Result<Positions, ServiceError> {
@@ -196,8 +256,17 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     if config.watch_all_buildings {
         initial.extend(positions.keys().cloned());
     }
+    // Batches up to these sequence numbers were judged before the restart: they only prime.
+    let mut judged_before: BTreeMap<(BuildingId, SensorId), u64> = positions
+        .iter()
+        .flat_map(|(b, sensors)| {
+            sensors
+                .iter()
+                .map(move |(s, p)| ((b.clone(), s.clone()), p.judged()))
+        })
+        .collect();
     for b in initial {
-        let resume = positions.get(&b).cloned().unwrap_or_default();
+        let resume = resume_points(&positions, &b);
         followers.push(follow(&fleet, b.clone(), resume, tx.clone()));
         followed.insert(b);
     }
@@ -215,17 +284,28 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             msg = rx.recv() => match msg {
                 Some(Inbound::Building(b)) => {
                     if followed.insert(b.clone()) {
-                        let resume = positions.get(&b).cloned().unwrap_or_default();
+                        let resume = resume_points(&positions, &b);
                         followers.push(follow(&fleet, b, resume, tx.clone()));
                     }
                     Vec::new()
                 }
                 Some(Inbound::Corrected(building, d)) => {
                     let h = &d.batch.header;
-                    positions
-                        .entry(building.clone())
-                        .or_default()
-                        .insert(h.sensor_id.clone(), h.sequence);
+                    let key = (building.clone(), h.sensor_id.clone());
+                    if let Some(&judged) = judged_before.get(&key) {
+                        if d.recovered && h.sequence <= judged {
+                            monitor.prime(&building, &d.batch, OffsetDateTime::now_utc());
+                            continue;
+                        }
+                        judged_before.remove(&key);
+                    }
+                    positions.entry(building.clone()).or_default().insert(
+                        h.sensor_id.clone(),
+                        Position::WithLeadIn {
+                            judged: h.sequence,
+                            lead_in_batches: lead_in_batches(&config, &d.batch),
+                        },
+                    );
                     let mut alerts =
                         monitor.on_corrected(&building, &d.batch, OffsetDateTime::now_utc());
                     if d.recovered {
@@ -333,5 +413,57 @@ async fn publish(session: &zenoh::Session, alert: &Alert) {
     );
     if let Err(e) = session.put(&key, to_json(alert)).await {
         tracing::error!(key = %key, cause = %e, "alert not published");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn resume_state_reads_old_and_new_positions() {
+        let old: Positions = serde_json::from_str(r#"{"hq":{"acc-01":12}}"#).unwrap();
+        let hq = BuildingId::new("hq").unwrap();
+        let acc = SensorId::new("acc-01").unwrap();
+        assert_eq!(old[&hq][&acc], Position::Judged(12));
+        assert_eq!(resume_points(&old, &hq)[&acc], 12);
+        let new: Positions =
+            serde_json::from_str(r#"{"hq":{"acc-01":{"judged":12,"lead_in_batches":30}}}"#)
+                .unwrap();
+        assert_eq!(new[&hq][&acc].judged(), 12);
+        // Read again from the start of the stream when the lead-in reaches past it.
+        assert_eq!(resume_points(&new, &hq)[&acc], 0);
+        let back: Positions = serde_json::from_str(&serde_json::to_string(&new).unwrap()).unwrap();
+        assert_eq!(back, new);
+    }
+
+    #[test]
+    fn the_lead_in_spans_settling_and_a_window() {
+        let config =
+            Config::from_toml("window_s = 10.0\nhighpass_hz = 0.1\n[buildings.hq]\n").unwrap();
+        let batch = CorrectedBatch {
+            header: triax_protocol::BatchHeader {
+                sensor_id: SensorId::new("acc-01").unwrap(),
+                sequence: 1,
+                timestamp_ns: 0,
+                sample_rate_hz: 100.0,
+            },
+            batch_flags: 0,
+            info: triax_protocol::CorrectionInfo {
+                calibration_version: 1,
+                mode: triax_protocol::Mode::Dynamic,
+                coverage_factor: 2.0,
+            },
+            samples: vec![
+                triax_protocol::CorrectedSample {
+                    accel_mps2: [0.0; 3],
+                    uncertainty_mps2: [0.01; 3],
+                    flags: 0,
+                };
+                10
+            ],
+        };
+        // 15.55 s of settling and 10 s of window in 0.1 s batches, and one more.
+        assert_eq!(lead_in_batches(&config, &batch), 257);
     }
 }
