@@ -26,6 +26,7 @@ use crate::config::{Config, Limits, Settings};
 use crate::decision::{decide, rule_text, severity, Direction, Estimate, Limit};
 use crate::highpass::HighPass;
 use crate::stats::{window_stats, Method, Point, Propagation, Request, WindowStats, AXIS_NAMES};
+use bounds::{SlidingMax, WindowBounds};
 
 /// Most samples one sensor's window holds; a longer window is shortened to its newest samples.
 /// About 7 MB a sensor, four minutes at 1 kHz.
@@ -71,8 +72,6 @@ struct TimedSample {
     vibration: [f32; 3],
     /// Whether the high pass had settled when this sample went through it.
     settled: bool,
-    /// The coverage factor of the sample's batch.
-    k: f32,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -100,6 +99,11 @@ struct SensorState {
     highpass: Option<HighPass>,
     /// Calibration version of the samples in the window.
     calibration_version: Option<u64>,
+    /// Running bounds of the window's usable samples: a quiet window is seen to be quiet
+    /// without looking at it again.
+    bounds: WindowBounds,
+    /// Largest coverage factor of the batches in the window, by each batch's last sample.
+    k_max: SlidingMax,
     /// Wall-clock arrival of the last message; None before the first.
     last_data: Option<OffsetDateTime>,
     /// When watching began: the reference for a sensor that never sent anything.
@@ -117,11 +121,24 @@ impl SensorState {
             sample_rate_hz: 0.0,
             highpass: None,
             calibration_version: None,
+            bounds: WindowBounds::default(),
+            k_max: SlidingMax::default(),
             last_data: None,
             watched_since: now,
             tilt: TiltState::default(),
             sent: HashMap::new(),
             span: tracing::info_span!("sensor", building = %key.0, sensor = %key.1),
+        }
+    }
+
+    /// Drops the window's oldest sample, and it from the running bounds.
+    fn forget_oldest(&mut self) {
+        if let Some(old) = self.window.pop_front() {
+            if usable(&old.sample) {
+                self.bounds
+                    .pop(old.t_ns, old.vibration, old.sample.uncertainty_mps2);
+            }
+            self.k_max.evict_through(old.t_ns);
         }
     }
 
@@ -424,6 +441,8 @@ impl Monitor {
                 );
             }
             state.window.clear();
+            state.bounds.clear();
+            state.k_max = SlidingMax::default();
             state.highpass = None;
             state.sample_rate_hz = h.sample_rate_hz;
         }
@@ -432,31 +451,40 @@ impl Monitor {
         for (i, s) in batch.samples.iter().enumerate() {
             let mut sample = *s;
             sample.flags |= batch_level;
+            let t_ns = h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64);
             let vibration = if usable(&sample) {
                 let hp = state
                     .highpass
                     .get_or_insert_with(|| HighPass::new(settings.highpass_hz, h.sample_rate_hz));
-                hp.apply(sample.accel_mps2.map(f64::from)).map(|v| v as f32)
+                let v = hp.apply(sample.accel_mps2.map(f64::from)).map(|v| v as f32);
+                state
+                    .bounds
+                    .push(t_ns, sample.accel_mps2, v, sample.uncertainty_mps2);
+                v
             } else {
                 [f32::NAN; 3]
             };
+            if i + 1 == batch.samples.len() {
+                state
+                    .k_max
+                    .push(t_ns, f64::from(batch.info.coverage_factor));
+            }
             state.window.push_back(TimedSample {
-                t_ns: h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64),
+                t_ns,
                 sample,
                 vibration,
                 settled: state.highpass.as_ref().is_some_and(HighPass::settled),
-                k: batch.info.coverage_factor,
             });
         }
         let window_ns = (settings.window_s * 1e9) as i64;
         if let Some(newest) = state.window.back().map(|s| s.t_ns) {
             let horizon = newest.saturating_sub(window_ns);
             while state.window.front().is_some_and(|s| s.t_ns <= horizon) {
-                state.window.pop_front();
+                state.forget_oldest();
             }
         }
         while state.window.len() > MAX_WINDOW_SAMPLES {
-            state.window.pop_front();
+            state.forget_oldest();
         }
         if !judge {
             return Vec::new();
@@ -727,6 +755,22 @@ fn evaluate_window(
     if span_ns < settings.window_s * 1e9 - 0.5 * period_ns || !first.settled {
         return Vec::new();
     }
+    // The stream's own k where it asks for more than the configured one (few degrees of
+    // freedom): the decision is at least as safe as each sample's interval.
+    let k = state.k_max.max().map_or(settings.coverage_factor, |k| {
+        k.max(settings.coverage_factor)
+    });
+    let limits = &state.limits;
+    let wanted = limits
+        .pga()
+        .is_some_and(|l| state.bounds.peak_bound(k) >= l.threshold)
+        || limits
+            .rms()
+            .is_some_and(|l| state.bounds.rms_bound(k) >= l.threshold)
+        || limits.frequency().next().is_some();
+    if !wanted {
+        return Vec::new();
+    }
     let grid_len = (span_ns / period_ns).round() as u32;
     let point = |t: &TimedSample| Point {
         index: (((t.t_ns - first.t_ns) as f64 / period_ns).round() as u32).min(grid_len - 1),
@@ -748,13 +792,6 @@ fn evaluate_window(
         .collect();
     let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.sample.flags);
     let rate = state.sample_rate_hz;
-    // The stream's own k where it asks for more than the configured one (few degrees of
-    // freedom): the decision is at least as safe as each sample's interval.
-    let k = state
-        .window
-        .iter()
-        .map(|t| f64::from(t.k))
-        .fold(settings.coverage_factor, f64::max);
     let request = Request {
         sample_rate_hz: rate,
         grid_len,
@@ -927,6 +964,7 @@ fn method_detail(what: &str, n_samples: usize, axis: usize, method: Method) -> S
     }
 }
 
+mod bounds;
 #[cfg(test)]
 mod monte_carlo;
 #[cfg(test)]

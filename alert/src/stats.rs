@@ -147,10 +147,9 @@ struct AxisData {
     peak_at: usize,
     mean_square: f64,
     mean_abs: f64,
-    /// Half the range and the standard deviation of the acceleration itself: what the sinusoid
-    /// fit, which does not use the high pass, can see.
+    /// Half the range of the acceleration itself: what the sinusoid fit, which does not use the
+    /// high pass, can see.
     accel_half_range: f64,
-    accel_sd: f64,
     /// Spectral peak of this axis: (frequency, power).
     spectral_peak: (f64, f64),
     fit: Option<Option<SineFit>>,
@@ -182,11 +181,8 @@ impl AxisData {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), a| {
                 (l.min(*a), h.max(*a))
             });
-        let accel_mean = accel.iter().sum::<f64>() / n;
-        let accel_var = accel.iter().map(|a| (a - accel_mean).powi(2)).sum::<f64>() / n;
         AxisData {
             accel_half_range: 0.5 * (hi - lo),
-            accel_sd: accel_var.sqrt(),
             mean_square: vibration.iter().map(|v| v * v).sum::<f64>() / n,
             mean_abs: vibration.iter().map(|v| v.abs()).sum::<f64>() / n,
             index,
@@ -227,15 +223,19 @@ impl AxisData {
         (1.0 - p.noise_share.clamp(0.0, 1.0)).sqrt() * self.mean_u
     }
 
-    /// Cheap upper bound on anything the peak estimators can return: the sample bound is at
-    /// most D·1/cos(π/4) + kσ + common part, the fit at most the half range over cos(π/4)
-    /// (a crest between samples at a quarter of the rate) plus a few u.
+    /// Cheap upper bound on the upper end `value + k·u` of anything the peak estimators can
+    /// return. The sample bound's upper end is at most D + kσ + crest + k·ū, with the crest at
+    /// most D (a quarter of the parabola's curvature, itself at most 4D); the fit's amplitude
+    /// is at most the half range over cos(π/4) (a crest half a sample off at a quarter of the
+    /// rate, the highest frequency it fits), plus a few u of noise.
     fn peak_bound(&self, k: f64) -> f64 {
-        1.5 * self.peak.max(self.accel_half_range) + (2.0 * k + 5.0) * self.mean_u
+        2.0 * self.peak.max(self.accel_half_range) + (2.0 * k + 5.0) * self.mean_u
     }
 
+    /// The same for the RMS: the samples' RMS with noise is at least the estimate, the fitted
+    /// sinusoid's RMS at most its amplitude.
     fn rms_bound(&self, k: f64) -> f64 {
-        1.5 * self.mean_square.sqrt().max(self.accel_sd) + (2.0 * k + 5.0) * self.mean_u
+        2.0 * self.mean_square.sqrt().max(self.accel_half_range) + (2.0 * k + 5.0) * self.mean_u
     }
 
     /// Peak interval (lower, upper) from the samples; see the module documentation.
@@ -255,10 +255,13 @@ impl AxisData {
 
     /// How far the motion's crest can rise above the largest sample: the larger of the rise of
     /// the parabola through that sample and its neighbours (the local shape) and of a sine at
-    /// the axis's spectral peak whose crest falls half a sample off the grid,
-    /// `D·(1/cos(π·f/f_s) − 1)` (the parabola alone reads 12 % low at a quarter of the rate).
+    /// the axis's spectral peak (at most a quarter of the rate) whose crest falls half a sample
+    /// off the grid, `D·(1/cos(π·f/f_s) − 1)` (the parabola alone reads 12 % low at a quarter
+    /// of the rate).
     fn crest_between_samples(&self, rate_hz: f64) -> f64 {
-        let f = self.spectral_peak.0.min(0.45 * rate_hz);
+        // Above a quarter of the rate a crest between samples is not bounded by three samples
+        // (PROTOCOL.md §3.6 says so); the node's anti-alias filter keeps content below it.
+        let f = self.spectral_peak.0.min(0.25 * rate_hz);
         let sine = self.peak * (1.0 / (std::f64::consts::PI * f / rate_hz).cos() - 1.0);
         let i = self.peak_at;
         let (Some(&before), Some(&after)) = (
