@@ -6,6 +6,10 @@
 //! a real `zenohd` with certificates the test makes (`rcgen`): the lab's certificate pushes; the
 //! same signed push from another certificate of the same CA or from the building LAN reaches no
 //! gateway; the LAN's raw and corrected streams flow.
+//!
+//! `every_identity_does_what_it_may_and_nothing_else`: the shipped secured site router (every
+//! party over mTLS, identified by its certificate): lab, gateway, node, consumer and alerting
+//! each do their part; each is refused what belongs to another.
 
 mod util;
 
@@ -43,7 +47,9 @@ fn every_example_config_parses() {
             "gateway-client.json5",
             "lab-client.json5",
             "lab-router.json5",
-            "site-router.json5"
+            "site-router-secured.json5",
+            "site-router.json5",
+            "tls-client.json5"
         ]
     );
     for name in &names {
@@ -58,7 +64,11 @@ fn every_example_config_parses() {
 
 #[test]
 fn routers_use_mtls_and_access_control() {
-    for name in ["site-router.json5", "lab-router.json5"] {
+    for name in [
+        "site-router.json5",
+        "site-router-secured.json5",
+        "lab-router.json5",
+    ] {
         let c = load(name);
         assert_eq!(c.get_json("mode").unwrap(), "\"router\"", "{name}");
         assert_eq!(
@@ -81,7 +91,11 @@ fn routers_use_mtls_and_access_control() {
         .get_json("access_control/subjects")
         .unwrap();
     assert!(site.contains("triax-lab"), "{site}");
-    for name in ["gateway-client.json5", "lab-client.json5"] {
+    for name in [
+        "gateway-client.json5",
+        "lab-client.json5",
+        "tls-client.json5",
+    ] {
         assert_eq!(load(name).get_json("mode").unwrap(), "\"client\"", "{name}");
     }
 }
@@ -115,6 +129,26 @@ fn make_certificates(dir: &Path, clients: &[&str]) {
     }
 }
 
+/// `deploy/zenoh/site-router-secured.json5` as shipped, with only its certificate paths and
+/// listener moved to the test's directory and a loopback port.
+fn secured_router_config(dir: &Path, tls_port: u16) -> PathBuf {
+    let shipped = std::fs::read_to_string(deploy_dir().join("site-router-secured.json5")).unwrap();
+    let listen = r#"endpoints: ["tls/0.0.0.0:7448"],"#;
+    assert!(
+        shipped.contains(listen),
+        "the shipped listener moved: update this test"
+    );
+    let text = shipped
+        .replace(
+            listen,
+            &format!(r#"endpoints: ["tls/127.0.0.1:{tls_port}"],"#),
+        )
+        .replace("/etc/triax/tls/", &format!("{}/", dir.display()));
+    let path = dir.join("site-router-secured.json5");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
 /// `deploy/zenoh/site-router.json5` as shipped, with only its certificate paths and listeners
 /// moved to the test's directory and loopback ports: the access control under test is the file's.
 fn site_router_config(dir: &Path, lan_port: u16, tls_port: u16) -> PathBuf {
@@ -137,32 +171,27 @@ fn site_router_config(dir: &Path, lan_port: u16, tls_port: u16) -> PathBuf {
 
 /// A client session over mTLS presenting `name`'s certificate.
 async fn tls_client(dir: &Path, tls_port: u16, name: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    let path = |f: String| format!("\"{}\"", dir.join(f).display());
-    for (k, v) in [
-        ("mode", "\"client\"".to_owned()),
-        (
-            "connect/endpoints",
-            format!("[\"tls/127.0.0.1:{tls_port}\"]"),
-        ),
-        ("scouting/multicast/enabled", "false".to_owned()),
-        (
-            "transport/link/tls/root_ca_certificate",
-            path("ca.pem".into()),
-        ),
-        ("transport/link/tls/enable_mtls", "true".to_owned()),
-        (
-            "transport/link/tls/connect_certificate",
-            path(format!("{name}.pem")),
-        ),
-        (
-            "transport/link/tls/connect_private_key",
-            path(format!("{name}.key")),
-        ),
-    ] {
-        c.insert_json5(k, &v).expect("valid zenoh setting");
-    }
-    zenoh::open(c).await.expect("TLS client session opens")
+    zenoh::open(tls_client_config(dir, tls_port, name))
+        .await
+        .expect("TLS client session opens")
+}
+
+/// `deploy/zenoh/tls-client.json5` as shipped, presenting `name`'s certificate from `dir`.
+fn tls_client_config(dir: &Path, tls_port: u16, name: &str) -> zenoh::Config {
+    let shipped = std::fs::read_to_string(deploy_dir().join("tls-client.json5")).unwrap();
+    let text = shipped
+        .replace(
+            "tls/site-router.example.org:7448",
+            &format!("tls/127.0.0.1:{tls_port}"),
+        )
+        .replace(
+            "/etc/triax/tls/client.",
+            &format!("{}/{name}.", dir.display()),
+        )
+        .replace("/etc/triax/tls/", &format!("{}/", dir.display()));
+    let path = dir.join(format!("{name}-client.json5"));
+    std::fs::write(&path, text).unwrap();
+    zenoh::Config::from_file(&path).expect("the shipped TLS client configuration loads")
 }
 
 /// A plain TCP client on the building LAN.
@@ -297,6 +326,324 @@ async fn only_the_labs_certificate_can_push_through_the_site_router() {
     assert_eq!(corrected.info.calibration_version, 2);
 
     for s in [lab, intruder, lan] {
+        s.close().await.unwrap();
+    }
+    let _ = stop.send(());
+    let _ = tokio::time::timeout(util::TIMEOUT, task).await;
+    let _ = router.kill();
+    let _ = router.wait();
+}
+
+/// Waits `window` for anything on `sub`; returns what came.
+async fn anything(
+    sub: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    window: Duration,
+) -> Vec<String> {
+    let mut got = Vec::new();
+    let until = tokio::time::Instant::now() + window;
+    while let Ok(Ok(s)) = tokio::time::timeout_at(until, sub.recv_async()).await {
+        got.push(s.key_expr().to_string());
+    }
+    got
+}
+
+/// Replies to a query on `selector` within `window`.
+async fn replies(session: &zenoh::Session, selector: &str, window: Duration) -> usize {
+    let Ok(r) = session
+        .get(selector)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(window)
+        .await
+    else {
+        return 0;
+    };
+    let mut n = 0;
+    while r.recv_async().await.is_ok() {
+        n += 1;
+    }
+    n
+}
+
+/// The shipped secured site router (`site-router-secured.json5`), for real, with every party
+/// over mTLS and known by its certificate's common name. With the right identity everything
+/// works: a node's raw data is corrected and reaches consumers, live and from the history; the
+/// lab pushes and serves the registry, which the gateway asks; alerts reach the lab. And each
+/// identity is refused what is not its part: only the lab pushes or serves the registry, nobody
+/// but the gateway puts on calibration keys or publishes corrected data, a node publishes only
+/// its building's raw keys, a consumer only reads.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_identity_does_what_it_may_and_nothing_else() {
+    let dir = tempfile::tempdir().unwrap();
+    let (lab_cn, gw_cn, node_cn, consumer_cn, alerting_cn) = (
+        "triax-lab",
+        "triax-gateway-north",
+        "triax-node-north",
+        "triax-consumer-north",
+        "triax-alerting-north",
+    );
+    make_certificates(
+        dir.path(),
+        &[lab_cn, gw_cn, node_cn, consumer_cn, alerting_cn, "intruder"],
+    );
+    let tls_port = util::free_port();
+    let config = secured_router_config(dir.path(), tls_port);
+    let mut router = std::process::Command::new("zenohd")
+        .arg("-c")
+        .arg(&config)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("zenohd on PATH (scripts/test installs it)");
+    util::wait_for_listener(tls_port).await;
+
+    // The gateway, through the shipped client file with its own certificate.
+    let lab_key = LabSigningKey::from_bytes(&[12; 32]);
+    let mut gw_config = Config::for_tests("north", &dir.path().join("store"), vec![]);
+    tls_client_config(dir.path(), tls_port, gw_cn);
+    gw_config.zenoh = triax_net::ZenohSettings {
+        config_file: Some(dir.path().join(format!("{gw_cn}-client.json5"))),
+        mode: None,
+        listen: vec![],
+        connect: vec![],
+        multicast_scouting: None,
+    };
+    gw_config.calibration.trusted_lab_keys = vec![lab_key.verifying_key()];
+    let gateway = Gateway::start(gw_config).await.expect("gateway starts");
+    let table = gateway.sensors().clone();
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(gateway.run_until(async move {
+        let _ = stopped.await;
+    }));
+    let version = || {
+        table
+            .versions()
+            .into_iter()
+            .find_map(|(id, v)| (id.as_str() == "n-1").then_some(v))
+    };
+
+    let north = BuildingId::new("north").unwrap();
+    let sensor: triax_protocol::SensorId = "n-1".parse().unwrap();
+    let lab = tls_client(dir.path(), tls_port, lab_cn).await;
+    let node = tls_client(dir.path(), tls_port, node_cn).await;
+    let consumer = tls_client(dir.path(), tls_port, consumer_cn).await;
+    let alerting = tls_client(dir.path(), tls_port, alerting_cn).await;
+    let intruder = tls_client(dir.path(), tls_port, "intruder").await;
+    let quiet = Duration::from_millis(1500);
+    let raw_key = Key::Raw(north.clone(), sensor.clone()).to_string();
+    let corrected_key = Key::Corrected(north.clone(), sensor.clone()).to_string();
+
+    // The lab pushes; the gateway acknowledges and applies it.
+    let acks = lab
+        .declare_subscriber("triax/north/calibration/ack/*")
+        .await
+        .unwrap();
+    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
+    let v1 = Push::sign(&sample::record("n-1", 1), &lab_key);
+    loop {
+        let report = push_one(&lab, &north, &v1, Duration::from_secs(2))
+            .await
+            .unwrap();
+        if !report.acks.is_empty() {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the lab's push never reached the gateway: {:?}",
+            report.errors
+        );
+    }
+    assert_eq!(version(), Some(1));
+    assert!(
+        !anything(&acks, quiet).await.is_empty(),
+        "the gateway's acknowledgement copy reaches the lab"
+    );
+
+    // A node's raw data comes back corrected to a consumer and to the alerting service.
+    let live = consumer.declare_subscriber(&corrected_key).await.unwrap();
+    let alerting_live = alerting.declare_subscriber(&corrected_key).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
+    let mut seq = 0;
+    let corrected = loop {
+        node.put(&raw_key, util::raw("n-1", seq, vec![[0.0, 0.0, 0.98]; 10]))
+            .await
+            .unwrap();
+        seq += 1;
+        if let Ok(Ok(s)) = tokio::time::timeout(Duration::from_millis(200), live.recv_async()).await
+        {
+            break triax_protocol::CorrectedBatch::decode(&s.payload().to_bytes()).unwrap();
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no corrected batch reached the consumer"
+        );
+    };
+    assert_eq!(corrected.info.calibration_version, 1);
+    assert!(!anything(&alerting_live, quiet).await.is_empty());
+    drop(live);
+    // ...and from the history.
+    let mut kept = 0;
+    triax_client::history::fetch(
+        &consumer,
+        &triax_client::history::HistoryRequest::sensor(&north, &sensor),
+        util::TIMEOUT,
+        &mut |_| kept += 1,
+    )
+    .await
+    .expect("the consumer reads the history");
+    assert!(kept >= 1, "no batch read back from the history");
+
+    // Alerts from the alerting service reach the lab; a consumer's do not.
+    let alerts = lab.declare_subscriber("triax/north/alert/*").await.unwrap();
+    let alert_key = Key::Alert(north.clone(), sensor.clone()).to_string();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    consumer.put(&alert_key, "forged").await.unwrap();
+    alerting.put(&alert_key, "real").await.unwrap();
+    let seen: Vec<String> = {
+        let mut v = Vec::new();
+        let until = tokio::time::Instant::now() + quiet;
+        while let Ok(Ok(s)) = tokio::time::timeout_at(until, alerts.recv_async()).await {
+            v.push(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
+        }
+        v
+    };
+    assert_eq!(
+        seen,
+        ["real"],
+        "only the alerting identity publishes alerts"
+    );
+
+    // The registry: the lab serves it and the gateway's identity gets the answer; nobody else
+    // can ask it, and nobody but the lab can serve it.
+    let registry_key = "triax/north/calibration/registry";
+    let served = lab
+        .declare_queryable(registry_key)
+        .callback(|q| {
+            let key = q.key_expr().clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, "from the lab").await;
+            });
+        })
+        .await
+        .unwrap();
+    let gateway_identity = tls_client(dir.path(), tls_port, gw_cn).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(replies(&gateway_identity, registry_key, quiet).await, 1);
+    for (who, s) in [
+        ("node", &node),
+        ("consumer", &consumer),
+        ("alerting", &alerting),
+        ("intruder", &intruder),
+    ] {
+        assert_eq!(
+            replies(s, registry_key, quiet).await,
+            0,
+            "{who} asked the registry"
+        );
+    }
+    drop(served);
+    let fake = consumer
+        .declare_queryable(registry_key)
+        .callback(|q| {
+            let key = q.key_expr().clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, "forged").await;
+            });
+        })
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        replies(&gateway_identity, registry_key, quiet).await,
+        0,
+        "a consumer served the registry"
+    );
+    drop(fake);
+
+    // Pushes: a valid signature from any other identity reaches no gateway.
+    let v2 = Push::sign(&sample::record("n-1", 2), &lab_key);
+    for (who, s) in [
+        ("node", &node),
+        ("consumer", &consumer),
+        ("alerting", &alerting),
+        ("intruder", &intruder),
+    ] {
+        let report = push_one(s, &north, &v2, Duration::from_millis(800))
+            .await
+            .unwrap();
+        assert!(report.acks.is_empty(), "{who} pushed: {:?}", report.acks);
+    }
+    assert_eq!(
+        version(),
+        Some(1),
+        "a push from another identity was applied"
+    );
+
+    // Nobody but the gateway puts on calibration keys or publishes corrected data, and a node
+    // publishes only its own building's raw keys; a consumer cannot even listen to raw data.
+    let raw_listener = consumer
+        .declare_subscriber("triax/north/raw/*")
+        .await
+        .unwrap();
+    let forged_corrected = util::raw("n-1", 999, vec![[9.0; 3]; 10]);
+    let ack_key = "triax/north/calibration/ack/n-1";
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for s in [&node, &consumer, &intruder] {
+        s.put(ack_key, "forged ack").await.unwrap();
+        s.put(&corrected_key, forged_corrected.clone())
+            .await
+            .unwrap();
+    }
+    // A consumer's raw data is not taken: no corrected batch of a sensor only it sent to.
+    let c9: triax_protocol::SensorId = "c-9".parse().unwrap();
+    let c9_corrected = consumer
+        .declare_subscriber(Key::Corrected(north.clone(), c9.clone()).to_string())
+        .await
+        .unwrap();
+    for s in [&consumer, &intruder] {
+        for seq in 0..5 {
+            s.put(
+                Key::Raw(north.clone(), c9.clone()).to_string(),
+                util::raw("c-9", seq, vec![[0.0, 0.0, 0.98]; 10]),
+            )
+            .await
+            .unwrap();
+        }
+    }
+    node.put(&raw_key, util::raw("n-1", seq, vec![[0.0, 0.0, 0.98]; 10]))
+        .await
+        .unwrap();
+    assert!(
+        anything(&acks, quiet).await.is_empty(),
+        "a forged ack reached the lab"
+    );
+    // The alerting service (which puts no corrected data itself, so hears no local copy) got
+    // the node's real batch and none of the forged ones.
+    let mut sequences = Vec::new();
+    while let Ok(Some(s)) = alerting_live.try_recv() {
+        let b = triax_protocol::CorrectedBatch::decode(&s.payload().to_bytes())
+            .expect("only the gateway's corrected batches");
+        sequences.push(b.header.sequence);
+    }
+    assert_eq!(sequences, [seq], "forged corrected batches got through");
+    assert!(
+        anything(&c9_corrected, Duration::from_millis(10))
+            .await
+            .is_empty(),
+        "raw data from a consumer or an intruder was corrected"
+    );
+    // A session hears its own puts locally; the node's raw data must not reach it.
+    let heard: Vec<String> = anything(&raw_listener, Duration::from_millis(10))
+        .await
+        .into_iter()
+        .filter(|k| !k.ends_with("/c-9"))
+        .collect();
+    assert!(
+        heard.is_empty(),
+        "a consumer heard a node's raw data: {heard:?}"
+    );
+
+    for s in [lab, node, consumer, alerting, intruder, gateway_identity] {
         s.close().await.unwrap();
     }
     let _ = stop.send(());
