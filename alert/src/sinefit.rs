@@ -25,7 +25,9 @@
 //! of `√(3.25/n)` (from the autocorrelation of the difference filter). A ratio above
 //! `1 + 3·√(3.25/n)` means missed motion, and the window is judged from its samples instead.
 //! What passes is counted anyway: `max(s² − σ_d²·(1 + 2·√(3.25/n)), 0)` is added to the
-//! variance of the peak as unmodelled motion.
+//! variance of the peak as unmodelled motion. White motion would pass that test (its residual is
+//! white too), so the residual must also be no larger than the sensor's noise can be: `s²` at
+//! most `(1 + 4·√(2/n))` times the square of the stated u, which bounds the noise.
 
 use nalgebra::{Matrix4, Vector4};
 
@@ -182,9 +184,16 @@ impl Axis<'_> {
 }
 
 /// Fits one sinusoid near `start_hz` (the spectrum's peak; `bin_hz` its resolution) to an axis
-/// sampled at `rate_hz`. None when the window is too short for the frequency, the fit is
-/// singular, or it is not adequate (see the module documentation).
-pub fn fit(axis: &Axis<'_>, rate_hz: f64, start_hz: f64, bin_hz: f64) -> Option<SineFit> {
+/// sampled at `rate_hz` whose noise is at most `noise_bound` (the stated u). None when the
+/// window is too short for the frequency, the fit is singular, or it is not adequate (see the
+/// module documentation).
+pub fn fit(
+    axis: &Axis<'_>,
+    rate_hz: f64,
+    start_hz: f64,
+    bin_hz: f64,
+    noise_bound: f64,
+) -> Option<SineFit> {
     let n = axis.index.len();
     if n < 32 || axis.value.len() != n {
         return None;
@@ -250,7 +259,8 @@ pub fn fit(axis: &Axis<'_>, rate_hz: f64, start_hz: f64, bin_hz: f64) -> Option<
     // value), which is not white where the signal changes by less than a rounding step.
     let largest = axis.value.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let exact = s2.sqrt() <= 1e-6 * largest;
-    if !exact && s2 > short * (1.0 + 3.0 * sd_ratio) {
+    let louder_than_noise = s2 > noise_bound * noise_bound * (1.0 + 4.0 * (2.0 / n as f64).sqrt());
+    if !exact && (s2 > short * (1.0 + 3.0 * sd_ratio) || louder_than_noise) {
         return None;
     }
     let unmodelled_var = (s2 - short * (1.0 + 2.0 * sd_ratio)).max(0.0);
@@ -294,7 +304,7 @@ mod tests {
             value: &y,
             grid_len: 400,
         };
-        let f = fit(&axis, 100.0, 1.25, 100.0 / 512.0).expect("an exact sine fits");
+        let f = fit(&axis, 100.0, 1.25, 100.0 / 512.0, 0.01).expect("an exact sine fits");
         assert!((f.frequency_hz - 1.3).abs() < 1e-9, "{f:?}");
         assert!((f.amplitude - 0.8).abs() < 1e-9, "{f:?}");
         // 5.2 cycles: the RMS over the window is not quite amp/√2; computed directly.
@@ -317,7 +327,7 @@ mod tests {
             value: &value,
             grid_len: 400,
         };
-        let f = fit(&axis, 100.0, 2.4, 100.0 / 512.0).expect("fits");
+        let f = fit(&axis, 100.0, 2.4, 100.0 / 512.0, 0.01).expect("fits");
         assert!((f.frequency_hz - 2.5).abs() < 1e-9 && (f.amplitude - 0.5).abs() < 1e-9);
     }
 
@@ -338,7 +348,7 @@ mod tests {
             value: &y,
             grid_len: 400,
         };
-        assert!(fit(&axis, 100.0, 1.27, 100.0 / 512.0).is_none());
+        assert!(fit(&axis, 100.0, 1.27, 100.0 / 512.0, 0.01).is_none());
         // Below a cycle and a half the trend and the sinusoid cannot be told apart.
         let slow = sine(400, 100.0, 0.3, 1.0, 0.0, 0.0);
         let axis = Axis {
@@ -346,7 +356,17 @@ mod tests {
             value: &slow,
             grid_len: 400,
         };
-        assert!(fit(&axis, 100.0, 0.29, 100.0 / 512.0).is_none());
+        assert!(fit(&axis, 100.0, 0.29, 100.0 / 512.0, 0.01).is_none());
+        // White motion leaves a white residual, but far above the sensor's stated noise: it is
+        // not a sway with a small amplitude.
+        let motion = Normal::new(0.0, 0.3).expect("valid");
+        let white: Vec<f64> = (0..400).map(|_| motion.sample(&mut rng)).collect();
+        let axis = Axis {
+            index: &index,
+            value: &white,
+            grid_len: 400,
+        };
+        assert!(fit(&axis, 100.0, 7.0, 100.0 / 512.0, 0.02).is_none());
     }
 
     /// Sines in white noise: the stated intervals cover amplitude and frequency about 95 % of
@@ -372,7 +392,7 @@ mod tests {
                 };
                 trials += 1;
                 // Start from a point off the line, as the spectrum's bin would be.
-                let Some(f) = fit(&axis, 100.0, f_true + 0.07, 100.0 / 512.0) else {
+                let Some(f) = fit(&axis, 100.0, f_true + 0.07, 100.0 / 512.0, sigma) else {
                     refused += 1;
                     continue;
                 };

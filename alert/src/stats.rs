@@ -209,7 +209,7 @@ impl AxisData {
                         value: &self.accel,
                         grid_len: request.grid_len,
                     };
-                    sinefit::fit(&axis, rate, start_hz, bin_hz)
+                    sinefit::fit(&axis, rate, start_hz, bin_hz, self.mean_u)
                 })
                 .flatten()
                 .filter(|f| f.frequency_hz <= SINE_MAX_RATE_SHARE * rate);
