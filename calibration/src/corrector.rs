@@ -38,8 +38,11 @@
 //! Everything that can be wrong with a record is found when it is loaded
 //! ([`Corrector::from_record`]): wrong shape or non-finite values (by
 //! [`CalibrationRecord::validate`]), a sensitivity matrix with condition number above
-//! [`MAX_CONDITION_NUMBER`], a covariance that is not positive semi-definite. Correction itself
-//! cannot fail; non-finite outputs give non-finite accelerations, which the caller flags.
+//! [`MAX_CONDITION_NUMBER`], a covariance that is not positive semi-definite, and values so
+//! large or so uniformly zero that a corrected sample within the domain would carry a standard
+//! uncertainty that is not finite or below [`MIN_UNCERTAINTY_MPS2`] (the sample path keeps its
+//! quadratic forms in f32, so 10³⁹ is already infinite there). Correction itself cannot fail;
+//! non-finite outputs give non-finite accelerations, which the caller flags.
 
 use std::sync::Arc;
 
@@ -57,6 +60,14 @@ use crate::student::{CoverageTable, DEFAULT_COVERAGE_PROBABILITY};
 /// matrices of the reference paper). A matrix at 10³ would amplify output noise and errors a
 /// thousandfold along its weak direction: such a record is a fitting or typing mistake.
 pub const MAX_CONDITION_NUMBER: f64 = 1e3;
+
+/// Smallest standard uncertainty a corrected sample may carry: no calibration knows an
+/// acceleration to a nanometre per second squared, and a stated 0 would claim exactness.
+pub const MIN_UNCERTAINTY_MPS2: f64 = 1e-9;
+
+/// Largest standard uncertainty a corrected sample within the domain may carry: 10⁸ g says
+/// nothing, and the corrected stream carries u as an f32, which ends at 3.4·10³⁸.
+pub const MAX_UNCERTAINTY_MPS2: f64 = 1e9;
 
 /// Tolerance, relative to the largest eigenvalue, for a covariance eigenvalue below zero
 /// (round-off of a JSON round trip).
@@ -86,6 +97,23 @@ pub enum LoadError {
         version: u64,
         set: &'static str,
         min_eigenvalue: f64,
+    },
+    #[error(
+        "sensor {sensor_id}, version {version}: {set} gives a standard uncertainty of {u_mps2:e} \
+         m/s² on axis {axis} at acceleration {at_mps2:?} m/s²{temperature}, within its domain: \
+         a corrected sample must carry a u from {MIN_UNCERTAINTY_MPS2:e} to \
+         {MAX_UNCERTAINTY_MPS2:e} m/s² (covariance, uncertainty_mps2, sensor.output_noise or the \
+         temperature model too large, or all zero)"
+    )]
+    UncertaintyOutOfRange {
+        sensor_id: SensorId,
+        version: u64,
+        set: &'static str,
+        axis: usize,
+        at_mps2: [f64; 3],
+        /// ", at 35 °C" when found through the temperature model, else empty.
+        temperature: String,
+        u_mps2: f64,
     },
 }
 
@@ -654,6 +682,63 @@ pub enum Validity {
     Expired,
 }
 
+/// Refuses a set whose corrected samples could carry a standard uncertainty that is not finite
+/// or below [`MIN_UNCERTAINTY_MPS2`]: probes the sample path itself at rest and at the ends of
+/// the domain's amplitude along each axis and diagonal (the variance is a positive
+/// semi-definite quadratic form in the acceleration plus constants, so its extremes over the
+/// domain are reached at its edge, and its floor is the constant part), and, with a temperature
+/// model, at the farthest temperatures the set is applied at.
+fn check_uncertainty(
+    record: &CalibrationRecord,
+    set: &SetCorrector,
+    name: &'static str,
+) -> Result<(), LoadError> {
+    let cal = record.set(set.kind());
+    let amplitude = cal.domain.amplitude_max_mps2;
+    let mut probes = vec![[0.0; 3]];
+    for sign in [-1.0, 1.0] {
+        for axis in 0..3 {
+            let mut a = [0.0; 3];
+            a[axis] = sign * amplitude;
+            probes.push(a);
+        }
+        probes.push([sign * amplitude / 3f64.sqrt(); 3]);
+    }
+    let mut variants = vec![(set.clone(), String::new())];
+    if let Some(t) = &record.temperature {
+        let span = t.range_c[1] - t.range_c[0];
+        for c in [t.range_c[0] - span, t.reference_c, t.range_c[1] + span] {
+            // Beyond a gain change of a half the set is not applied at all (`at_temperature`).
+            if let Some(at) = set.at_temperature(c) {
+                variants.push((at, format!(", at {c} °C")));
+            }
+        }
+    }
+    for (variant, temperature) in variants {
+        for a in &probes {
+            // The output that reads as `a`: v = S·(a − q).
+            let d = [0, 1, 2].map(|k| a[k] - variant.offset_mps2[k]);
+            let v = [0, 1, 2].map(|i| (0..3).map(|j| cal.sensitivity[i][j] * d[j]).sum::<f64>());
+            let (_, variance) = variant.correct_variance(v);
+            for (axis, var) in variance.iter().enumerate() {
+                let u = var.max(0.0).sqrt();
+                if !(MIN_UNCERTAINTY_MPS2..=MAX_UNCERTAINTY_MPS2).contains(&u) {
+                    return Err(LoadError::UncertaintyOutOfRange {
+                        sensor_id: record.sensor_id.clone(),
+                        version: record.version,
+                        set: name,
+                        axis,
+                        at_mps2: *a,
+                        temperature,
+                        u_mps2: u,
+                    });
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
 /// A sensor's calibration, loaded and checked, ready for the sample path.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Corrector {
@@ -669,6 +754,16 @@ pub struct Corrector {
 impl Corrector {
     /// Checks the record and precomputes everything the sample path needs.
     pub fn from_record(record: &CalibrationRecord) -> Result<Corrector, LoadError> {
+        let c = Corrector::assemble(record)?;
+        for (set, name) in [(&c.static_set, "static"), (&c.dynamic, "dynamic")] {
+            check_uncertainty(record, set, name)?;
+        }
+        Ok(c)
+    }
+
+    /// [`from_record`](Self::from_record) without the bounds on the uncertainty it gives:
+    /// hand-computed tests want records whose uncertainty is zero on some axes.
+    fn assemble(record: &CalibrationRecord) -> Result<Corrector, LoadError> {
         record.validate()?;
         Ok(Corrector {
             sensor_id: record.sensor_id.clone(),
@@ -752,7 +847,7 @@ mod tests {
 
     #[test]
     fn hand_computed_value_without_uncertainty() {
-        let c = Corrector::from_record(&diag_record()).unwrap();
+        let c = Corrector::assemble(&diag_record()).unwrap();
         let out = c.set(SetKind::Static).correct([2.0, 4.0, -5.0]);
         assert_eq!(out.accel_mps2, [1.1, 1.2, -0.7]);
         assert_eq!(out.uncertainty_mps2, [0.0; 3]);
@@ -772,7 +867,7 @@ mod tests {
         r.static_set.uncertainty_mps2 = [0.01, 0.0, 0.0];
         r.sensor.output_noise = Some([0.02, 0.0, 0.0]);
         r.sensor.output_noise_dof = Some(100.0);
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         let set = c.set(SetKind::Static);
         assert!(set.states_dof());
         let (_, var, ws) = set.correct_with_dof([1.0, 1.0, 1.0]);
@@ -787,14 +882,14 @@ mod tests {
         // A set that states no ν keeps its own factor; the dynamic set here states none.
         r.static_set.covariance_dof = None;
         r.sensor.output_noise_dof = None;
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         assert!(!c.set(SetKind::Static).states_dof());
         assert_eq!(c.set(SetKind::Static).coverage_factor_at(3.0), 2.0);
         // A stated probability moves k: 99 % at ν = 6.
         let mut r = diag_record();
         r.static_set.covariance_dof = Some(6.0);
         r.static_set.coverage_probability = Some(0.99);
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         assert_eq!(
             c.set(SetKind::Static).coverage_factor_at(6.0),
             t_quantile(6, 0.99)
@@ -845,7 +940,7 @@ mod tests {
             covariance: cov,
             covariance_dof: Some(4.0),
         });
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         let set = c.set(SetKind::Static);
         assert_eq!(set.temperature_check(Some(30.0)), TemperatureCheck::Inside);
         assert_eq!(set.temperature_check(Some(40.0)), TemperatureCheck::Outside);
@@ -880,7 +975,7 @@ mod tests {
         // A covariance that is not positive semi-definite is refused by name.
         r.temperature.as_mut().unwrap().covariance[0][1] = 1e-5;
         r.temperature.as_mut().unwrap().covariance[1][0] = 1e-5;
-        let e = Corrector::from_record(&r).unwrap_err();
+        let e = Corrector::assemble(&r).unwrap_err();
         assert!(e.to_string().contains("temperature.covariance"), "{e}");
     }
 
@@ -891,7 +986,7 @@ mod tests {
         let mut r = diag_record();
         r.static_set.uncertainty_mps2 = [0.0, 0.05, 0.0];
         r.sensor.output_noise = Some([0.02, 0.04, 0.0]);
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         let set = c.set(SetKind::Static);
         let v = [1.0, -2.0, 3.0];
         assert_eq!(set.covariance_filtered(v, 1.0, [0.0; 3]), set.covariance(v));
@@ -919,7 +1014,7 @@ mod tests {
         r.dynamic.covariance = Some(Box::new(cov));
         r.dynamic.uncertainty_mps2 = [0.0, 0.0, 0.05];
         r.sensor.output_noise = Some([0.02, 0.0, 0.0]);
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         let out = c.set(SetKind::Dynamic).correct([6.0, 4.0, 5.0]);
         // a′₀ = 6/2 = 3; ∂a₀/∂S₀₀ = −(1/2)·3 = −1.5; noise: 0.02/2 = 0.01.
         let ux = ((1.5 * sigma).powi(2) + 0.01f64.powi(2)).sqrt();
@@ -974,7 +1069,7 @@ mod tests {
         let mut r = diag_record();
         r.valid_until = Some(r.valid_from + time::Duration::seconds(10));
         r.sensor.output_full_scale = Some(3.0);
-        let c = Corrector::from_record(&r).unwrap();
+        let c = Corrector::assemble(&r).unwrap();
         let from = r.valid_from.unix_timestamp_nanos() as i64;
         assert_eq!(c.validity_at(from - 1), Validity::NotYetValid);
         assert_eq!(c.validity_at(from), Validity::Valid);
@@ -1126,6 +1221,113 @@ mod tests {
                         analytic_cov[k][l],
                         mc_cov[(k, l)]
                     );
+                }
+            }
+        }
+    }
+
+    /// A record with no uncertainty at all would give samples that claim exactness: refused,
+    /// by name, as are values so large the sample path's f32 forms overflow.
+    #[test]
+    fn refuses_zero_and_overflowing_uncertainty() {
+        let zero = Corrector::from_record(&diag_record()).unwrap_err();
+        assert!(
+            matches!(zero, LoadError::UncertaintyOutOfRange { u_mps2, .. } if u_mps2 == 0.0),
+            "{zero}"
+        );
+        assert!(zero.to_string().contains("from 1e-9 to 1e9 m/s²"), "{zero}");
+        let mut huge = sample::record("huge", 1);
+        huge.dynamic.uncertainty_mps2 = [1e39, 0.01, 0.01];
+        let e = Corrector::from_record(&huge).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                LoadError::UncertaintyOutOfRange {
+                    set: "dynamic",
+                    axis: 0,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let mut noisy = sample::record("noisy", 1);
+        noisy.sensor.output_noise = Some([1e300, 0.001, 0.001]);
+        assert!(Corrector::from_record(&noisy).is_err());
+        let mut cov = [[0.0; 12]; 12];
+        for (i, row) in cov.iter_mut().enumerate() {
+            row[i] = 1e300;
+        }
+        let mut r = sample::record("cov", 1);
+        r.static_set.covariance = Some(Box::new(cov));
+        assert!(matches!(
+            Corrector::from_record(&r),
+            Err(LoadError::UncertaintyOutOfRange { set: "static", .. })
+        ));
+        let mut v = sample::record("v", triax_protocol::record::MAX_VERSION + 1);
+        assert!(Corrector::from_record(&v).is_err());
+        v.version = triax_protocol::record::MAX_VERSION;
+        assert!(Corrector::from_record(&v).is_ok());
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(2000))]
+        /// Over records whose covariance, stated uncertainty and output noise range from zero
+        /// through 10⁻³²⁰ to 10³²⁰: a record either is refused, or every sample it corrects
+        /// within its domain, in either set and at any temperature it applies, carries a finite
+        /// standard uncertainty of at least MIN_UNCERTAINTY_MPS2 on every axis.
+        #[test]
+        fn loaded_records_never_give_zero_or_infinite_uncertainty(
+            cov_exp in -320i32..320,
+            u_exp in -320i32..320,
+            noise_exp in -320i32..320,
+            parts in 0u8..8,
+            a in proptest::array::uniform3(-1.0f64..1.0),
+            temperature_c in -80.0f64..120.0,
+            thermal_exp in -320i32..40,
+        ) {
+            let mut r = sample::record("prop", 1);
+            let scale = |e: i32| 10f64.powi(e);
+            let mut cov = [[0.0; 12]; 12];
+            for (i, row) in cov.iter_mut().enumerate() {
+                row[i] = scale(cov_exp) * if i < 9 { 1e-4 } else { 1.0 };
+            }
+            for set in [&mut r.static_set, &mut r.dynamic] {
+                set.covariance = (parts & 1 != 0).then(|| Box::new(cov));
+                set.uncertainty_mps2 = if parts & 2 != 0 { [scale(u_exp); 3] } else { [0.0; 3] };
+            }
+            r.sensor.output_noise = (parts & 4 != 0).then(|| [scale(noise_exp); 3]);
+            if thermal_exp > -320 {
+                let mut t_cov = [[0.0; 6]; 6];
+                for (i, row) in t_cov.iter_mut().enumerate().take(3) {
+                    row[i] = scale(thermal_exp);
+                }
+                r.temperature = Some(TemperatureModel {
+                    reference_c: 20.0,
+                    range_c: [10.0, 30.0],
+                    offset_mps2_per_c: [1e-4; 3],
+                    gain_per_c: None,
+                    covariance: t_cov,
+                    covariance_dof: None,
+                });
+            }
+            let Ok(c) = Corrector::from_record(&r) else {
+                return Ok(());
+            };
+            for kind in [SetKind::Static, SetKind::Dynamic] {
+                let base = c.set(kind);
+                let at = base.at_temperature(temperature_c);
+                for set in std::iter::once(base).chain(at.as_ref()) {
+                    let amplitude = r.set(kind).domain.amplitude_max_mps2;
+                    let accel = a.map(|x| x * amplitude / 3f64.sqrt());
+                    let s = r.set(kind).sensitivity;
+                    let d = [0, 1, 2].map(|k| accel[k] - set.offset_mps2[k]);
+                    let v = [0, 1, 2].map(|i| (0..3).map(|j| s[i][j] * d[j]).sum::<f64>());
+                    for u in set.correct(v).uncertainty_mps2 {
+                        proptest::prop_assert!(
+                            (MIN_UNCERTAINTY_MPS2..=MAX_UNCERTAINTY_MPS2).contains(&u),
+                            "u = {u} at {accel:?} ({kind:?})"
+                        );
+                    }
                 }
             }
         }

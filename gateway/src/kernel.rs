@@ -937,8 +937,12 @@ mod tests {
         let mut r = sample::record("k", 1);
         r.static_set.sensitivity = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]];
         r.static_set.uncertainty_mps2 = [0.0; 3];
+        // The same offset variance on every axis: a record that leaves an axis with no
+        // uncertainty at all is refused.
         let mut cov = [[0.0; 12]; 12];
-        cov[9][9] = 1e-4;
+        for (i, row) in cov.iter_mut().enumerate().skip(9) {
+            row[i] = 1e-4;
+        }
         r.static_set.covariance = Some(Box::new(cov));
         r.static_set.covariance_dof = Some(6.0);
         r.sensor.output_noise = None;

@@ -18,6 +18,9 @@ use crate::keys::SensorId;
 /// Number of calibration parameters: the 9 entries of S (row-major) then the 3 of q.
 pub const N_PARAMS: usize = 12;
 
+/// Largest record version: 2⁵³ − 1, the largest integer every JSON reader holds exactly.
+pub const MAX_VERSION: u64 = (1 << 53) - 1;
+
 /// Accepted range of a set's coverage factor k.
 pub const MIN_COVERAGE_FACTOR: f64 = 0.1;
 pub const MAX_COVERAGE_FACTOR: f64 = 10.0;
@@ -235,6 +238,16 @@ impl CalibrationRecord {
         }
         if self.version == 0 {
             return Err(err("version", "must be at least 1".into()));
+        }
+        if self.version > MAX_VERSION {
+            return Err(err(
+                "version",
+                format!(
+                    "{} is above {MAX_VERSION} (2⁵³ − 1): JSON readers that hold numbers as \
+                     doubles would misread it, and no later version could follow it",
+                    self.version
+                ),
+            ));
         }
         if let Some(until) = self.valid_until {
             if until <= self.valid_from {
