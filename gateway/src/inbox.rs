@@ -11,6 +11,17 @@
 //! The worker is a thread of its own and waits here on a condition variable: it blocks
 //! whenever a consumer is slow (publishing waits for room), which must not take a thread from
 //! the async runtime that serves status, metrics and calibration pushes.
+//!
+//! **Correcting in place.** Handing every batch to a sleeping worker costs a wake-up, and at a
+//! building's pace (a thousand sensors sending ten batches a second each, spread over time)
+//! that hand-over was about half of the gateway's CPU. So the receive thread may *claim* the
+//! inbox ([`try_claim`](Inbox::try_claim)) and correct the batch itself, when the inbox is
+//! empty, nobody else holds the claim, and batches arrive sparsely (the previous one at least
+//! `min_gap` before); it then [`release`](Inbox::release)s. The worker claims too, for each
+//! entry it takes ([`take_or_idle`](Inbox::take_or_idle)), so the two never handle a shard's
+//! batches at once and never out of order: a batch is handled in place only when no earlier
+//! one waits. Under a heavy stream the receive thread finds the last arrival too recent and
+//! queues, so the workers still correct in parallel.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -31,6 +42,10 @@ struct State<T> {
     /// Set by [`Inbox::close`]: what is still queued is to be taken until then, and dropped
     /// (counted) after.
     drain_until: Option<Instant>,
+    /// Someone (the worker or a receive thread) is handling an entry of this inbox's shard.
+    claimed: bool,
+    /// When [`Inbox::try_claim`] last saw an arrival.
+    last_arrival: Option<Instant>,
 }
 
 /// What [`Inbox::pop`] hands the worker.
@@ -53,6 +68,8 @@ impl<T> Inbox<T> {
             state: Mutex::new(State {
                 queue: VecDeque::with_capacity(capacity.min(1024)),
                 drain_until: None,
+                claimed: false,
+                last_arrival: None,
             }),
             capacity: capacity.max(1),
             ready: Condvar::new(),
@@ -85,6 +102,33 @@ impl<T> Inbox<T> {
         }
     }
 
+    /// Claims the inbox for handling one arrival in place: true when the inbox is open and
+    /// empty, unclaimed, and the previous arrival came at least `min_gap` ago. The caller
+    /// handles its entry and then calls [`release`](Self::release); on false it
+    /// [`push`](Self::push)es the entry instead.
+    pub fn try_claim(&self, min_gap: std::time::Duration) -> bool {
+        let now = Instant::now();
+        let mut s = self.lock();
+        let sparse = s
+            .last_arrival
+            .is_none_or(|t| now.duration_since(t) >= min_gap);
+        s.last_arrival = Some(now);
+        let free = s.drain_until.is_none() && s.queue.is_empty() && !s.claimed;
+        if free && sparse {
+            s.claimed = true;
+        }
+        free && sparse
+    }
+
+    /// Ends a claim; wakes the worker if entries came meanwhile.
+    pub fn release(&self) {
+        let mut s = self.lock();
+        s.claimed = false;
+        if !s.queue.is_empty() || s.drain_until.is_some() {
+            self.ready.notify_one();
+        }
+    }
+
     /// Waits for the next entry, or for the inbox to close.
     pub fn pop(&self) -> Next<T> {
         self.pop_or_idle(None)
@@ -93,16 +137,30 @@ impl<T> Inbox<T> {
     /// As [`pop`](Self::pop), but gives up with [`Next::Idle`] after `idle` with nothing to
     /// hand out, so that a worker whose sensors fell silent still does its housekeeping.
     pub fn pop_or_idle(&self, idle: Option<std::time::Duration>) -> Next<T> {
+        self.next(idle, false)
+    }
+
+    /// As [`pop_or_idle`](Self::pop_or_idle) for a worker that shares its shard with
+    /// [`try_claim`](Self::try_claim): waits while the inbox is claimed, and claims it with
+    /// every entry (or late entry) it hands out; the caller [`release`](Self::release)s.
+    pub fn take_or_idle(&self, idle: Option<std::time::Duration>) -> Next<T> {
+        self.next(idle, true)
+    }
+
+    fn next(&self, idle: Option<std::time::Duration>, claim: bool) -> Next<T> {
         let deadline = idle.map(|d| Instant::now() + d);
         let mut s = self.lock();
         loop {
-            if let Some(item) = s.queue.pop_front() {
+            let available = !(claim && s.claimed);
+            if let Some(item) = available.then(|| s.queue.pop_front()).flatten() {
+                s.claimed |= claim;
                 return match s.drain_until {
                     Some(deadline) if Instant::now() >= deadline => Next::Late(item),
                     _ => Next::Item(item),
                 };
             }
-            if s.drain_until.is_some() {
+            // Closed: done once nothing is queued and no claim is handling one.
+            if s.drain_until.is_some() && s.queue.is_empty() && !(claim && s.claimed) {
                 return Next::Closed;
             }
             s = match deadline {
@@ -200,6 +258,41 @@ mod tests {
         q.close(Instant::now());
         assert_eq!(q.pop(), Next::Late(1));
         assert_eq!(q.pop(), Next::Closed);
+    }
+
+    /// A claim in place and the worker's take never overlap, and an entry queued while the
+    /// receive thread handles one in place waits for its release (order is kept).
+    #[test]
+    fn claims_serialise_the_receive_thread_and_the_worker() {
+        let gap = Duration::from_micros(20);
+        let q = Arc::new(Inbox::<u32>::new(4, Arc::new(AtomicU64::new(0))));
+        assert!(q.try_claim(gap), "empty, unclaimed, first arrival");
+        // A second arrival while claimed, and too soon: queued.
+        assert!(!q.try_claim(gap));
+        q.push(2);
+        let q2 = q.clone();
+        let worker = std::thread::spawn(move || q2.take_or_idle(Some(Duration::from_secs(5))));
+        std::thread::sleep(Duration::from_millis(50));
+        assert!(
+            !worker.is_finished(),
+            "the worker waits for the claim to end"
+        );
+        q.release();
+        assert_eq!(worker.join().unwrap(), Next::Item(2));
+        // The worker now holds the claim: no handling in place, even after a long gap.
+        std::thread::sleep(Duration::from_millis(1));
+        assert!(!q.try_claim(gap));
+        q.release();
+        std::thread::sleep(Duration::from_millis(1));
+        assert!(q.try_claim(gap), "free again after a gap");
+        q.release();
+        // Back-to-back arrivals are queued for the worker, not handled in place.
+        assert!(!q.try_claim(Duration::from_secs(60)));
+        // Closed: never in place.
+        q.close(Instant::now() + Duration::from_secs(60));
+        std::thread::sleep(Duration::from_millis(1));
+        assert!(!q.try_claim(gap));
+        assert_eq!(q.take_or_idle(None), Next::Closed);
     }
 
     #[test]

@@ -113,29 +113,38 @@ fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError 
 
 /// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
 enum Intake {
-    /// Drop-oldest: the inbox of the sensor's worker.
-    Queues(Arc<Vec<Arc<Inbox<Sample>>>>),
-    /// Backpressure: the sensor's shard, run right here on the receive thread.
-    Shards(Vec<std::sync::Mutex<worker::Shard>>, Arc<worker::Shared>),
+    /// Drop-oldest: corrected right here when the sensor's inbox is empty and batches come
+    /// sparsely, else queued for the sensor's worker (`inbox` module: correcting in place).
+    Queues(Arc<Vec<Arc<Inbox<Sample>>>>, Shards, Arc<worker::Shared>),
+    /// Backpressure: the sensor's shard, always run right here on the receive thread.
+    Shards(Shards, Arc<worker::Shared>),
 }
+
+/// One shard per worker, shared by the worker and the receive threads.
+type Shards = Arc<Vec<Arc<std::sync::Mutex<worker::Shard>>>>;
+
+/// Batches closer together than this, in one inbox, go to its worker rather than being
+/// corrected on the receive thread: a heavy stream keeps both workers busy, while a building's
+/// sparse batches (1 000 sensors at 10 a second: 200 µs apart per inbox) save a wake-up each.
+const IN_PLACE_MIN_GAP: std::time::Duration = std::time::Duration::from_micros(20);
 
 impl Intake {
     /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
     fn take(&self, sample: Sample) {
         let sensor = keys::sensor_chunk(sample.key_expr().as_str());
         match self {
-            Intake::Queues(inboxes) => {
+            Intake::Queues(inboxes, shards, shared) => {
                 let i = worker::shard(sensor, inboxes.len());
-                inboxes[i].push(sample);
+                if inboxes[i].try_claim(IN_PLACE_MIN_GAP) {
+                    worker::lock_shard(&shards[i]).handle(shared, sample);
+                    inboxes[i].release();
+                } else {
+                    inboxes[i].push(sample);
+                }
             }
             Intake::Shards(shards, shared) => {
                 let i = worker::shard(sensor, shards.len());
-                // A panic while handling (a bug) leaves at most one sensor's filter memory
-                // mid-batch: the shard still serves its other sensors.
-                shards[i]
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .handle(shared, sample);
+                worker::lock_shard(&shards[i]).handle(shared, sample);
             }
         }
     }
@@ -328,7 +337,14 @@ async fn start_intake(
     session: &zenoh::Session,
     counters: &Arc<GatewayCounters>,
     shared: &Arc<worker::Shared>,
-) -> Result<(Arc<Vec<Arc<Inbox<Sample>>>>, zenoh::pubsub::Subscriber<()>), GatewayError> {
+) -> Result<
+    (
+        Arc<Vec<Arc<Inbox<Sample>>>>,
+        Shards,
+        zenoh::pubsub::Subscriber<()>,
+    ),
+    GatewayError,
+> {
     // Under backpressure nothing is queued: the receive callback runs the shards itself.
     let n_inboxes = match config.overload {
         Overload::DropOldest => config.workers,
@@ -344,12 +360,10 @@ async fn start_intake(
             })
             .collect(),
     );
+    let shards: Shards = Arc::new((0..config.workers).map(|_| Default::default()).collect());
     let intake = match config.overload {
-        Overload::DropOldest => Intake::Queues(inboxes.clone()),
-        Overload::Backpressure => Intake::Shards(
-            (0..config.workers).map(|_| Default::default()).collect(),
-            shared.clone(),
-        ),
+        Overload::DropOldest => Intake::Queues(inboxes.clone(), shards.clone(), shared.clone()),
+        Overload::Backpressure => Intake::Shards(shards.clone(), shared.clone()),
     };
     let received = counters.clone();
     let building = config.building.clone();
@@ -365,7 +379,7 @@ async fn start_intake(
         })
         .await
         .map_err(zenoh_err("subscribe to raw streams"))?;
-    Ok((inboxes, subscriber))
+    Ok((inboxes, shards, subscriber))
 }
 
 /// Answers status queries until shutdown.
@@ -427,14 +441,15 @@ async fn serve_metrics(
 /// already started end.
 fn start_workers(
     inboxes: &Arc<Vec<Arc<Inbox<Sample>>>>,
+    shards: &Shards,
     shared: &Arc<worker::Shared>,
 ) -> Result<Vec<std::thread::JoinHandle<()>>, GatewayError> {
     let mut workers = Vec::new();
-    for (i, inbox) in inboxes.iter().enumerate() {
-        let (inbox, shared) = (inbox.clone(), shared.clone());
+    for (i, (inbox, shard)) in inboxes.iter().zip(shards.iter()).enumerate() {
+        let (inbox, shard, shared) = (inbox.clone(), shard.clone(), shared.clone());
         let spawned = std::thread::Builder::new()
             .name(format!("triax-worker-{i}"))
-            .spawn(move || worker::run(i, inbox, shared));
+            .spawn(move || worker::run(i, inbox, shard, shared));
         match spawned {
             Ok(worker) => workers.push(worker),
             Err(e) => {
@@ -499,7 +514,8 @@ impl Gateway {
                 as i64,
             history: recorder.as_ref().map(|r| r.sink.clone()),
         });
-        let (inboxes, subscriber) = start_intake(&config, &session, &counters, &shared).await?;
+        let (inboxes, shards, subscriber) =
+            start_intake(&config, &session, &counters, &shared).await?;
         let mut tasks = Vec::new();
         let status_ctx = status::StatusContext {
             config: config.clone(),
@@ -576,7 +592,7 @@ impl Gateway {
         }
         // Last, so that a start that fails leaves no thread behind. Batches taken meanwhile
         // wait in the inboxes.
-        let workers = start_workers(&inboxes, &shared)?;
+        let workers = start_workers(&inboxes, &shards, &shared)?;
         tracing::info!(
             building = %config.building,
             gateway = %config.gateway_name,

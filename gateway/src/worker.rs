@@ -11,7 +11,7 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use triax_calibration::corrector::Corrector;
 use triax_protocol::batch::{corrected_len, flags};
@@ -209,6 +209,12 @@ const SWEEP_CHECK_BATCHES: u32 = 256;
 /// Least time between two sweeps of a shard.
 const SWEEP_INTERVAL: std::time::Duration = std::time::Duration::from_secs(1);
 
+/// The shard, whoever held it last: a panic while handling (a bug) leaves at most one sensor's
+/// filter memory mid-batch, and the shard still serves its other sensors.
+pub fn lock_shard(shard: &Mutex<Shard>) -> std::sync::MutexGuard<'_, Shard> {
+    shard.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 /// Runs one worker, on a thread of its own, until its inbox closes; then corrects what is
 /// still queued, for at most the drain time given to [`Inbox::close`] ([`SHUTDOWN_DRAIN`]),
 /// and counts the rest as dropped.
@@ -216,21 +222,29 @@ const SWEEP_INTERVAL: std::time::Duration = std::time::Duration::from_secs(1);
 /// A thread and not an async task: publishing blocks while a consumer is slow (Zenoh's
 /// blocking congestion control), and a task blocked so would hold a thread of the runtime
 /// that serves status, metrics and calibration pushes.
-pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shared: Arc<Shared>) {
-    let mut shard = Shard::default();
+///
+/// The shard is shared with the receive thread, which corrects a sparse batch in place when
+/// the inbox is empty ([`Inbox::try_claim`]); the inbox's claim keeps the two apart and in
+/// order, so the lock on the shard is never waited for but during a sweep.
+pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shard: Arc<Mutex<Shard>>, shared: Arc<Shared>) {
     tracing::debug!(worker = index, "worker started");
     let mut abandoned = 0u64;
     loop {
-        match inbox.pop_or_idle(Some(SWEEP_INTERVAL)) {
-            Next::Item(sample) => shard.handle(&shared, sample),
-            Next::Idle => shard.sweep(&shared),
+        match inbox.take_or_idle(Some(SWEEP_INTERVAL)) {
+            Next::Item(sample) => {
+                lock_shard(&shard).handle(&shared, sample);
+                inbox.release();
+            }
+            Next::Idle => lock_shard(&shard).sweep(&shared),
             Next::Late(_) => {
                 shared.counters.dropped.fetch_add(1, Relaxed);
                 abandoned += 1;
+                inbox.release();
             }
             Next::Closed => break,
         }
     }
+    let shard = lock_shard(&shard);
     if abandoned > 0 {
         tracing::warn!(
             worker = index,
