@@ -95,8 +95,9 @@ impl<T> Inbox<T> {
             s.queue.push_back(item);
             was_empty
         };
-        // The worker waits only on an empty queue, checked under the lock, so only the push
-        // that ends the emptiness needs to wake it: a wake costs a system call.
+        // The worker waits on an empty queue, checked under the lock, or on a claimed one, which
+        // `release` wakes it from: only the push that ends the emptiness needs to wake it, and
+        // a wake costs a system call.
         if was_empty {
             self.ready.notify_one();
         }

@@ -154,24 +154,8 @@ async fn at_scale(records: usize, gateways: usize) {
     let router = Router::start().await;
     let key = LabSigningKey::from_bytes(&[8; 32]);
     let dir = tempfile::tempdir().expect("temporary directory");
-    let mut stops = Vec::new();
-    let mut tables = Vec::new();
-    for i in 0..gateways {
-        let mut c = Config::for_tests("scale", &dir.path().join(format!("gw{i}")), vec![]);
-        c.gateway_name = format!("gw-scale-{i}");
-        c.zenoh = router.client_settings();
-        c.calibration.trusted_lab_keys = vec![key.verifying_key()];
-        c.calibration.catchup_interval = None;
-        let gw = Gateway::start(c).await.expect("gateway starts");
-        tables.push(gw.sensors().clone());
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        stops.push((
-            tx,
-            tokio::spawn(gw.run_until(async move {
-                let _ = rx.await;
-            })),
-        ));
-    }
+    let running = start_gateways(&router, "scale", gateways, &key, dir.path()).await;
+    let tables = &running.tables;
     let lab = zenoh::open(router.client_settings().to_config().expect("client config"))
         .await
         .expect("lab session opens");
@@ -206,7 +190,7 @@ async fn at_scale(records: usize, gateways: usize) {
         records * gateways,
         "every gateway acknowledged every record"
     );
-    for t in &tables {
+    for t in tables {
         assert_eq!(t.versions().len(), records + 1, "every record in force");
     }
     println!(
@@ -217,11 +201,55 @@ async fn at_scale(records: usize, gateways: usize) {
         slowest.as_secs_f64()
     );
     let _ = lab.close().await;
-    for (tx, task) in stops {
-        let _ = tx.send(());
-        let _ = task.await;
-    }
+    running.stop().await;
     drop(router);
+}
+
+/// Gateways of one building, clients of the router, trusting `key`.
+struct Gateways {
+    tables: Vec<std::sync::Arc<triax_gateway::sensors::SensorTable>>,
+    stops: Vec<(tokio::sync::oneshot::Sender<()>, GatewayTask)>,
+}
+
+type GatewayTask = tokio::task::JoinHandle<Result<(), triax_gateway::GatewayError>>;
+
+impl Gateways {
+    async fn stop(self) {
+        for (tx, task) in self.stops {
+            let _ = tx.send(());
+            let _ = task.await;
+        }
+    }
+}
+
+async fn start_gateways(
+    router: &Router,
+    building: &str,
+    n: usize,
+    key: &LabSigningKey,
+    dir: &std::path::Path,
+) -> Gateways {
+    let mut g = Gateways {
+        tables: Vec::new(),
+        stops: Vec::new(),
+    };
+    for i in 0..n {
+        let mut c = Config::for_tests(building, &dir.join(format!("gw{i}")), vec![]);
+        c.gateway_name = format!("gw-{building}-{i}");
+        c.zenoh = router.client_settings();
+        c.calibration.trusted_lab_keys = vec![key.verifying_key()];
+        c.calibration.catchup_interval = None;
+        let gw = Gateway::start(c).await.expect("gateway starts");
+        g.tables.push(gw.sensors().clone());
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        g.stops.push((
+            tx,
+            tokio::spawn(gw.run_until(async move {
+                let _ = rx.await;
+            })),
+        ));
+    }
+    g
 }
 
 async fn run(pushes: usize) {
@@ -229,24 +257,8 @@ async fn run(pushes: usize) {
 
     let key = LabSigningKey::from_bytes(&[7; 32]);
     let dir = tempfile::tempdir().expect("temporary directory");
-    let mut tables = Vec::new();
-    let mut stops = Vec::new();
-    for i in 0..GATEWAYS {
-        let mut c = Config::for_tests("bench", &dir.path().join(format!("gw{i}")), vec![]);
-        c.gateway_name = format!("gw-bench-{i}");
-        c.zenoh = router.client_settings();
-        c.calibration.trusted_lab_keys = vec![key.verifying_key()];
-        c.calibration.catchup_interval = None;
-        let gw = Gateway::start(c).await.expect("gateway starts");
-        tables.push(gw.sensors().clone());
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        stops.push((
-            tx,
-            tokio::spawn(gw.run_until(async move {
-                let _ = rx.await;
-            })),
-        ));
-    }
+    let gateways = start_gateways(&router, "bench", GATEWAYS, &key, dir.path()).await;
+    let tables = &gateways.tables;
     let lab = zenoh::open(router.client_settings().to_config().expect("client config"))
         .await
         .expect("lab session opens");
@@ -289,7 +301,7 @@ async fn run(pushes: usize) {
                 a.outcome
             );
         }
-        for t in &tables {
+        for t in tables {
             assert_eq!(
                 t.versions().first().map(|(_, v)| *v),
                 Some(version),
@@ -311,9 +323,6 @@ async fn run(pushes: usize) {
     );
 
     let _ = lab.close().await;
-    for (tx, task) in stops {
-        let _ = tx.send(());
-        let _ = task.await;
-    }
+    gateways.stop().await;
     drop(router);
 }

@@ -194,6 +194,81 @@ fn tls_client_config(dir: &Path, tls_port: u16, name: &str) -> zenoh::Config {
     zenoh::Config::from_file(&path).expect("the shipped TLS client configuration loads")
 }
 
+/// `zenohd` with a configuration file, killed when dropped.
+struct Zenohd(std::process::Child);
+
+impl Zenohd {
+    fn start(config: &Path) -> Zenohd {
+        Zenohd(
+            std::process::Command::new("zenohd")
+                .arg("-c")
+                .arg(config)
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .expect("zenohd on PATH (scripts/test installs it)"),
+        )
+    }
+}
+
+impl Drop for Zenohd {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A gateway running until [`RunningGateway::stop`].
+struct RunningGateway {
+    table: std::sync::Arc<triax_gateway::sensors::SensorTable>,
+    stop: tokio::sync::oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<Result<(), triax_gateway::GatewayError>>,
+}
+
+impl RunningGateway {
+    async fn start(config: Config) -> RunningGateway {
+        let gateway = Gateway::start(config).await.expect("gateway starts");
+        let table = gateway.sensors().clone();
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(gateway.run_until(async move {
+            let _ = stopped.await;
+        }));
+        RunningGateway { table, stop, task }
+    }
+
+    /// The calibration version in force for `sensor`.
+    fn version_of(&self, sensor: &str) -> Option<u64> {
+        self.table
+            .versions()
+            .into_iter()
+            .find_map(|(id, v)| (id.as_str() == sensor).then_some(v))
+    }
+
+    async fn stop(self) {
+        let _ = self.stop.send(());
+        let _ = tokio::time::timeout(util::TIMEOUT, self.task).await;
+    }
+}
+
+/// Pushes `push` from `lab` until a gateway acknowledges it (the gateway's queryable takes a
+/// moment to cross the router after it starts).
+async fn push_until_acknowledged(lab: &zenoh::Session, building: &BuildingId, push: &Push) {
+    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
+    loop {
+        let report = push_one(lab, building, push, Duration::from_secs(2))
+            .await
+            .unwrap();
+        if !report.acks.is_empty() {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the lab's push never reached the gateway: {:?}",
+            report.errors
+        );
+    }
+}
+
 /// A plain TCP client on the building LAN.
 async fn lan_client(lan_port: u16) -> zenoh::Session {
     let mut c = zenoh::Config::default();
@@ -220,13 +295,7 @@ async fn only_the_labs_certificate_can_push_through_the_site_router() {
     make_certificates(dir.path(), &["triax-lab", "intruder"]);
     let (lan_port, tls_port) = (util::free_port(), util::free_port());
     let config = site_router_config(dir.path(), lan_port, tls_port);
-    let mut router = std::process::Command::new("zenohd")
-        .arg("-c")
-        .arg(&config)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("zenohd on PATH (scripts/test installs it)");
+    let _router = Zenohd::start(&config);
     util::wait_for_listener(lan_port).await;
     util::wait_for_listener(tls_port).await;
 
@@ -238,18 +307,8 @@ async fn only_the_labs_certificate_can_push_through_the_site_router() {
         vec![format!("tcp/127.0.0.1:{lan_port}")],
     );
     gw_config.calibration.trusted_lab_keys = vec![lab_key.verifying_key()];
-    let gateway = Gateway::start(gw_config).await.expect("gateway starts");
-    let table = gateway.sensors().clone();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(gateway.run_until(async move {
-        let _ = stopped.await;
-    }));
-    let version = || {
-        table
-            .versions()
-            .into_iter()
-            .find_map(|(id, v)| (id.as_str() == "d-1").then_some(v))
-    };
+    let gateway = RunningGateway::start(gw_config).await;
+    let version = || gateway.version_of("d-1");
 
     let building = BuildingId::new("site").unwrap();
     let lab = tls_client(dir.path(), tls_port, "triax-lab").await;
@@ -268,21 +327,8 @@ async fn only_the_labs_certificate_can_push_through_the_site_router() {
     let denied_wait = Duration::from_secs(2);
 
     // The lab: accepted, and in force.
-    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
     let v1 = Push::sign(&sample::record("d-1", 1), &lab_key);
-    loop {
-        let report = push_one(&lab, &building, &v1, Duration::from_secs(2))
-            .await
-            .unwrap();
-        if !report.acks.is_empty() {
-            break;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the lab's push never reached the gateway: {:?}",
-            report.errors
-        );
-    }
+    push_until_acknowledged(&lab, &building, &v1).await;
     assert_eq!(version(), Some(1));
 
     // A valid signature is not enough: the same kind of push from elsewhere is not routed.
@@ -328,10 +374,7 @@ async fn only_the_labs_certificate_can_push_through_the_site_router() {
     for s in [lab, intruder, lan] {
         s.close().await.unwrap();
     }
-    let _ = stop.send(());
-    let _ = tokio::time::timeout(util::TIMEOUT, task).await;
-    let _ = router.kill();
-    let _ = router.wait();
+    gateway.stop().await;
 }
 
 /// Waits `window` for anything on `sub`; returns what came.
@@ -387,13 +430,7 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
     );
     let tls_port = util::free_port();
     let config = secured_router_config(dir.path(), tls_port);
-    let mut router = std::process::Command::new("zenohd")
-        .arg("-c")
-        .arg(&config)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("zenohd on PATH (scripts/test installs it)");
+    let _router = Zenohd::start(&config);
     util::wait_for_listener(tls_port).await;
 
     // The gateway, through the shipped client file with its own certificate.
@@ -408,18 +445,8 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
         multicast_scouting: None,
     };
     gw_config.calibration.trusted_lab_keys = vec![lab_key.verifying_key()];
-    let gateway = Gateway::start(gw_config).await.expect("gateway starts");
-    let table = gateway.sensors().clone();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(gateway.run_until(async move {
-        let _ = stopped.await;
-    }));
-    let version = || {
-        table
-            .versions()
-            .into_iter()
-            .find_map(|(id, v)| (id.as_str() == "n-1").then_some(v))
-    };
+    let gateway = RunningGateway::start(gw_config).await;
+    let version = || gateway.version_of("n-1");
 
     let north = BuildingId::new("north").unwrap();
     let sensor: triax_protocol::SensorId = "n-1".parse().unwrap();
@@ -437,21 +464,8 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
         .declare_subscriber("triax/north/calibration/ack/*")
         .await
         .unwrap();
-    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
     let v1 = Push::sign(&sample::record("n-1", 1), &lab_key);
-    loop {
-        let report = push_one(&lab, &north, &v1, Duration::from_secs(2))
-            .await
-            .unwrap();
-        if !report.acks.is_empty() {
-            break;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the lab's push never reached the gateway: {:?}",
-            report.errors
-        );
-    }
+    push_until_acknowledged(&lab, &north, &v1).await;
     assert_eq!(version(), Some(1));
     assert!(
         !anything(&acks, quiet).await.is_empty(),
@@ -646,8 +660,5 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
     for s in [lab, node, consumer, alerting, intruder, gateway_identity] {
         s.close().await.unwrap();
     }
-    let _ = stop.send(());
-    let _ = tokio::time::timeout(util::TIMEOUT, task).await;
-    let _ = router.kill();
-    let _ = router.wait();
+    gateway.stop().await;
 }
