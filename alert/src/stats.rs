@@ -247,7 +247,7 @@ impl AxisData {
             .filter(|v| v.abs() >= self.peak - 4.0 * sigma)
             .count()
             .max(1);
-        let q = normal::max_quantile(normal::cdf(k), candidates);
+        let q = normal::max_upper_quantile(normal::cdf(-k), candidates);
         let lower = self.peak - q * sigma;
         let upper = self.peak + k * sigma + self.crest_between_samples(rate_hz);
         (lower, upper, candidates)
