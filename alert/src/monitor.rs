@@ -135,8 +135,7 @@ impl SensorState {
     fn forget_oldest(&mut self) {
         if let Some(old) = self.window.pop_front() {
             if usable(&old.sample) {
-                self.bounds
-                    .pop(old.t_ns, old.vibration, old.sample.uncertainty_mps2);
+                self.bounds.pop(old.t_ns, old.vibration);
             }
             self.k_max.evict_through(old.t_ns);
         }

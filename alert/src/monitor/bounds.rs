@@ -3,10 +3,11 @@
 //! bounds show it without looking at the window again.
 //!
 //! Per axis, over the window's usable samples: the largest |high-passed value| and the largest
-//! and smallest acceleration (monotone deques: each sample enters and leaves once), the sum of
-//! squares of the high-passed values and the sum of the stated u. From them,
+//! and smallest acceleration and the largest stated u (monotone deques: each sample enters and
+//! leaves once), and the sum of squares of the high-passed values. From them,
 //! [`WindowBounds::peak_bound`] and [`WindowBounds::rms_bound`] bound anything the estimators of
-//! [`crate::stats`] can return, the same way its own gate does.
+//! [`crate::stats`] can return, as its own gate does but with the largest u rather than the
+//! mean: the bound then holds for any subset of the samples, the clean ones included.
 
 use std::collections::VecDeque;
 
@@ -44,7 +45,7 @@ struct AxisBounds {
     /// Of −a: the smallest acceleration.
     accel_min: SlidingMax,
     sum_sq_vibration: f64,
-    sum_u: f64,
+    u_max: SlidingMax,
 }
 
 /// The running bounds of one window.
@@ -64,24 +65,24 @@ impl WindowBounds {
             axis.accel_max.push(t_ns, a);
             axis.accel_min.push(t_ns, -a);
             axis.sum_sq_vibration += v * v;
-            axis.sum_u += f64::from(u[j]);
+            axis.u_max.push(t_ns, f64::from(u[j]));
         }
     }
 
     /// A usable sample, pushed before, left the window.
-    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3], u: [f32; 3]) {
+    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3]) {
         self.count = self.count.saturating_sub(1);
         for (j, axis) in self.axes.iter_mut().enumerate() {
             axis.abs_vibration.evict_through(t_ns);
             axis.accel_max.evict_through(t_ns);
             axis.accel_min.evict_through(t_ns);
+            axis.u_max.evict_through(t_ns);
             let v = f64::from(vibration[j]);
-            // Sums that go up and down by the same values drift only by rounding; never below 0.
+            // A sum that goes up and down by the same values drifts only by rounding; never
+            // below 0.
             axis.sum_sq_vibration = (axis.sum_sq_vibration - v * v).max(0.0);
-            axis.sum_u = (axis.sum_u - f64::from(u[j])).max(0.0);
             if self.count == 0 {
                 axis.sum_sq_vibration = 0.0;
-                axis.sum_u = 0.0;
             }
         }
     }
@@ -107,9 +108,9 @@ impl WindowBounds {
 
     /// At least any peak the estimators can return from these samples (`stats::peak_bound`).
     pub(super) fn peak_bound(&self, k: f64) -> f64 {
-        self.per_axis(|a, n| {
+        self.per_axis(|a, _| {
             let peak = a.abs_vibration.max().unwrap_or(0.0);
-            2.0 * peak.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.sum_u / n
+            2.0 * peak.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
         })
     }
 
@@ -118,7 +119,7 @@ impl WindowBounds {
     pub(super) fn rms_bound(&self, k: f64) -> f64 {
         self.per_axis(|a, n| {
             let rms = (a.sum_sq_vibration / n).sqrt();
-            2.0 * rms.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.sum_u / n
+            2.0 * rms.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
         })
     }
 }
@@ -142,7 +143,7 @@ mod tests {
             window.push_back((i, accel, vibration));
             if window.len() > len {
                 let (t, _, v) = window.pop_front().unwrap();
-                b.pop(t, v, u_at(t));
+                b.pop(t, v);
             }
             let n = window.len() as f64;
             let mut peak_expected = 0.0f64;
@@ -160,7 +161,10 @@ mod tests {
                     .iter()
                     .map(|w| f64::from(w.1[j]))
                     .fold(f64::MAX, f64::min);
-                let mean_u = window.iter().map(|w| f64::from(u_at(w.0)[j])).sum::<f64>() / n;
+                let max_u = window
+                    .iter()
+                    .map(|w| f64::from(u_at(w.0)[j]))
+                    .fold(0.0, f64::max);
                 let rms = (window
                     .iter()
                     .map(|w| f64::from(w.2[j]).powi(2))
@@ -168,8 +172,8 @@ mod tests {
                     / n)
                     .sqrt();
                 let half = 0.5 * (hi - lo);
-                peak_expected = peak_expected.max(2.0 * peak.max(half) + 9.0 * mean_u);
-                rms_expected = rms_expected.max(2.0 * rms.max(half) + 9.0 * mean_u);
+                peak_expected = peak_expected.max(2.0 * peak.max(half) + 9.0 * max_u);
+                rms_expected = rms_expected.max(2.0 * rms.max(half) + 9.0 * max_u);
             }
             assert!((b.peak_bound(2.0) - peak_expected).abs() < 1e-9, "at {i}");
             assert!((b.rms_bound(2.0) - rms_expected).abs() < 1e-9, "at {i}");
