@@ -115,11 +115,14 @@ impl WindowBounds {
     }
 
     /// At least any RMS the estimators can return (`stats::rms_bound`; the half range bounds
-    /// the standard deviation).
+    /// the standard deviation). The largest |vibration| bounds the RMS of any subset, which
+    /// the RMS of all the samples need not.
     pub(super) fn rms_bound(&self, k: f64) -> f64 {
         self.per_axis(|a, n| {
             let rms = (a.sum_sq_vibration / n).sqrt();
-            2.0 * rms.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
+            let peak = a.abs_vibration.max().unwrap_or(0.0);
+            2.0 * rms.max(peak).max(Self::half_range(a))
+                + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
         })
     }
 }
@@ -173,7 +176,7 @@ mod tests {
                     .sqrt();
                 let half = 0.5 * (hi - lo);
                 peak_expected = peak_expected.max(2.0 * peak.max(half) + 9.0 * max_u);
-                rms_expected = rms_expected.max(2.0 * rms.max(half) + 9.0 * max_u);
+                rms_expected = rms_expected.max(2.0 * rms.max(peak).max(half) + 9.0 * max_u);
             }
             assert!((b.peak_bound(2.0) - peak_expected).abs() < 1e-9, "at {i}");
             assert!((b.rms_bound(2.0) - rms_expected).abs() < 1e-9, "at {i}");
