@@ -135,7 +135,8 @@ impl SensorState {
     fn forget_oldest(&mut self) {
         if let Some(old) = self.window.pop_front() {
             if usable(&old.sample) {
-                self.bounds.pop(old.t_ns, old.vibration);
+                self.bounds
+                    .pop(old.t_ns, old.vibration, old.sample.flags != 0);
             }
             self.k_max.evict_through(old.t_ns);
         }
@@ -456,9 +457,13 @@ impl Monitor {
                     .highpass
                     .get_or_insert_with(|| HighPass::new(settings.highpass_hz, h.sample_rate_hz));
                 let v = hp.apply(sample.accel_mps2.map(f64::from)).map(|v| v as f32);
-                state
-                    .bounds
-                    .push(t_ns, sample.accel_mps2, v, sample.uncertainty_mps2);
+                state.bounds.push(
+                    t_ns,
+                    sample.accel_mps2,
+                    v,
+                    sample.uncertainty_mps2,
+                    sample.flags != 0,
+                );
                 v
             } else {
                 [f32::NAN; 3]

@@ -53,12 +53,23 @@ struct AxisBounds {
 pub(super) struct WindowBounds {
     axes: [AxisBounds; 3],
     count: usize,
+    /// Usable samples with a flag: while there are any, the clean ones are a subset whose RMS
+    /// the RMS of all does not bound.
+    flagged: usize,
 }
 
 impl WindowBounds {
     /// A usable sample entered the window.
-    pub(super) fn push(&mut self, t_ns: i64, accel: [f32; 3], vibration: [f32; 3], u: [f32; 3]) {
+    pub(super) fn push(
+        &mut self,
+        t_ns: i64,
+        accel: [f32; 3],
+        vibration: [f32; 3],
+        u: [f32; 3],
+        flagged: bool,
+    ) {
         self.count += 1;
+        self.flagged += usize::from(flagged);
         for (j, axis) in self.axes.iter_mut().enumerate() {
             let (a, v) = (f64::from(accel[j]), f64::from(vibration[j]));
             axis.abs_vibration.push(t_ns, v.abs());
@@ -70,8 +81,9 @@ impl WindowBounds {
     }
 
     /// A usable sample, pushed before, left the window.
-    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3]) {
+    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3], flagged: bool) {
         self.count = self.count.saturating_sub(1);
+        self.flagged = self.flagged.saturating_sub(usize::from(flagged));
         for (j, axis) in self.axes.iter_mut().enumerate() {
             axis.abs_vibration.evict_through(t_ns);
             axis.accel_max.evict_through(t_ns);
@@ -115,14 +127,15 @@ impl WindowBounds {
     }
 
     /// At least any RMS the estimators can return (`stats::rms_bound`; the half range bounds
-    /// the standard deviation). The largest |vibration| bounds the RMS of any subset, which
-    /// the RMS of all the samples need not.
+    /// the standard deviation). With flagged samples in the window the clean ones are judged
+    /// apart, and only the largest |vibration| bounds their RMS.
     pub(super) fn rms_bound(&self, k: f64) -> f64 {
         self.per_axis(|a, n| {
-            let rms = (a.sum_sq_vibration / n).sqrt();
-            let peak = a.abs_vibration.max().unwrap_or(0.0);
-            2.0 * rms.max(peak).max(Self::half_range(a))
-                + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
+            let mut rms = (a.sum_sq_vibration / n).sqrt();
+            if self.flagged > 0 {
+                rms = rms.max(a.abs_vibration.max().unwrap_or(0.0));
+            }
+            2.0 * rms.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
         })
     }
 }
@@ -142,11 +155,11 @@ mod tests {
             let accel = [x + 0.5, -x, 9.81];
             let vibration = [x, -x, 0.01 * (i % 3) as f32];
             let u = [0.01 + 0.001 * (i % 5) as f32; 3];
-            b.push(i, accel, vibration, u);
+            b.push(i, accel, vibration, u, false);
             window.push_back((i, accel, vibration));
             if window.len() > len {
                 let (t, _, v) = window.pop_front().unwrap();
-                b.pop(t, v);
+                b.pop(t, v, false);
             }
             let n = window.len() as f64;
             let mut peak_expected = 0.0f64;
@@ -176,11 +189,15 @@ mod tests {
                     .sqrt();
                 let half = 0.5 * (hi - lo);
                 peak_expected = peak_expected.max(2.0 * peak.max(half) + 9.0 * max_u);
-                rms_expected = rms_expected.max(2.0 * rms.max(peak).max(half) + 9.0 * max_u);
+                rms_expected = rms_expected.max(2.0 * rms.max(half) + 9.0 * max_u);
             }
             assert!((b.peak_bound(2.0) - peak_expected).abs() < 1e-9, "at {i}");
             assert!((b.rms_bound(2.0) - rms_expected).abs() < 1e-9, "at {i}");
         }
+        // A flagged sample in the window: the largest |vibration| joins the RMS bound.
+        let before = b.rms_bound(2.0);
+        b.push(400, [0.0; 3], [0.0; 3], [0.01; 3], true);
+        assert!(b.rms_bound(2.0) > before);
         b.clear();
         assert_eq!(b.peak_bound(2.0), 0.0);
     }
