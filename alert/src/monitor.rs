@@ -65,11 +65,17 @@ struct Sent {
 }
 
 #[derive(Debug, Clone, Copy)]
+/// A window's sample, flat: 48 bytes where a `CorrectedSample` inside would make 56 (its own
+/// padding), and the window holds ten thousand sensors' worth.
 struct TimedSample {
     t_ns: i64,
-    sample: CorrectedSample,
+    accel_mps2: [f32; 3],
+    uncertainty_mps2: [f32; 3],
     /// The high-passed acceleration; NaN for a sample that is not usable.
     vibration: [f32; 3],
+    flags: u16,
+    /// See [`usable`], decided once.
+    usable: bool,
     /// Whether the high pass had settled when this sample went through it.
     settled: bool,
 }
@@ -134,9 +140,8 @@ impl SensorState {
     /// Drops the window's oldest sample, and it from the running bounds.
     fn forget_oldest(&mut self) {
         if let Some(old) = self.window.pop_front() {
-            if usable(&old.sample) {
-                self.bounds
-                    .pop(old.t_ns, old.vibration, old.sample.flags != 0);
+            if old.usable {
+                self.bounds.pop(old.t_ns, old.vibration, old.flags != 0);
             }
             self.k_max.evict_through(old.t_ns);
         }
@@ -452,7 +457,8 @@ impl Monitor {
             let mut sample = *s;
             sample.flags |= batch_level;
             let t_ns = h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64);
-            let vibration = if usable(&sample) {
+            let is_usable = usable(&sample);
+            let vibration = if is_usable {
                 let hp = state
                     .highpass
                     .get_or_insert_with(|| HighPass::new(settings.highpass_hz, h.sample_rate_hz));
@@ -475,8 +481,11 @@ impl Monitor {
             }
             state.window.push_back(TimedSample {
                 t_ns,
-                sample,
+                accel_mps2: sample.accel_mps2,
+                uncertainty_mps2: sample.uncertainty_mps2,
                 vibration,
+                flags: sample.flags,
+                usable: is_usable,
                 settled: state.highpass.as_ref().is_some_and(HighPass::settled),
             });
         }
@@ -778,23 +787,23 @@ fn evaluate_window(
     let grid_len = (span_ns / period_ns).round() as u32;
     let point = |t: &TimedSample| Point {
         index: (((t.t_ns - first.t_ns) as f64 / period_ns).round() as u32).min(grid_len - 1),
-        accel_mps2: t.sample.accel_mps2,
+        accel_mps2: t.accel_mps2,
         vibration_mps2: t.vibration,
-        uncertainty_mps2: t.sample.uncertainty_mps2,
+        uncertainty_mps2: t.uncertainty_mps2,
     };
     let all: Vec<Point> = state
         .window
         .iter()
-        .filter(|t| usable(&t.sample))
+        .filter(|t| t.usable)
         .map(point)
         .collect();
     let clean: Vec<Point> = state
         .window
         .iter()
-        .filter(|t| t.sample.flags == 0 && usable(&t.sample))
+        .filter(|t| t.flags == 0 && t.usable)
         .map(point)
         .collect();
-    let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.sample.flags);
+    let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.flags);
     let rate = state.sample_rate_hz;
     let request = Request {
         sample_rate_hz: rate,

@@ -468,3 +468,10 @@ fn tilt_change_is_judged_against_a_baseline() {
     assert!(feed(&mut m, 0.5, 4, 0, 10).is_empty());
     assert!(feed(&mut m, 0.5, 4, 0, 3).is_empty());
 }
+
+/// The windows are most of the service's memory (ten thousand sensors' worth): a sample is 48
+/// bytes, not the 56 a nested `CorrectedSample` with its padding would make.
+#[test]
+fn a_window_sample_is_48_bytes() {
+    assert_eq!(std::mem::size_of::<TimedSample>(), 48);
+}
