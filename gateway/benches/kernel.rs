@@ -13,7 +13,10 @@
 //!
 //! Run: `cargo bench -p triax-gateway --bench kernel`.
 
-use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use criterion::measurement::WallTime;
+use criterion::{
+    black_box, criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput,
+};
 use triax_calibration::corrector::Corrector;
 use triax_gateway::kernel::{Scratch, SensorKernel};
 use triax_gateway::{CorrectionMode, SensorSettings};
@@ -49,6 +52,37 @@ fn outputs() -> Vec<[f32; 3]> {
             ]
         })
         .collect()
+}
+
+/// Times one encoded batch through a kernel with `settings`, parsed each time as the worker
+/// parses it.
+fn bench_batch(
+    g: &mut BenchmarkGroup<'_, WallTime>,
+    name: &str,
+    settings: SensorSettings,
+    corrector: &Corrector,
+    payload: &[u8],
+    scratch: &mut Scratch,
+) {
+    let mut kernel = SensorKernel::new(settings);
+    let mut out = Vec::with_capacity(4096);
+    g.bench_function(name, |b| {
+        b.iter(|| {
+            out.clear();
+            // Encoded by the protocol's own encoder.
+            let view = RawBatchView::parse(black_box(payload)).expect("valid batch");
+            black_box(kernel.correct_batch(&view, Some(corrector), 0, scratch, &mut out));
+        })
+    });
+}
+
+/// The settings of a sensor corrected in `mode`; split mode serves as an inclinometer.
+fn in_mode(mode: CorrectionMode) -> SensorSettings {
+    SensorSettings {
+        mode,
+        tilt: mode == CorrectionMode::Split,
+        ..SensorSettings::default()
+    }
 }
 
 fn bench(c: &mut Criterion) {
@@ -89,20 +123,15 @@ fn bench(c: &mut Criterion) {
         CorrectionMode::Dynamic,
         CorrectionMode::Split,
     ] {
-        let mut kernel = SensorKernel::new(SensorSettings {
-            mode,
-            tilt: mode == CorrectionMode::Split,
-            ..SensorSettings::default()
-        });
-        let mut out = Vec::with_capacity(4096);
-        g.bench_function(format!("batch/{mode:?}").to_lowercase(), |b| {
-            b.iter(|| {
-                out.clear();
-                // Encoded just above by the protocol's own encoder.
-                let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
-                black_box(kernel.correct_batch(&view, Some(&corrector), 0, &mut scratch, &mut out));
-            })
-        });
+        let name = format!("batch/{mode:?}").to_lowercase();
+        bench_batch(
+            &mut g,
+            &name,
+            in_mode(mode),
+            &corrector,
+            &payload,
+            &mut scratch,
+        );
     }
     // The same with degrees of freedom stated: ν per sample, k per batch.
     let mut with_dof = r.clone();
@@ -112,20 +141,15 @@ fn bench(c: &mut Criterion) {
     with_dof.sensor.output_noise_dof = Some(20_000.0);
     let with_dof = Corrector::from_record(&with_dof).expect("bench record loads");
     for mode in [CorrectionMode::Static, CorrectionMode::Split] {
-        let mut kernel = SensorKernel::new(SensorSettings {
-            mode,
-            tilt: mode == CorrectionMode::Split,
-            ..SensorSettings::default()
-        });
-        let mut out = Vec::with_capacity(4096);
-        g.bench_function(format!("batch/{mode:?}_dof").to_lowercase(), |b| {
-            b.iter(|| {
-                out.clear();
-                // Encoded just above by the protocol's own encoder.
-                let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
-                black_box(kernel.correct_batch(&view, Some(&with_dof), 0, &mut scratch, &mut out));
-            })
-        });
+        let name = format!("batch/{mode:?}_dof").to_lowercase();
+        bench_batch(
+            &mut g,
+            &name,
+            in_mode(mode),
+            &with_dof,
+            &payload,
+            &mut scratch,
+        );
     }
     // The same at a temperature, with the record's temperature model.
     let mut thermal = r.clone();
@@ -149,33 +173,26 @@ fn bench(c: &mut Criterion) {
         ..RawBatch::decode(&payload).expect("valid batch")
     }
     .encode();
-    let mut kernel = SensorKernel::new(SensorSettings {
-        mode: CorrectionMode::Static,
-        ..SensorSettings::default()
-    });
-    let mut out = Vec::with_capacity(4096);
-    g.bench_function("batch/static_temperature", |b| {
-        b.iter(|| {
-            out.clear();
-            // Encoded just above by the protocol's own encoder.
-            let view = RawBatchView::parse(black_box(&warm_payload)).expect("valid batch");
-            black_box(kernel.correct_batch(&view, Some(&thermal), 0, &mut scratch, &mut out));
-        })
-    });
+    bench_batch(
+        &mut g,
+        "batch/static_temperature",
+        in_mode(CorrectionMode::Static),
+        &thermal,
+        &warm_payload,
+        &mut scratch,
+    );
     // The same without the frequency detector: a band reaching Nyquist leaves nothing to detect.
     let mut wide = r.clone();
     wide.dynamic.domain.frequency_max_hz = 50.0;
     let wide = Corrector::from_record(&wide).expect("bench record loads");
-    let mut kernel = SensorKernel::new(SensorSettings::default());
-    let mut out = Vec::with_capacity(4096);
-    g.bench_function("batch/dynamic_no_detector", |b| {
-        b.iter(|| {
-            out.clear();
-            // Encoded just above by the protocol's own encoder.
-            let view = RawBatchView::parse(black_box(&payload)).expect("valid batch");
-            black_box(kernel.correct_batch(&view, Some(&wide), 0, &mut scratch, &mut out));
-        })
-    });
+    bench_batch(
+        &mut g,
+        "batch/dynamic_no_detector",
+        SensorSettings::default(),
+        &wide,
+        &payload,
+        &mut scratch,
+    );
     g.finish();
 }
 
