@@ -20,6 +20,12 @@ pub fn settle_s(cutoff_hz: f64) -> f64 {
     1000f64.ln() / (std::f64::consts::FRAC_1_SQRT_2 * 2.0 * std::f64::consts::PI * cutoff_hz)
 }
 
+/// The corner a filter for `cutoff_hz` has at `rate_hz`: clamped below a quarter of the rate,
+/// where the design still holds.
+pub fn corner_hz(cutoff_hz: f64, rate_hz: f64) -> f64 {
+    cutoff_hz.min(0.25 * rate_hz)
+}
+
 /// The filter's gain at `frequency_hz`, as designed (the analogue prototype; the bilinear
 /// transform is prewarped at the cutoff, so the two agree there and closely below fs/4).
 pub fn gain(cutoff_hz: f64, frequency_hz: f64) -> f64 {
@@ -39,10 +45,9 @@ pub struct HighPass {
 }
 
 impl HighPass {
-    /// A filter with cutoff `cutoff_hz` for samples at `rate_hz`. The cutoff is clamped below
-    /// a quarter of the rate, where the design still holds.
+    /// A filter with cutoff `cutoff_hz` for samples at `rate_hz`, at its [`corner_hz`].
     pub fn new(cutoff_hz: f64, rate_hz: f64) -> HighPass {
-        let fc = cutoff_hz.min(0.25 * rate_hz);
+        let fc = corner_hz(cutoff_hz, rate_hz);
         let k = (std::f64::consts::PI * fc / rate_hz).tan();
         let norm = 1.0 / (1.0 + std::f64::consts::SQRT_2 * k + k * k);
         HighPass {

@@ -106,8 +106,7 @@ const MAX_LEAD_IN_BATCHES: u64 = 100_000;
 fn lead_in_batches(config: &Config, batch: &CorrectedBatch) -> u64 {
     let s = &config.settings;
     let batch_s = batch.samples.len() as f64 / batch.header.sample_rate_hz;
-    // The filter clamps its corner below a quarter of the rate (`HighPass::new`).
-    let corner_hz = s.highpass_hz.min(0.25 * batch.header.sample_rate_hz);
+    let corner_hz = crate::highpass::corner_hz(s.highpass_hz, batch.header.sample_rate_hz);
     let span_s = crate::highpass::settle_s(corner_hz) + s.window_s;
     // An empty batch says nothing of the stream's pace.
     if batch_s.is_nan() || batch_s <= 0.0 {

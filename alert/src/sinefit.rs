@@ -100,7 +100,7 @@ impl Axis<'_> {
         let mut xtx = Matrix4::zeros();
         let mut xty = Vector4::zeros();
         self.each(omega, |i, t, c, s| {
-            let x = Vector4::new(c, s, 1.0, t * scale);
+            let x = columns(t * scale, c, s);
             xtx += x * x.transpose();
             xty += x * self.value[i];
         });
@@ -115,7 +115,7 @@ impl Axis<'_> {
         let scale = 1.0 / f64::from(self.grid_len.max(1));
         let mut rss = 0.0;
         self.each(omega, |i, t, c, s| {
-            let r = self.value[i] - (beta[0] * c + beta[1] * s + beta[2] + beta[3] * t * scale);
+            let r = self.value[i] - model(&beta, t * scale, c, s);
             rss += r * r;
         });
         Some((beta, inv, rss))
@@ -127,10 +127,10 @@ impl Axis<'_> {
         let (mut gr, mut xg, mut gg) = (0.0, Vector4::zeros(), 0.0);
         self.each(omega, |i, t, c, s| {
             let g = t * (-beta[0] * s + beta[1] * c);
-            let r = self.value[i] - (beta[0] * c + beta[1] * s + beta[2] + beta[3] * t * scale);
+            let r = self.value[i] - model(beta, t * scale, c, s);
             gr += g * r;
             gg += g * g;
-            xg += Vector4::new(c, s, 1.0, t * scale) * g;
+            xg += columns(t * scale, c, s) * g;
         });
         (gr, xg, gg)
     }
@@ -142,7 +142,7 @@ impl Axis<'_> {
         let mut last: [(u32, f64); 5] = [(u32::MAX, 0.0); 5];
         let (mut sum, mut count) = (0.0, 0usize);
         self.each(omega, |i, t, c, s| {
-            let r = self.value[i] - (beta[0] * c + beta[1] * s + beta[2] + beta[3] * t * scale);
+            let r = self.value[i] - model(beta, t * scale, c, s);
             last.rotate_left(1);
             last[4] = (self.index[i], r);
             let consecutive = (0..4).all(|m| last[m].0.wrapping_add(1) == last[m + 1].0);
@@ -181,6 +181,16 @@ impl Axis<'_> {
             [(a * cc + b * cs) / (n * rms), (a * cs + b * ss) / (n * rms)],
         )
     }
+}
+
+/// The linear columns at one sample, `(cos ωt, sin ωt, 1, t/n)`, with `t_scaled` = t/n.
+fn columns(t_scaled: f64, cos: f64, sin: f64) -> Vector4<f64> {
+    Vector4::new(cos, sin, 1.0, t_scaled)
+}
+
+/// The model at one sample: `a·cos ωt + b·sin ωt + c + d·t/n`.
+fn model(beta: &Vector4<f64>, t_scaled: f64, cos: f64, sin: f64) -> f64 {
+    beta.dot(&columns(t_scaled, cos, sin))
 }
 
 /// Fits one sinusoid near `start_hz` (the spectrum's peak; `bin_hz` its resolution) to an axis

@@ -229,13 +229,17 @@ impl AxisData {
     /// is at most the half range over cos(π/4) (a crest half a sample off at a quarter of the
     /// rate, the highest frequency it fits), plus a few u of noise.
     fn peak_bound(&self, k: f64) -> f64 {
-        2.0 * self.peak.max(self.accel_half_range) + (2.0 * k + 5.0) * self.mean_u
+        upper_bound(self.peak.max(self.accel_half_range), k, self.mean_u)
     }
 
     /// The same for the RMS: the samples' RMS with noise is at least the estimate, the fitted
     /// sinusoid's RMS at most its amplitude.
     fn rms_bound(&self, k: f64) -> f64 {
-        2.0 * self.mean_square.sqrt().max(self.accel_half_range) + (2.0 * k + 5.0) * self.mean_u
+        upper_bound(
+            self.mean_square.sqrt().max(self.accel_half_range),
+            k,
+            self.mean_u,
+        )
     }
 
     /// Peak interval (lower, upper) from the samples; see the module documentation.
@@ -288,6 +292,14 @@ impl AxisData {
         let parabola = ((yp - ym).powi(2) / (8.0 * curvature)).min(0.25 * curvature);
         parabola.max(sine)
     }
+}
+
+/// The cheap bound of [`AxisData::peak_bound`] and [`AxisData::rms_bound`] from the size of the
+/// samples (`level`: their largest |vibration|, half range or RMS) and their u: twice the size
+/// (a crest at most as high again) and a few u of noise and calibration. The monitor's running
+/// bounds use it too.
+pub fn upper_bound(level: f64, k: f64, u: f64) -> f64 {
+    2.0 * level + (2.0 * k + 5.0) * u
 }
 
 /// Fourth-difference estimate of white-noise variance over runs of five consecutive grid

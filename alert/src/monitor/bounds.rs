@@ -11,6 +11,8 @@
 
 use std::collections::VecDeque;
 
+use crate::stats::upper_bound;
+
 /// Sliding maximum over samples that leave in the order they entered.
 #[derive(Debug, Default, Clone)]
 pub(super) struct SlidingMax {
@@ -122,7 +124,11 @@ impl WindowBounds {
     pub(super) fn peak_bound(&self, k: f64) -> f64 {
         self.per_axis(|a, _| {
             let peak = a.abs_vibration.max().unwrap_or(0.0);
-            2.0 * peak.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
+            upper_bound(
+                peak.max(Self::half_range(a)),
+                k,
+                a.u_max.max().unwrap_or(0.0),
+            )
         })
     }
 
@@ -135,7 +141,11 @@ impl WindowBounds {
             if self.flagged > 0 {
                 rms = rms.max(a.abs_vibration.max().unwrap_or(0.0));
             }
-            2.0 * rms.max(Self::half_range(a)) + (2.0 * k + 5.0) * a.u_max.max().unwrap_or(0.0)
+            upper_bound(
+                rms.max(Self::half_range(a)),
+                k,
+                a.u_max.max().unwrap_or(0.0),
+            )
         })
     }
 }
