@@ -178,6 +178,10 @@ enum Command {
         /// user-assigned "unknown".
         #[arg(long, default_value = "ZZ")]
         country: String,
+        /// The lab's contact e-mail address for the certificate; without it the certificate
+        /// names none (DCC 3.2.1 allows that, not an empty address).
+        #[arg(long)]
+        email: Option<String>,
     },
     /// Offline correction of t_s,vx,vy,vz data (and an optional temperature_c column) with the
     /// gateway's corrector: writes t_s,ax,ay,az,ux,uy,uz, plus outside_temperature (0 or 1)
@@ -521,10 +525,14 @@ fn main() -> anyhow::Result<()> {
             record,
             out,
             country,
+            email,
         } => {
-            if !(country.len() == 2 && country.chars().all(|c| c.is_ascii_uppercase())) {
-                anyhow::bail!("--country {country:?}: two capital letters (ISO 3166-1 alpha-2)");
-            }
+            let options = triax_lab::dcc::DccOptions {
+                country,
+                email,
+                software_release: env!("CARGO_PKG_VERSION").to_string(),
+            };
+            options.check()?;
             let records = read_records(std::slice::from_ref(&record))?;
             let [r] = records.as_slice() else {
                 anyhow::bail!(
@@ -533,15 +541,9 @@ fn main() -> anyhow::Result<()> {
                     records.len()
                 );
             };
-            r.validate()
+            // dcc_xml validates the record as well as what the schema needs beyond it.
+            let xml = triax_lab::dcc::dcc_xml(r, &options)
                 .map_err(|e| anyhow::anyhow!("{}: {e}", record.display()))?;
-            let xml = triax_lab::dcc::dcc_xml(
-                r,
-                &triax_lab::dcc::DccOptions {
-                    country,
-                    software_release: env!("CARGO_PKG_VERSION").to_string(),
-                },
-            );
             write_file(&out, xml.as_bytes())?;
             println!("wrote {}", out.display());
         }
