@@ -104,14 +104,37 @@ pub struct HistorySettings {
 }
 
 impl HistorySettings {
-    pub fn history_config(&self) -> triax_history::HistoryConfig {
-        let mut c = triax_history::HistoryConfig::new(&self.path);
+    /// The history's settings, for `building`'s history only (see `triax_history::Owner`).
+    pub fn history_config(
+        &self,
+        building: &BuildingId,
+        gateway_name: &str,
+    ) -> triax_history::HistoryConfig {
+        let mut c = triax_history::HistoryConfig::new(&self.path).owned_by(triax_history::Owner {
+            building: building.clone(),
+            gateway_name: gateway_name.to_owned(),
+        });
         c.max_bytes = self.max_bytes;
         c.retention = self.retention;
         c.segment_bytes = self.segment_bytes;
         c
     }
 }
+
+/// Where the history of `building` lives when `[history] path` is not set: beside the store,
+/// named for the building, so that gateways of two buildings whose stores share a folder never
+/// share a history.
+pub fn default_history_path(store_path: &Path, building: &BuildingId) -> PathBuf {
+    store_path
+        .parent()
+        .unwrap_or(Path::new(""))
+        .join(format!("triax-history-{building}"))
+}
+
+/// The default history directory before it was named for the building: one per folder of
+/// stores, which a second building's gateway took for its own. Only looked for at start, to
+/// point at a history left there.
+pub const LEGACY_HISTORY_DIR: &str = "triax-history";
 
 /// Per-sensor processing settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -397,7 +420,7 @@ impl FileConfig {
         let store_path = self
             .store_path
             .unwrap_or_else(|| PathBuf::from("triax-store"));
-        let history = history_settings(self.history, &store_path)?;
+        let history = history_settings(self.history, &store_path, &building)?;
         let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
@@ -485,10 +508,12 @@ fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, Confi
     })
 }
 
-/// `store_path`: the default history lives beside the store, in `triax-history`.
+/// `store_path`, `building`: the default history lives beside the store, in
+/// `triax-history-<building>` ([`default_history_path`]).
 fn history_settings(
     h: FileHistory,
     store_path: &Path,
+    building: &BuildingId,
 ) -> Result<Option<HistorySettings>, ConfigError> {
     if !h.enabled.unwrap_or(true) {
         return Ok(None);
@@ -521,12 +546,9 @@ fn history_settings(
     )?;
     let queue_mib = within("queue_mib", h.queue_mib.unwrap_or(16.0), 0.0625..=4096.0)?;
     Ok(Some(HistorySettings {
-        path: h.path.unwrap_or_else(|| {
-            store_path
-                .parent()
-                .unwrap_or(Path::new(""))
-                .join("triax-history")
-        }),
+        path: h
+            .path
+            .unwrap_or_else(|| default_history_path(store_path, building)),
         retention: Duration::from_secs_f64(days * 86_400.0),
         max_bytes: (gib * (1u64 << 30) as f64) as u64,
         segment_bytes: (segment_mib * (1u64 << 20) as f64) as u64,
@@ -607,7 +629,8 @@ pub struct ConfigArgs {
     /// Directory of the calibration store.
     #[arg(long, env = "TRIAX_STORE")]
     pub store: Option<PathBuf>,
-    /// Directory of the history of raw batches (default `triax-history` beside the store).
+    /// Directory of the history of raw batches (default `triax-history-<building>` beside the
+    /// store).
     #[arg(long, env = "TRIAX_HISTORY")]
     pub history: Option<PathBuf>,
     /// Keep no history (history queries are then not answered).
@@ -714,6 +737,18 @@ mod tests {
         assert_eq!(c.overload, Overload::DropOldest);
         let c = parse("overload = \"backpressure\"").unwrap();
         assert_eq!(c.overload, Overload::Backpressure);
+    }
+
+    #[test]
+    fn the_default_history_is_named_for_the_building_beside_the_store() {
+        let c = parse("building = \"xb\"\nstore_path = \"/srv/triax/xb-store\"").unwrap();
+        let path = c.history.map(|h| h.path);
+        assert_eq!(path, Some(PathBuf::from("/srv/triax/triax-history-xb")));
+        let c = parse("building = \"zz\"\nstore_path = \"/srv/triax/zz-store\"").unwrap();
+        let path = c.history.map(|h| h.path);
+        assert_eq!(path, Some(PathBuf::from("/srv/triax/triax-history-zz")));
+        let c = parse("building = \"zz\"\n[history]\npath = \"/srv/h\"").unwrap();
+        assert_eq!(c.history.map(|h| h.path), Some(PathBuf::from("/srv/h")));
     }
 
     #[test]

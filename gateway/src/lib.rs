@@ -309,13 +309,52 @@ async fn open_history(config: &Config) -> Result<Option<history::Recorder>, Gate
     let Some(h) = config.history.clone() else {
         return Ok(None);
     };
+    let history_config = h.history_config(&config.building, &config.gateway_name);
     let opened = tokio::task::spawn_blocking(move || {
-        triax_history::History::open(h.history_config()).map(|o| (o, h))
+        triax_history::History::open(history_config).map(|o| (o, h))
     })
     .await
     .map_err(|e| GatewayError::Task(e.to_string()))?
     .map_err(GatewayError::History)?;
     let (o, h) = opened;
+    let building = config.building.as_str();
+    match &o.owner {
+        triax_history::OwnerCheck::Created => {
+            tracing::info!(path = %h.path.display(), building, "history created for this building");
+        }
+        triax_history::OwnerCheck::Adopted => tracing::warn!(
+            path = %h.path.display(),
+            building,
+            "history: made before histories recorded their building; adopted as this building's \
+             (if it holds another building's batches, stop the gateway and give it another path)"
+        ),
+        triax_history::OwnerCheck::Confirmed {
+            recorded_gateway_name: Some(name),
+        } => tracing::info!(
+            path = %h.path.display(),
+            created_by = %name,
+            "history created by this building's gateway under another name"
+        ),
+        triax_history::OwnerCheck::Confirmed { .. } | triax_history::OwnerCheck::Unchecked => {}
+    }
+    // The default used to be one `triax-history` per folder of stores; after an upgrade it is
+    // not served any more, and which building's it is cannot be known, so it is only pointed at.
+    let legacy = config
+        .store_path
+        .parent()
+        .unwrap_or(Path::new(""))
+        .join(crate::config::LEGACY_HISTORY_DIR);
+    if h.path == crate::config::default_history_path(&config.store_path, &config.building)
+        && !legacy.join(triax_history::OWNER_FILE).exists()
+        && legacy.is_dir()
+    {
+        tracing::warn!(
+            legacy = %legacy.display(),
+            path = %h.path.display(),
+            "history: an older history beside the store is not served; if it is this building's, \
+             stop the gateway and move it to the path in use, or set [history] path to it"
+        );
+    }
     if o.cut_bytes > 0 || o.rescanned_blocks > 0 {
         tracing::warn!(
             cut_bytes = o.cut_bytes,

@@ -18,6 +18,8 @@
 //!   torn tail; the index is rebuilt from the log where it lags.
 //! - A block is served only if its CRC matches: a damaged block is reported, never decoded.
 //! - Arrival numbers increase across restarts: they order batches as the gateway received them.
+//! - A history opened for an [`Owner`] serves that building only: the building is recorded at
+//!   creation and a history recording another is refused at open ([`HistoryError::Foreign`]).
 //!
 //! # Concurrency
 //!
@@ -30,11 +32,13 @@
 
 pub mod block;
 pub mod os;
+mod owner;
 pub mod segment;
 mod store;
 pub mod varint;
 
 pub use block::{Block, BlockError, Kept, Verdict};
+pub use owner::{read_owner, Owner, OwnerCheck, OWNER_FILE};
 pub use segment::IndexEntry;
 pub use store::{
     History, HistoryConfig, HistoryCounters, HistoryStats, Opened, Query, Scan, ScannedBlock,
@@ -42,6 +46,8 @@ pub use store::{
 };
 
 use std::path::PathBuf;
+
+use triax_protocol::BuildingId;
 
 /// What went wrong with a history.
 #[derive(Debug, thiserror::Error)]
@@ -61,6 +67,19 @@ pub enum HistoryError {
     },
     #[error("history {path} is in use by another process")]
     Locked { path: PathBuf },
+    /// The history records another building than the one opening it.
+    #[error(
+        "history {path} belongs to building {recorded} (created by gateway {recorded_gateway_name:?}), \
+         not to building {configured}: a history serves only the building it was created for"
+    )]
+    Foreign {
+        path: PathBuf,
+        recorded: BuildingId,
+        recorded_gateway_name: String,
+        configured: BuildingId,
+    },
+    #[error("history {path}: the owner file cannot be read: {reason}")]
+    OwnerUnreadable { path: PathBuf, reason: String },
     #[error("history setting {field}: {reason}")]
     Config { field: &'static str, reason: String },
 }

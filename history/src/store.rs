@@ -11,6 +11,7 @@ use std::time::{Duration, Instant, SystemTime};
 use triax_protocol::SensorId;
 
 use crate::block::{BlockBuilder, BlockSummary, Kept};
+use crate::owner::{self, Owner, OwnerCheck};
 use crate::segment::{self, IndexEntry, SegmentWriter};
 use crate::HistoryError;
 
@@ -26,6 +27,10 @@ pub struct HistoryConfig {
     pub segment_bytes: u64,
     /// ... or this age.
     pub segment_age: Duration,
+    /// Whom the history belongs to: recorded when it is created, and a history recording
+    /// another building is refused. None: neither recorded nor checked (tools and benches that
+    /// read any history).
+    pub owner: Option<Owner>,
 }
 
 impl HistoryConfig {
@@ -37,7 +42,14 @@ impl HistoryConfig {
             retention: Duration::from_secs(30 * 86_400),
             segment_bytes: 32 << 20,
             segment_age: Duration::from_secs(3600),
+            owner: None,
         }
+    }
+
+    /// The same, for `owner`'s history only.
+    pub fn owned_by(mut self, owner: Owner) -> HistoryConfig {
+        self.owner = Some(owner);
+        self
     }
 }
 
@@ -149,6 +161,8 @@ pub struct Opened {
     pub cut_bytes: u64,
     pub rescanned_blocks: usize,
     pub segments: usize,
+    /// Whether the owner was recorded now, found, or adopted.
+    pub owner: OwnerCheck,
 }
 
 impl History {
@@ -162,6 +176,11 @@ impl History {
             source,
         };
         std::fs::create_dir_all(&dir).map_err(|e| io("create the directory", e))?;
+        // Checked before the lock too: a gateway pointed at another building's history hears
+        // whose it is, not merely that it is in use, and nothing is written into it.
+        if let Some(o) = &config.owner {
+            owner::refuse_foreign(&dir, o)?;
+        }
         let lock = File::options()
             .create(true)
             .truncate(false)
@@ -179,6 +198,12 @@ impl History {
             }
         }
         ids.sort_unstable();
+        // Under the lock, before recovery writes anything: no other writer can record another
+        // owner between the check and the write.
+        let owner_check = match &config.owner {
+            Some(o) => owner::claim(&dir, o, !ids.is_empty())?,
+            None => OwnerCheck::Unchecked,
+        };
         let mut segments = Vec::with_capacity(ids.len() + 1);
         let mut sensors = BTreeSet::new();
         let (mut cut_bytes, mut rescanned_blocks) = (0, 0);
@@ -253,6 +278,7 @@ impl History {
             cut_bytes,
             rescanned_blocks,
             segments: n_segments,
+            owner: owner_check,
         })
     }
 

@@ -44,6 +44,8 @@ mod console;
 mod hardening;
 #[path = "gateway/history.rs"]
 mod history;
+#[path = "gateway/history_owner.rs"]
+mod history_owner;
 #[path = "gateway/intervals.rs"]
 mod intervals;
 #[path = "gateway/tilt.rs"]
