@@ -15,8 +15,10 @@ use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{BuildingId, Key, SensorId};
 
-/// Longest any step of a test waits for the network.
-pub const TIMEOUT: Duration = Duration::from_secs(10);
+/// Longest any step of a test waits for an event: generous, so that only a real failure
+/// reaches it, however loaded the machine (a step that should take milliseconds may take
+/// seconds while two test binaries and a build share two cores).
+pub const TIMEOUT: Duration = Duration::from_secs(60);
 
 /// Key of a sensor's raw stream.
 pub fn key_raw(b: &str, s: &str) -> String {
@@ -280,4 +282,29 @@ pub fn raw(sensor: &str, sequence: u64, samples: Vec<[f32; 3]>) -> Vec<u8> {
 pub fn outputs(s: &[[f64; 3]; 3], q: &[f64; 3], a: [f64; 3]) -> [f64; 3] {
     let d = [a[0] - q[0], a[1] - q[1], a[2] - q[2]];
     [0, 1, 2].map(|i| s[i][0] * d[0] + s[i][1] * d[1] + s[i][2] * d[2])
+}
+
+/// Returns once the gateway's history for `building` answers with `sequence` for `sensor`:
+/// everything put up to it has then been corrected and kept.
+pub async fn wait_history_holds(
+    session: &zenoh::Session,
+    building: &str,
+    sensor: &str,
+    sequence: u64,
+) {
+    let mut request = triax_client::HistoryRequest::sensor(
+        &BuildingId::new(building).unwrap(),
+        &SensorId::new(sensor).unwrap(),
+    );
+    request.from_seq = Some(sequence);
+    request.to_seq = Some(sequence);
+    wait_until_async(
+        &format!("{building}/{sensor} #{sequence} in the history"),
+        || async {
+            triax_client::history::fetch(session, &request, TIMEOUT, &mut |_| {})
+                .await
+                .is_ok_and(|n| n > 0)
+        },
+    )
+    .await;
 }

@@ -11,6 +11,14 @@ use triax_protocol::record::sample;
 
 use crate::util::*;
 
+/// The last sequence number the alert service's resume state says it judged for a sensor.
+fn judged(state: &std::path::Path, building: &str, sensor: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(state).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let p = &v[building][sensor];
+    p["judged"].as_u64().or(p.as_u64())
+}
+
 /// Outputs of the sample record for a 2 Hz sway of `amp` on x (its dynamic set: unit gain).
 fn sway(seq: u64, amp: f32) -> Vec<u8> {
     let samples = (0..10)
@@ -55,24 +63,33 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
     };
     let (stop, task) = run(alert_config());
     let mut seq = 0;
-    // Quiet, live: the service follows the sensor and remembers where it is.
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    for _ in 0..30 {
+    // Quiet, live, until the service has judged the sensor and written where it is: it
+    // subscribes in its own time, and only a remembered position makes the restart read back.
+    let deadline = tokio::time::Instant::now() + TIMEOUT;
+    while judged(&state, "ha1", "al-1").is_none() {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the alert service never recorded a position for al-1"
+        );
         publisher.put(sway(seq, 0.05)).await.unwrap();
         seq += 1;
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    tokio::time::sleep(Duration::from_millis(300)).await;
     stop.send(()).unwrap();
     task.await.unwrap().unwrap();
-    assert!(state.exists(), "the resume state is kept");
+    let judged_before = judged(&state, "ha1", "al-1").expect("the resume state is kept");
     // While it is down: a strong sway, then quiet again.
+    let first_missed = seq;
     for amp in [0.9, 0.05] {
         for _ in 0..150 {
             publisher.put(sway(seq, amp)).await.unwrap();
             seq += 1;
         }
     }
+    assert!(judged_before < first_missed);
+    // Every missed batch is in the gateway's history before the service comes back, so that
+    // none of the sway can reach it live: what it judges, it reads back.
+    wait_history_holds(&node, "ha1", "al-1", seq - 1).await;
     while alerts.try_recv().unwrap().is_some() {}
     let (stop, task) = run(alert_config());
     let deadline = tokio::time::Instant::now() + TIMEOUT;
