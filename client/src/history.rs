@@ -64,6 +64,34 @@ impl HistoryRequest {
     }
 }
 
+/// Whether the history holds at least one batch `request` selects (one batch asked for).
+pub async fn any_kept(
+    session: &zenoh::Session,
+    request: &HistoryRequest,
+    timeout: Duration,
+) -> Result<bool, ClientError> {
+    let selector = request.selector(1, None);
+    let replies = session
+        .get(&selector)
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+        .await
+        .map_err(zenoh_err("history query"))?;
+    let mut any = false;
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.result() {
+            Ok(_) => any = true,
+            Err(e) => {
+                return Err(ClientError::History {
+                    selector,
+                    message: String::from_utf8_lossy(&e.payload().to_bytes()).into_owned(),
+                })
+            }
+        }
+    }
+    Ok(any)
+}
+
 /// One batch read back from a history: its payload as the gateway sent it, decoded.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Recovered {

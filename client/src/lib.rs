@@ -4,6 +4,7 @@
 //!
 //! Async, on whatever runtime the caller runs Zenoh with; no runtime of its own.
 
+pub mod export;
 pub mod follow;
 pub mod history;
 pub mod mseed;
@@ -28,6 +29,6 @@ pub enum ClientError {
 fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> ClientError {
     move |e| ClientError::Zenoh {
         action,
-        message: e.to_string(),
+        message: triax_net::zenoh_cause(&*e),
     }
 }

@@ -11,7 +11,7 @@
 //! | `ax_mps2`, `ay_mps2`, `az_mps2` | FLOAT | corrected acceleration, m/s² (raw outputs when uncalibrated) |
 //! | `ux_mps2`, `uy_mps2`, `uz_mps2` | FLOAT | standard uncertainty (k = 1), m/s² (NaN when uncalibrated) |
 //! | `coverage_factor` | FLOAT | k of the batch |
-//! | `flags` | INT32 (UINT_16) | the sample's flags with its batch's (PROTOCOL.md §2.3) |
+//! | `flags` | INT32 (UINT_16) | the sample's own flags (PROTOCOL.md §2.3); the batch-only flags `sequence_gap` and `duplicate` on the batch's first sample only |
 //! | `calibration_version` | INT64 | 0 when uncalibrated |
 //! | `mode` | BYTE_ARRAY, UTF8 | `none`, `static`, `dynamic`, `split` |
 //!
@@ -147,7 +147,7 @@ impl<W: Write + Send> ParquetWriter<W> {
                 r.u[j].push(s.uncertainty_mps2[j]);
             }
             r.k.push(b.info.coverage_factor);
-            r.flags.push(i32::from(s.flags | b.batch_flags));
+            r.flags.push(i32::from(b.sample_flags(i)));
             r.version.push(b.info.calibration_version as i64);
             r.mode.push(mode.clone());
         }

@@ -1,33 +1,16 @@
 //! How the lab's network commands (`push`, `serve`) join Zenoh: the options shared by every
-//! Triax program ([`triax_net::ZenohArgs`]), with one rule of the lab's own.
+//! Triax program ([`triax_net::ZenohArgs`]), listening nowhere unless told.
 
-use triax_net::{ZenohArgs, ZenohConfigError, ZenohSettingsError};
+use triax_net::{OutboundConfigError, ZenohArgs};
 
 /// Why the lab's Zenoh configuration was refused.
-#[derive(Debug, thiserror::Error)]
-pub enum NetError {
-    #[error(transparent)]
-    Settings(#[from] ZenohSettingsError),
-    #[error(transparent)]
-    Config(#[from] ZenohConfigError),
-}
+pub type NetError = OutboundConfigError;
 
-/// The session configuration for the lab's command-line options.
+/// The session configuration for the lab's command-line options: a lab tool reaches out to
+/// routers and gateways and has no reason to accept connections
+/// ([`triax_net::outbound_config`]).
 pub fn zenoh_config(args: &ZenohArgs) -> Result<zenoh::Config, NetError> {
-    let settings = args.settings();
-    settings.validate()?;
-    let mut config = settings.to_config()?;
-    if settings.listen.is_empty() && settings.config_file.is_none() {
-        // A lab tool reaches out to routers and gateways; it has no reason to accept
-        // connections, which Zenoh's default peer would.
-        config
-            .insert_json5("listen/endpoints", "[]")
-            .map_err(|e| ZenohConfigError {
-                key: "listen/endpoints".into(),
-                message: e.to_string(),
-            })?;
-    }
-    Ok(config)
+    triax_net::outbound_config(&args.settings())
 }
 
 #[cfg(test)]

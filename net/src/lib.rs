@@ -277,6 +277,42 @@ impl ZenohSettings {
     }
 }
 
+/// [`ZenohSettings::to_config`] for a program that only reaches out (a lab tool, an exporter,
+/// a console): it listens nowhere unless `listen` or a configuration file says so, where
+/// Zenoh's default peer would accept connections on every interface.
+pub fn outbound_config(settings: &ZenohSettings) -> Result<zenoh::Config, OutboundConfigError> {
+    settings.validate()?;
+    let mut config = settings.to_config()?;
+    if settings.listen.is_empty() && settings.config_file.is_none() {
+        config
+            .insert_json5("listen/endpoints", "[]")
+            .map_err(|e| ZenohConfigError {
+                key: "listen/endpoints".into(),
+                message: e.to_string(),
+            })?;
+    }
+    Ok(config)
+}
+
+/// Why [`outbound_config`] refused the settings.
+#[derive(Debug, thiserror::Error)]
+pub enum OutboundConfigError {
+    #[error(transparent)]
+    Settings(#[from] ZenohSettingsError),
+    #[error(transparent)]
+    Config(#[from] ZenohConfigError),
+}
+
+/// A Zenoh error as a user should read it: its message without the source location Zenoh
+/// appends (`… at /path/to/zenoh/src/file.rs:447.`), which names a build, not a cause.
+pub fn zenoh_cause(e: &(dyn std::error::Error + Send + Sync)) -> String {
+    let text = e.to_string();
+    match text.rfind(" at ") {
+        Some(i) if text[i..].contains(".rs:") => text[..i].trim_end().to_owned(),
+        _ => text,
+    }
+}
+
 /// Transmit-queue settings of a session that publishes high-rate streams with drop congestion
 /// control (the gateway), for [`ZenohSettings::to_publisher_config`].
 ///

@@ -54,6 +54,8 @@ pub mod flags {
     pub const OUTSIDE_TEMPERATURE: u16 = 1 << 8;
     /// Every defined bit; the others are reserved and must be zero.
     pub const ALL: u16 = (1 << 9) - 1;
+    /// The flags that describe a batch, not its samples: set in the batch flags only.
+    pub const BATCH_ONLY: u16 = SEQUENCE_GAP | DUPLICATE;
 
     /// Names of the set bits, for logs and reports.
     pub fn names(bits: u16) -> Vec<&'static str> {
@@ -506,6 +508,19 @@ pub fn corrected_len(id_len: usize, n: usize) -> usize {
 }
 
 impl CorrectedBatch {
+    /// Sample `i`'s flags as a row of a table or a sample of a channel should carry them: its
+    /// own, plus the batch-only flags on the batch's first sample, where what they describe
+    /// (a gap before the batch, a repeated batch) begins. The batch flags ORed into every row
+    /// would mark good samples bad.
+    pub fn sample_flags(&self, i: usize) -> u16 {
+        let own = self.samples.get(i).map_or(0, |s| s.flags);
+        if i == 0 {
+            own | (self.batch_flags & flags::BATCH_ONLY)
+        } else {
+            own
+        }
+    }
+
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::new();
         let mut w =
