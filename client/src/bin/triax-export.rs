@@ -14,7 +14,9 @@ async fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("TRIAX_LOG")
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+                // Zenoh's own warnings name its source files; the export's error names the
+                // endpoint and the cause (TRIAX_LOG=zenoh=warn shows them).
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,zenoh=error")),
         )
         .with_writer(std::io::stderr)
         .init();
