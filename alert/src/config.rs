@@ -167,6 +167,10 @@ pub struct Config {
     /// Where the last sequence number handled per sensor is kept, so that after a restart the
     /// service reads what it missed from the gateways' histories; none: start afresh.
     pub state_path: Option<PathBuf>,
+    /// The service's Ed25519 secret key (64 hex characters), with which every alert is signed;
+    /// created with its `.pub` beside it when the file does not exist. None: a key made for
+    /// this run only, which consumers cannot have configured.
+    pub signing_key_file: Option<PathBuf>,
 }
 
 impl Config {
@@ -216,6 +220,7 @@ struct FileConfig {
     #[serde(default)]
     watch_all_buildings: bool,
     state_path: Option<PathBuf>,
+    signing_key_file: Option<PathBuf>,
     #[serde(default)]
     zenoh: ZenohSettings,
     #[serde(default)]
@@ -347,6 +352,7 @@ impl FileConfig {
                 Some(p) if p.as_os_str().is_empty() => None,
                 Some(p) => Some(p),
             },
+            signing_key_file: self.signing_key_file.filter(|p| !p.as_os_str().is_empty()),
         })
     }
 }

@@ -110,6 +110,9 @@ struct SensorState {
     bounds: WindowBounds,
     /// Largest coverage factor of the batches in the window, by each batch's last sample.
     k_max: SlidingMax,
+    /// First sample time and sequence number of each batch with samples in the window, oldest
+    /// first: what an alert names as the batches it judged.
+    batches: VecDeque<(i64, u64)>,
     /// Wall-clock arrival of the last message; None before the first.
     last_data: Option<OffsetDateTime>,
     /// When watching began: the reference for a sensor that never sent anything.
@@ -129,6 +132,7 @@ impl SensorState {
             calibration_version: None,
             bounds: WindowBounds::default(),
             k_max: SlidingMax::default(),
+            batches: VecDeque::new(),
             last_data: None,
             watched_since: now,
             tilt: TiltState::default(),
@@ -144,6 +148,12 @@ impl SensorState {
                 self.bounds.pop(old.t_ns, old.vibration, old.flags != 0);
             }
             self.k_max.evict_through(old.t_ns);
+        }
+        // A batch stays while its successor starts after the window's first sample.
+        if let Some(front_ns) = self.window.front().map(|s| s.t_ns) {
+            while self.batches.len() > 1 && self.batches[1].0 <= front_ns {
+                self.batches.pop_front();
+            }
         }
     }
 
@@ -220,6 +230,10 @@ struct Context<'a> {
     key: &'a SensorKey,
     k: f64,
     window_s: f64,
+    /// First and last sample time judged, ns.
+    window_ns: (i64, i64),
+    /// Sequence numbers of the batches holding them; none for tilt.
+    sequences: Option<(u64, u64)>,
     flagged_fraction: f64,
     flag_bits: u16,
     now: OffsetDateTime,
@@ -310,6 +324,10 @@ fn make_alert(
         statement: statement(ctx, kind, j, unit, detail),
         at: ctx.now,
         late: false,
+        window_start_ns: Some(ctx.window_ns.0),
+        window_end_ns: Some(ctx.window_ns.1),
+        first_sequence: ctx.sequences.map(|s| s.0),
+        last_sequence: ctx.sequences.map(|s| s.1),
     }
 }
 
@@ -448,10 +466,14 @@ impl Monitor {
             state.window.clear();
             state.bounds.clear();
             state.k_max = SlidingMax::default();
+            state.batches.clear();
             state.highpass = None;
             state.sample_rate_hz = h.sample_rate_hz;
         }
         state.calibration_version = Some(batch.info.calibration_version);
+        if !batch.samples.is_empty() {
+            state.batches.push_back((h.timestamp_ns, h.sequence));
+        }
         let batch_level = batch.batch_flags & flags::SEQUENCE_GAP;
         for (i, s) in batch.samples.iter().enumerate() {
             let mut sample = *s;
@@ -650,6 +672,13 @@ impl Monitor {
             key: &key,
             k,
             window_s: window_span_s(ts.window.front(), ts.window.back()),
+            window_ns: (
+                ts.window
+                    .front()
+                    .map_or(tilt.timestamp_ns, |t| t.timestamp_ns),
+                tilt.timestamp_ns,
+            ),
+            sequences: None,
             flagged_fraction: (n - clean.len()) as f64 / n as f64,
             flag_bits,
             now,
@@ -711,6 +740,10 @@ impl Monitor {
                 statement,
                 at: now,
                 late: false,
+                window_start_ns: None,
+                window_end_ns: None,
+                first_sequence: None,
+                last_sequence: None,
             };
             let span = state.span.clone();
             out.extend(rate_limit(
@@ -827,6 +860,12 @@ fn evaluate_window(
         key,
         k,
         window_s: f64::from(grid_len) / rate,
+        window_ns: (first.t_ns, last.t_ns),
+        sequences: state
+            .batches
+            .front()
+            .zip(state.batches.back())
+            .map(|(a, b)| (a.1, b.1)),
         flagged_fraction: (n - clean.len()) as f64 / n as f64,
         flag_bits,
         now,

@@ -27,6 +27,7 @@ use tokio::sync::mpsc;
 use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, TiltSample};
+use triax_protocol::signing::{sign_alert, signing_key_from_hex, to_hex, LabSigningKey};
 use triax_protocol::{from_json, to_json, BuildingId, CorrectedBatch, Key, SensorId};
 
 use crate::config::Config;
@@ -46,6 +47,57 @@ pub enum ServiceError {
     Zenoh { what: &'static str, message: String },
     #[error("state file {path}: {message}")]
     State { path: String, message: String },
+    #[error("signing key file {path}: {message}")]
+    SigningKey { path: String, message: String },
+}
+
+/// The key every alert is signed with: read from `path`, or created there (with the public key
+/// in `<path>.pub`) when the file does not exist; without a path, one for this run only.
+pub fn signing_key(path: Option<&Path>) -> Result<LabSigningKey, ServiceError> {
+    let Some(path) = path else {
+        let key = LabSigningKey::generate(&mut rand::rngs::OsRng);
+        tracing::warn!(
+            public_key = %to_hex(key.verifying_key().as_bytes()),
+            "no signing_key_file: alerts are signed with a key made for this run, which no \
+             consumer can trust; set signing_key_file and give consumers its .pub"
+        );
+        return Ok(key);
+    };
+    let failed = |message: String| ServiceError::SigningKey {
+        path: path.display().to_string(),
+        message,
+    };
+    if path.exists() {
+        let text = std::fs::read_to_string(path).map_err(|e| failed(e.to_string()))?;
+        let key = signing_key_from_hex(&text).map_err(|e| failed(e.to_string()))?;
+        tracing::info!(path = %path.display(), public_key = %to_hex(key.verifying_key().as_bytes()), "signing alerts");
+        return Ok(key);
+    }
+    let key = LabSigningKey::generate(&mut rand::rngs::OsRng);
+    write_secret(path, &to_hex(&key.to_bytes())).map_err(|e| failed(e.to_string()))?;
+    let public = to_hex(key.verifying_key().as_bytes());
+    let mut pub_path = path.as_os_str().to_owned();
+    pub_path.push(".pub");
+    std::fs::write(&pub_path, format!("{public}\n")).map_err(|e| failed(e.to_string()))?;
+    tracing::warn!(path = %path.display(), public_key = %public,
+        "created a signing key: give consumers its public key (the .pub beside it)");
+    Ok(key)
+}
+
+/// Writes a secret readable by its owner only.
+fn write_secret(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o600);
+    }
+    let mut f = options.open(path)?;
+    f.write_all(text.as_bytes())?;
+    f.write_all(b"\n")?;
+    f.sync_all()
 }
 
 fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError {
@@ -184,6 +236,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         Some(p) => load_state(p)?,
         None => Positions::new(),
     };
+    let signing = signing_key(config.signing_key_file.as_deref())?;
     let session = zenoh::open(config.zenoh.to_config()?)
         .await
         .map_err(zenoh_error("open session"))?;
@@ -336,7 +389,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             }
         };
         for alert in alerts {
-            publish(&session, &alert).await;
+            publish(&session, &alert, &signing).await;
         }
     }
     for f in &followers {
@@ -397,8 +450,7 @@ fn on_tilt(monitor: &mut Monitor, key: &str, payload: &[u8]) -> Vec<Alert> {
     }
 }
 
-async fn publish(session: &zenoh::Session, alert: &Alert) {
-    let key = Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string();
+async fn publish(session: &zenoh::Session, alert: &Alert, key: &LabSigningKey) {
     tracing::warn!(
         building = %alert.building,
         sensor = %alert.sensor_id,
@@ -412,8 +464,10 @@ async fn publish(session: &zenoh::Session, alert: &Alert) {
         statement = %alert.statement,
         "alert"
     );
-    if let Err(e) = session.put(&key, to_json(alert)).await {
-        tracing::error!(key = %key, cause = %e, "alert not published");
+    let signed = sign_alert(alert, key);
+    let expr = Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string();
+    if let Err(e) = session.put(&expr, to_json(&signed)).await {
+        tracing::error!(key = %expr, cause = %e, "alert not published");
     }
 }
 

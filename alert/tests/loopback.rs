@@ -6,10 +6,23 @@ use std::time::Duration;
 use triax_alert::config::{Config, ZenohMode, ZenohSettings};
 use triax_protocol::keys::{all_buildings, Stream};
 use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
+use triax_protocol::signing::{read_alert, to_hex, LabSigningKey, TrustedKeys};
 use triax_protocol::{
-    from_json, BatchHeader, BuildingId, CorrectedBatch, CorrectedSample, CorrectionInfo, Key, Mode,
-    SensorId,
+    BatchHeader, BuildingId, CorrectedBatch, CorrectedSample, CorrectionInfo, Key, Mode, SensorId,
 };
+
+/// The service's signing key in these tests.
+fn service_key() -> LabSigningKey {
+    LabSigningKey::from_bytes(&[9; 32])
+}
+
+/// An alert as a consumer that trusts the service reads it: signed, and verified.
+fn verified(payload: &[u8]) -> Alert {
+    let trusted = TrustedKeys::new(vec![service_key().verifying_key()]);
+    let (alert, trust) = read_alert(payload, &trusted).expect("an alert");
+    assert!(trust.is_verified(), "{trust:?}");
+    alert
+}
 
 const RATE_HZ: f64 = 100.0;
 const BATCH: usize = 10;
@@ -78,7 +91,7 @@ async fn publish_until(
             .unwrap();
         tokio::time::sleep(Duration::from_millis(20)).await;
         while let Ok(Some(sample)) = alerts.try_recv() {
-            let alert: Alert = from_json(&sample.payload().to_bytes()).unwrap();
+            let alert = verified(&sample.payload().to_bytes());
             assert_eq!(
                 sample.key_expr().as_str(),
                 Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string()
@@ -113,6 +126,10 @@ async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
     .unwrap();
     config.zenoh = settings("tcp/127.0.0.1:0", vec![format!("tcp/127.0.0.1:{port}")]);
     config.state_path = None;
+    let key_dir = tempfile::tempdir().unwrap();
+    let key_file = key_dir.path().join("alert.key");
+    std::fs::write(&key_file, to_hex(&service_key().to_bytes())).unwrap();
+    config.signing_key_file = Some(key_file);
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let service = tokio::spawn(triax_alert::run(config, async {
         let _ = stopped.await;
@@ -153,7 +170,7 @@ async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
             .await
             .expect("stale alerts within 10 s")
             .unwrap();
-        let alert: Alert = from_json(&sample.payload().to_bytes()).unwrap();
+        let alert = verified(&sample.payload().to_bytes());
         if alert.kind == AlertKind::Stale {
             assert_eq!(alert.level, AlertLevel::Stale);
             assert!(alert.value > 1.0 && alert.threshold == 1.0, "{alert:?}");

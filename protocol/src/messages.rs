@@ -374,12 +374,60 @@ pub struct Alert {
     /// partition kept it from the alerting service. Absent (false) for alerts on live data.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub late: bool,
+    /// The judged window, by the sensor's clock: its first and last sample's (or tilt
+    /// sample's) time, ns since the Unix epoch. Absent on `stale` alerts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window_start_ns: Option<i64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window_end_ns: Option<i64>,
+    /// Sequence numbers of the corrected batches holding the window's first and last sample.
+    /// Absent on `stale` and `tilt_change` alerts (tilt samples carry none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_sequence: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_sequence: Option<u64>,
 }
 
 impl JsonMessage for Alert {
     const WHAT: &'static str = "alert";
     fn format_version(&self) -> u32 {
         self.format_version
+    }
+}
+
+/// What an alerting service's signature covers: these bytes, then the alert's JSON.
+pub const ALERT_SIGNING_CONTEXT: &[u8] = b"triax alert v1\0";
+
+/// An alert as published: its JSON text exactly as signed, with the alerting service's Ed25519
+/// signature over `ALERT_SIGNING_CONTEXT ‖ alert_json`. Anyone who can reach a building's key
+/// space can put a JSON alert there; only the holder of the service's key can sign one.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SignedAlert {
+    pub format_version: u32,
+    /// Always [`SIGNATURE_ALGORITHM`].
+    pub algorithm: String,
+    /// The alerting service's public key, 32 bytes in lowercase hex.
+    pub public_key_hex: String,
+    /// The alert's JSON, byte for byte as signed.
+    pub alert_json: String,
+    /// Signature, 64 bytes in lowercase hex.
+    pub signature_hex: String,
+}
+
+impl JsonMessage for SignedAlert {
+    const WHAT: &'static str = "signed alert";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
+}
+
+impl SignedAlert {
+    /// The bytes a signature covers.
+    pub fn signing_message(alert_json: &str) -> Vec<u8> {
+        let mut m = ALERT_SIGNING_CONTEXT.to_vec();
+        m.extend_from_slice(alert_json.as_bytes());
+        m
     }
 }
 
@@ -511,6 +559,10 @@ mod tests {
             statement: "interval 0.7..1.1 straddles 1.0".into(),
             at: t(),
             late: true,
+            window_start_ns: Some(1_800_000_000_000_000_000),
+            window_end_ns: Some(1_800_000_009_990_000_000),
+            first_sequence: Some(3),
+            last_sequence: Some(22),
         });
     }
 

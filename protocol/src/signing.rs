@@ -9,8 +9,8 @@
 
 use ed25519_dalek::{Signature, Signer, SigningKey, Verifier, VerifyingKey};
 
-use crate::json::{to_json, JsonError, JSON_FORMAT_VERSION};
-use crate::messages::{RefusalReason, SignedRecord, SIGNATURE_ALGORITHM};
+use crate::json::{from_json, to_json, JsonError, JSON_FORMAT_VERSION};
+use crate::messages::{Alert, RefusalReason, SignedAlert, SignedRecord, SIGNATURE_ALGORITHM};
 use crate::record::CalibrationRecord;
 
 pub use ed25519_dalek::{SigningKey as LabSigningKey, VerifyingKey as LabPublicKey};
@@ -119,7 +119,85 @@ pub fn sign(record: &CalibrationRecord, key: &SigningKey) -> SignedRecord {
     }
 }
 
-/// The lab keys a gateway trusts.
+/// Signs an alert: its compact JSON becomes `alert_json`, byte for byte what is signed.
+pub fn sign_alert(alert: &Alert, key: &SigningKey) -> SignedAlert {
+    // to_json always yields UTF-8 (serde_json writes UTF-8 only).
+    let alert_json = String::from_utf8(to_json(alert)).expect("JSON is UTF-8");
+    let signature = key.sign(&SignedAlert::signing_message(&alert_json));
+    SignedAlert {
+        format_version: JSON_FORMAT_VERSION,
+        algorithm: SIGNATURE_ALGORITHM.into(),
+        public_key_hex: to_hex(key.verifying_key().as_bytes()),
+        alert_json,
+        signature_hex: to_hex(&signature.to_bytes()),
+    }
+}
+
+/// How far an alert read from the wire can be trusted.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case", tag = "status")]
+pub enum AlertTrust {
+    /// Signed by a trusted alerting service's key: a verdict.
+    Verified { public_key_hex: String },
+    /// Signed, and the signature holds, but by a key not configured as trusted.
+    UnknownKey { public_key_hex: String },
+    /// Signed, but the signature does not verify (altered, or made by another key).
+    BadSignature { public_key_hex: String },
+    /// A bare alert with no signature: anyone on the network can put one.
+    Unsigned,
+}
+
+impl AlertTrust {
+    pub fn is_verified(&self) -> bool {
+        matches!(self, AlertTrust::Verified { .. })
+    }
+
+    /// A short name: `verified`, `unknown_key`, `bad_signature`, `unsigned`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            AlertTrust::Verified { .. } => "verified",
+            AlertTrust::UnknownKey { .. } => "unknown_key",
+            AlertTrust::BadSignature { .. } => "bad_signature",
+            AlertTrust::Unsigned => "unsigned",
+        }
+    }
+}
+
+/// Reads an alert payload: a [`SignedAlert`] (PROTOCOL.md §3.6) checked against `trusted`, or a
+/// bare [`Alert`] (then `Unsigned`). The alert is returned whatever its trust, for display; only
+/// a `Verified` one may be acted on. An error when the payload is neither.
+pub fn read_alert(payload: &[u8], trusted: &TrustedKeys) -> Result<(Alert, AlertTrust), JsonError> {
+    let Ok(signed) = from_json::<SignedAlert>(payload) else {
+        return Ok((from_json::<Alert>(payload)?, AlertTrust::Unsigned));
+    };
+    let alert: Alert = from_json(signed.alert_json.as_bytes())?;
+    let key = match public_key_from_hex(&signed.public_key_hex) {
+        Ok(k) if signed.algorithm == SIGNATURE_ALGORITHM => k,
+        _ => {
+            return Ok((
+                alert,
+                AlertTrust::BadSignature {
+                    public_key_hex: signed.public_key_hex.clone(),
+                },
+            ))
+        }
+    };
+    let public_key_hex = to_hex(key.as_bytes());
+    let holds = from_hex::<64>("signature", &signed.signature_hex)
+        .map(|b| Signature::from_bytes(&b))
+        .is_ok_and(|sig| {
+            key.verify(&SignedAlert::signing_message(&signed.alert_json), &sig)
+                .is_ok()
+        });
+    let trust = match (holds, trusted.keys.contains(&key)) {
+        (false, _) => AlertTrust::BadSignature { public_key_hex },
+        (true, true) => AlertTrust::Verified { public_key_hex },
+        (true, false) => AlertTrust::UnknownKey { public_key_hex },
+    };
+    Ok((alert, trust))
+}
+
+/// The lab keys a gateway trusts (and the alerting keys a console trusts).
 #[derive(Debug, Clone, Default)]
 pub struct TrustedKeys {
     keys: Vec<VerifyingKey>,
@@ -232,6 +310,68 @@ mod tests {
             trusted.verify(&alg).unwrap_err().refusal_reason(),
             RefusalReason::Malformed
         );
+    }
+
+    fn alert() -> Alert {
+        use crate::messages::{AlertKind, AlertLevel};
+        Alert {
+            format_version: JSON_FORMAT_VERSION,
+            building: crate::BuildingId::new("hq").unwrap(),
+            sensor_id: crate::SensorId::new("acc-04").unwrap(),
+            kind: AlertKind::PeakAcceleration,
+            level: AlertLevel::Exceeded,
+            value: 2.5,
+            standard_uncertainty: 0.1,
+            coverage_factor: 2.0,
+            threshold: 1.0,
+            unit: "m/s^2".into(),
+            window_s: 10.0,
+            flagged_fraction: 0.0,
+            statement: "exceeded".into(),
+            at: time::OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap(),
+            late: false,
+            window_start_ns: Some(1_800_000_000_000_000_000),
+            window_end_ns: Some(1_800_000_009_990_000_000),
+            first_sequence: Some(7),
+            last_sequence: Some(26),
+        }
+    }
+
+    /// A signed alert verifies under its key; a forged, altered, foreign or bare one is read
+    /// but never `Verified`.
+    #[test]
+    fn alerts_are_verified_or_said_not_to_be() {
+        let service = key(4);
+        let trusted = TrustedKeys::new(vec![service.verifying_key()]);
+        let signed = sign_alert(&alert(), &service);
+        let payload = to_json(&signed);
+        let (read, trust) = read_alert(&payload, &trusted).unwrap();
+        assert_eq!(read, alert());
+        assert_eq!(
+            trust,
+            AlertTrust::Verified {
+                public_key_hex: to_hex(service.verifying_key().as_bytes())
+            }
+        );
+
+        let (_, trust) = read_alert(&payload, &TrustedKeys::default()).unwrap();
+        assert_eq!(trust.name(), "unknown_key");
+
+        let mut altered = signed.clone();
+        altered.alert_json = altered.alert_json.replace("\"value\":2.5", "\"value\":0.5");
+        assert_ne!(altered.alert_json, signed.alert_json);
+        let (read, trust) = read_alert(&to_json(&altered), &trusted).unwrap();
+        assert_eq!(read.value, 0.5);
+        assert_eq!(trust.name(), "bad_signature");
+
+        let mut borrowed = sign_alert(&alert(), &key(5));
+        borrowed.public_key_hex = signed.public_key_hex.clone();
+        let (_, trust) = read_alert(&to_json(&borrowed), &trusted).unwrap();
+        assert_eq!(trust.name(), "bad_signature");
+
+        let (_, trust) = read_alert(&to_json(&alert()), &trusted).unwrap();
+        assert_eq!(trust, AlertTrust::Unsigned);
+        assert!(read_alert(b"forged", &trusted).is_err());
     }
 
     #[test]

@@ -5,9 +5,9 @@ use std::time::Duration;
 
 use triax_alert::config::Config as AlertConfig;
 use triax_net::{ZenohMode, ZenohSettings};
-use triax_protocol::from_json;
 use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
 use triax_protocol::record::sample;
+use triax_protocol::signing::{read_alert, TrustedKeys};
 
 use crate::util::*;
 
@@ -44,6 +44,8 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
     let alerts = node.declare_subscriber("triax/ha1/alert/*").await.unwrap();
     let publisher = blocking_publisher(&node, key_raw("ha1", "al-1")).await;
     let state = dir.path().join("alert-state.json");
+    // The service makes its key on first start; the consumer trusts what it wrote beside it.
+    let key_file = dir.path().join("alert.key");
     let alert_config = || {
         let mut c = AlertConfig::from_toml(
             "window_s = 1.0\nstale_after_s = 60.0\nrepeat_interval_s = 0.0\n\
@@ -52,6 +54,7 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
         .unwrap();
         c.zenoh = ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![gw.endpoint.clone()]);
         c.state_path = Some(state.clone());
+        c.signing_key_file = Some(key_file.clone());
         c
     };
     let run = |c: AlertConfig| {
@@ -91,6 +94,8 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
     // none of the sway can reach it live: what it judges, it reads back.
     wait_history_holds(&node, "ha1", "al-1", seq - 1).await;
     while alerts.try_recv().unwrap().is_some() {}
+    let public = std::fs::read_to_string(dir.path().join("alert.key.pub")).unwrap();
+    let trusted = TrustedKeys::from_hex(&[public]).unwrap();
     let (stop, task) = run(alert_config());
     let deadline = tokio::time::Instant::now() + TIMEOUT;
     let late: Alert = loop {
@@ -99,7 +104,8 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
             .await
             .expect("an alert on the missed stretch")
             .unwrap();
-        let a: Alert = from_json(&s.payload().to_bytes()).unwrap();
+        let (a, trust) = read_alert(&s.payload().to_bytes(), &trusted).unwrap();
+        assert!(trust.is_verified(), "{trust:?}");
         if a.kind == AlertKind::PeakAcceleration && a.level == AlertLevel::Exceeded {
             break a;
         }
@@ -107,6 +113,15 @@ async fn a_restarted_alert_service_judges_what_it_missed_and_says_it_is_late() {
     assert!(late.late, "{late:?}");
     assert!(late.statement.contains("Raised late"), "{}", late.statement);
     assert!(late.value > 0.5, "{late:?}");
+    // It names what it judged: a window inside the missed stretch, by time and by batch.
+    let (first, last) = (late.first_sequence.unwrap(), late.last_sequence.unwrap());
+    assert!(
+        first >= first_missed && last < seq && first < last,
+        "{late:?}"
+    );
+    let t = |s: u64| 1_800_000_000_000_000_000 + s as i64 * 100_000_000;
+    assert!(late.window_start_ns.unwrap() >= t(first), "{late:?}");
+    assert!(late.window_end_ns.unwrap() < t(last + 1), "{late:?}");
     stop.send(()).unwrap();
     task.await.unwrap().unwrap();
     node.close().await.unwrap();
