@@ -10,9 +10,14 @@ Three commands:
              JSON lines, from which a restarted `follow --out FILE` resumes where it stopped,
              exactly once;
   simulate   publish raw batches (§2.1) for one sensor, as a sensor node would: a sine on x and
-             gravity on z, turned into outputs through a diagonal gain and offset.
+             gravity on z, turned into outputs through a diagonal gain and offset;
+  alerts     print a building's alerts (§3.6), each with how far it can be trusted: `verified`
+             only when signed by an alerting key given with --trusted-alert-key (the service's
+             signing_key_file.pub); `unknown_key`, `bad_signature` or `unsigned` otherwise,
+             and then never as a verdict.
 
-Requires only `eclipse-zenoh` (see requirements.txt) and the standard library.
+Requires `eclipse-zenoh` (see requirements.txt) and the standard library; `alerts` also
+`cryptography`, for Ed25519.
 
   python3 triax_client.py subscribe --building hq
   python3 triax_client.py simulate --building hq --sensor py-01 --count 100
@@ -468,6 +473,70 @@ def cmd_simulate(args):
     return 0
 
 
+# --- Alerts (PROTOCOL.md §3.6) ----------------------------------------------------------------
+
+ALERT_SIGNING_CONTEXT = b"triax alert v1\0"
+
+
+def read_alert(payload, trusted_keys):
+    """(alert dict, trust) for an alert payload; trust is verified, unknown_key, bad_signature
+    or unsigned. Raises ValueError when the payload is not an alert at all."""
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+    m = json.loads(payload)
+    if not isinstance(m, dict):
+        raise ValueError("not a JSON object")
+    if "alert_json" not in m:
+        if "kind" not in m or "level" not in m:
+            raise ValueError("neither a signed alert nor an alert")
+        return m, "unsigned"
+    alert = json.loads(m["alert_json"])
+    try:
+        key = bytes.fromhex(m["public_key_hex"])
+        if m.get("algorithm") != "ed25519" or len(key) != 32:
+            return alert, "bad_signature"
+        Ed25519PublicKey.from_public_bytes(key).verify(
+            bytes.fromhex(m["signature_hex"]), ALERT_SIGNING_CONTEXT + m["alert_json"].encode())
+    except (InvalidSignature, ValueError, KeyError):
+        return alert, "bad_signature"
+    return alert, ("verified" if key in trusted_keys else "unknown_key")
+
+
+def cmd_alerts(args):
+    trusted = set()
+    for k in args.trusted_alert_key:
+        trusted.add(bytes.fromhex(k.strip()))
+    for path in args.trusted_alert_key_file:
+        with open(path) as f:
+            trusted.add(bytes.fromhex(f.read().strip()))
+    session = open_session(args)
+    sub = session.declare_subscriber(f"{ROOT}/{args.building}/alert/*")
+    seen = 0
+    try:
+        for sample in sub:
+            try:
+                alert, trust = read_alert(sample.payload.to_bytes(), trusted)
+            except ValueError as e:
+                print(json.dumps({"key": str(sample.key_expr), "error": str(e)}), flush=True)
+                continue
+            if args.json:
+                print(json.dumps({"key": str(sample.key_expr), "trust": trust, "alert": alert}), flush=True)
+            elif trust == "verified":
+                print(f"{alert['building']}/{alert['sensor_id']} {alert['kind']} {alert['level']}: "
+                      f"{alert['value']} ± {alert['coverage_factor'] * alert['standard_uncertainty']} "
+                      f"{alert['unit']} against {alert['threshold']}", flush=True)
+            else:
+                print(f"NOT A VERDICT ({trust}): something on {sample.key_expr} claims "
+                      f"{alert.get('kind')} {alert.get('level')}", flush=True)
+            seen += 1
+            if args.count and seen >= args.count:
+                break
+    finally:
+        session.close()
+    return 0
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     common = argparse.ArgumentParser(add_help=False)
@@ -501,8 +570,15 @@ def main(argv=None):
     m.add_argument("--interval-s", type=float, help="pause between batches (default: real time)")
     m.add_argument("--warmup-s", type=float, default=1.0)
 
+    a = sub.add_parser("alerts", parents=[common], help="alerts, each verified or said not to be")
+    a.add_argument("--trusted-alert-key", action="append", default=[],
+                   help="an alerting service's public key, 64 hex characters (repeatable)")
+    a.add_argument("--trusted-alert-key-file", action="append", default=[],
+                   help="a file holding one, e.g. triax-alert.key.pub (repeatable)")
+
     args = p.parse_args(argv)
-    commands = {"subscribe": cmd_subscribe, "follow": cmd_follow, "simulate": cmd_simulate}
+    commands = {"subscribe": cmd_subscribe, "follow": cmd_follow, "simulate": cmd_simulate,
+                "alerts": cmd_alerts}
     return commands[args.command](args)
 
 

@@ -613,3 +613,94 @@ async fn a_parquet_export_reads_back_identically_in_pandas() {
     session.close().await.unwrap();
     gw.stop().await;
 }
+
+/// The Python client's `alerts`, written from PROTOCOL.md §3.6, against alerts signed by the
+/// Rust side: a verified one, and the three kinds it must never take for a verdict (unsigned,
+/// altered, signed by a key it does not trust).
+#[tokio::test(flavor = "multi_thread")]
+async fn python_verifies_alert_signatures() {
+    use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
+    use triax_protocol::signing::{sign_alert, to_hex, LabSigningKey};
+    let py = python_interpreter();
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let session = zenoh::open(
+        triax_net::ZenohSettings::loopback(
+            triax_net::ZenohMode::Peer,
+            vec![endpoint.clone()],
+            vec![],
+        )
+        .to_config()
+        .unwrap(),
+    )
+    .await
+    .unwrap();
+    let service = LabSigningKey::from_bytes(&[3; 32]);
+    let stranger = LabSigningKey::from_bytes(&[4; 32]);
+    let (_child, lines) = python(
+        &py,
+        &[
+            "alerts",
+            "--building",
+            "pal",
+            "--connect",
+            &endpoint,
+            "--no-multicast",
+            "--json",
+            "--count",
+            "4",
+            "--trusted-alert-key",
+            &to_hex(service.verifying_key().as_bytes()),
+        ]
+        .map(String::from),
+    );
+    let publisher = session
+        .declare_publisher("triax/pal/alert/acc-04")
+        .await
+        .unwrap();
+    util::wait_matching(&publisher).await;
+    let alert = Alert {
+        format_version: 1,
+        building: BuildingId::new("pal").unwrap(),
+        sensor_id: SensorId::new("acc-04").unwrap(),
+        kind: AlertKind::PeakAcceleration,
+        level: AlertLevel::Exceeded,
+        value: 2.5,
+        standard_uncertainty: 0.1,
+        coverage_factor: 2.0,
+        threshold: 1.0,
+        unit: "m/s^2".into(),
+        window_s: 10.0,
+        flagged_fraction: 0.0,
+        statement: "exceeded".into(),
+        at: time::OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap(),
+        late: false,
+        window_start_ns: Some(1_800_000_000_000_000_000),
+        window_end_ns: Some(1_800_000_009_990_000_000),
+        first_sequence: Some(0),
+        last_sequence: Some(99),
+    };
+    let signed = sign_alert(&alert, &service);
+    let mut altered = signed.clone();
+    altered.alert_json = altered.alert_json.replace("\"value\":2.5", "\"value\":9.5");
+    for payload in [
+        triax_protocol::to_json(&signed),
+        triax_protocol::to_json(&alert),
+        triax_protocol::to_json(&altered),
+        triax_protocol::to_json(&sign_alert(&alert, &stranger)),
+    ] {
+        publisher.put(payload).await.unwrap();
+    }
+    let trusts: Vec<String> = (0..4)
+        .map(|_| {
+            let v = next_line(&lines, "an alert");
+            assert_eq!(v["alert"]["sensor_id"], "acc-04", "{v}");
+            v["trust"].as_str().unwrap().to_owned()
+        })
+        .collect();
+    assert_eq!(
+        trusts,
+        ["verified", "unsigned", "bad_signature", "unknown_key"]
+    );
+    session.close().await.unwrap();
+}
