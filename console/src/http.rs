@@ -6,6 +6,11 @@
 //! response closes the connection and carries headers that keep the page to its own scripts
 //! (a Content-Security-Policy with no inline script), so that even a string that slipped past
 //! escaping could not run.
+//!
+//! A refusal is closed gracefully ([`respond_error`]): the console stops writing, then reads
+//! and discards what the client still sends for a moment. Closing a socket with unread bytes
+//! makes the kernel reset the connection, and a client that sees the reset may never read the
+//! status it was sent (a 431 for a head too long is exactly such a case).
 
 use std::time::Duration;
 
@@ -18,6 +23,9 @@ pub const MAX_REQUEST_BYTES: usize = 8 * 1024;
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// Time a client gets to take one response write (a page that stops reading is dropped).
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
+/// After a refusal, how long and how much the console goes on reading before it closes.
+const LINGER: Duration = Duration::from_secs(2);
+const LINGER_BYTES: usize = 64 * 1024;
 
 /// Headers on every response.
 const COMMON_HEADERS: &str = "Cache-Control: no-store\r\n\
@@ -60,6 +68,14 @@ impl Refusal {
 /// Reads and parses one request head. `Ok(None)`: the client closed or was too slow, nothing
 /// to answer.
 pub async fn read_request(stream: &mut TcpStream) -> Result<Option<Request>, Refusal> {
+    read_request_within(stream, REQUEST_TIMEOUT).await
+}
+
+/// [`read_request`] with another time limit.
+pub async fn read_request_within(
+    stream: &mut TcpStream,
+    limit: Duration,
+) -> Result<Option<Request>, Refusal> {
     let mut buf = Vec::with_capacity(1024);
     let read = async {
         let mut chunk = [0u8; 1024];
@@ -79,7 +95,7 @@ pub async fn read_request(stream: &mut TcpStream) -> Result<Option<Request>, Ref
             }
         }
     };
-    let end = match tokio::time::timeout(REQUEST_TIMEOUT, read).await {
+    let end = match tokio::time::timeout(limit, read).await {
         Err(_) => return Ok(None),
         Ok(r) => r?,
     };
@@ -126,6 +142,11 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
         };
         let value = value.trim();
         if name.eq_ignore_ascii_case("host") {
+            // Two Host headers name two hosts: taking either would let a foreign name pass
+            // the loopback check beside a local one (RFC 9112 §3.2 asks for 400).
+            if host.is_some() {
+                return Err(Refusal::new(400, "more than one Host header"));
+            }
             host = Some(value.to_owned());
         } else if (name.eq_ignore_ascii_case("content-length") && value != "0")
             || name.eq_ignore_ascii_case("transfer-encoding")
@@ -238,7 +259,8 @@ pub async fn respond(
         .unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into()))
 }
 
-/// A plain-text error response.
+/// A plain-text error response, then a graceful close: the client reads the status even if
+/// the console did not read all it sent.
 pub async fn respond_error(stream: &mut TcpStream, r: &Refusal) -> std::io::Result<()> {
     let body = format!("{}\n", r.message);
     respond(
@@ -248,7 +270,28 @@ pub async fn respond_error(stream: &mut TcpStream, r: &Refusal) -> std::io::Resu
         body.as_bytes(),
         false,
     )
-    .await
+    .await?;
+    linger(stream).await;
+    Ok(())
+}
+
+/// Ends the response (FIN), then discards what the client still sends, for at most [`LINGER`]
+/// and [`LINGER_BYTES`], so that closing does not reset the connection under the response.
+async fn linger(stream: &mut TcpStream) {
+    if stream.shutdown().await.is_err() {
+        return;
+    }
+    let drain = async {
+        let mut sink = [0u8; 4096];
+        let mut read = 0;
+        while read < LINGER_BYTES {
+            match stream.read(&mut sink).await {
+                Ok(0) | Err(_) => return,
+                Ok(n) => read += n,
+            }
+        }
+    };
+    let _ = tokio::time::timeout(LINGER, drain).await;
 }
 
 /// Starts a Server-Sent Events response; the body follows as events until the connection ends.
@@ -313,6 +356,11 @@ mod tests {
         assert_eq!(status(b"GET /?a=%ff HTTP/1.1"), 400, "not UTF-8");
         assert_eq!(status(b"GET /?a=% HTTP/1.1"), 400);
         assert_eq!(status(&[b'G', b'E', b'T', b' ', 0xff, b' ']), 400);
+        assert_eq!(
+            status(b"GET / HTTP/1.1\r\nHost: evil.example\r\nHost: 127.0.0.1"),
+            400,
+            "two hosts"
+        );
         assert!(parse_head(b"HEAD / HTTP/1.0").unwrap().head_only);
     }
 

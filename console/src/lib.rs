@@ -54,7 +54,8 @@ pub struct ConsoleOptions {
     /// Serve on a non-loopback address, and answer requests for any host name. The console
     /// has no authentication: whoever reaches the port sees the fleet.
     pub allow_remote: bool,
-    /// Connections served at once; more are closed at once.
+    /// Connections served at once; as many more are answered 503, and any beyond those are
+    /// closed unanswered.
     pub max_connections: usize,
     /// Live event streams (open pages) at once; more get 503.
     pub max_streams: usize,
@@ -155,6 +156,7 @@ pub async fn serve(
     let (json_tx, json_rx) = watch::channel::<Arc<str>>(Arc::from("null"));
     let serialiser = tokio::spawn(serialise_fleet(fleet.clone(), json_tx, stop_rx.clone()));
     let connections = Arc::new(Semaphore::new(options.max_connections));
+    let refusals = Arc::new(Semaphore::new(options.max_connections));
     let ctx = Arc::new(Context {
         session: session.clone(),
         fleet,
@@ -180,11 +182,17 @@ pub async fn serve(
                 }
             },
         };
-        match connections.clone().try_acquire_owned() {
-            Ok(permit) => {
-                tokio::spawn(server::handle(ctx.clone(), stream, permit));
-            }
-            Err(_) => tracing::debug!(%peer, "connection closed: too many at once"),
+        if let Ok(permit) = connections.clone().try_acquire_owned() {
+            tokio::spawn(server::handle(ctx.clone(), stream, permit));
+        } else if let Ok(permit) = refusals.clone().try_acquire_owned() {
+            tokio::spawn(server::refuse_busy(
+                stream,
+                ctx.options.max_connections,
+                permit,
+            ));
+        } else {
+            // Answering costs a task each; past twice the limit, the console keeps to itself.
+            tracing::debug!(%peer, "connection closed: too many at once");
         }
     }
     let _ = stop_tx.send(true);

@@ -54,6 +54,20 @@ pub struct Context {
     pub stop: watch::Receiver<bool>,
 }
 
+/// How long a connection over the limit gets to send its request before its 503.
+const BUSY_READ_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// Answers a connection over the limit with 503: its request is read first (briefly), so that
+/// the answer is not lost to a reset.
+pub async fn refuse_busy(mut stream: TcpStream, limit: usize, _permit: OwnedSemaphorePermit) {
+    let _ = http::read_request_within(&mut stream, BUSY_READ_TIMEOUT).await;
+    let r = Refusal::new(
+        503,
+        format!("too many connections at once ({limit}); try again in a moment"),
+    );
+    let _ = http::respond_error(&mut stream, &r).await;
+}
+
 /// Answers one connection.
 pub async fn handle(ctx: Arc<Context>, mut stream: TcpStream, _permit: OwnedSemaphorePermit) {
     let req = match http::read_request(&mut stream).await {
@@ -378,7 +392,11 @@ async fn events(
     }
     let mut fleet = ctx.fleet_json.clone();
     let mut stop = ctx.stop.clone();
-    let first = fleet.borrow_and_update().clone();
+    // The shared serialisation runs only while pages are open, so it may be missing or a
+    // while old: a page's first view is made for it.
+    fleet.mark_unchanged();
+    let first = json(&ctx.fleet.snapshot());
+    let first = String::from_utf8_lossy(&first);
     if http::send_event(stream, "fleet", &first).await.is_err() {
         return;
     }

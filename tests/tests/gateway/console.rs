@@ -16,6 +16,9 @@
 //!   listener are refused.
 //! - `one_sensor_status_carries_the_record_in_force`: what the console's calibration panel
 //!   reads.
+//! - `console_http_details` (issue 26): a page's first event carries the fleet; two Host
+//!   headers, a 9 KiB query or header and a connection over the limit are answered with their
+//!   status, and closed without a reset.
 
 use std::io::{Read, Write};
 use std::net::TcpStream as StdTcpStream;
@@ -877,6 +880,141 @@ async fn console_only_reads_and_refuses_what_it_must() {
     assert!(e.to_string().contains("no authentication"), "{e}");
     session.close().await.unwrap();
     spy.close().await.unwrap();
+}
+
+/// Sends `request` and reads the answer to its end: its status, its text, and whether the
+/// connection ended with a close rather than a reset (which may cost a client the answer).
+async fn exchange(addr: std::net::SocketAddr, request: &[u8]) -> (u16, String, bool) {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(request).await.unwrap();
+    let mut out = Vec::new();
+    let ended = tokio::time::timeout(TIMEOUT, s.read_to_end(&mut out))
+        .await
+        .expect("the console closes the connection");
+    let text = String::from_utf8_lossy(&out).into_owned();
+    let code = text
+        .get(9..12)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("no status line: {text:?} ({ended:?})"));
+    (code, text, ended.is_ok())
+}
+
+/// A console on a Zenoh session of its own (nothing to watch: these are HTTP matters).
+async fn lone_console(
+    options: ConsoleOptions,
+) -> (
+    std::net::SocketAddr,
+    tokio::sync::oneshot::Sender<()>,
+    tokio::task::JoinHandle<Result<(), triax_console::ConsoleError>>,
+    zenoh::Session,
+) {
+    let session = zenoh::open(
+        ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![])
+            .to_config()
+            .unwrap(),
+    )
+    .await
+    .unwrap();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(triax_console::serve(
+        session.clone(),
+        listener,
+        options,
+        async {
+            let _ = stopped.await;
+        },
+    ));
+    (addr, stop, task, session)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn console_http_details() {
+    let (addr, stop, task, session) = lone_console(ConsoleOptions::default()).await;
+    let host = format!("Host: 127.0.0.1:{}", addr.port());
+
+    // A page's first event is the fleet, even from a console no page has opened yet.
+    let mut sse = tokio::net::TcpStream::connect(addr).await.unwrap();
+    sse.write_all(format!("GET /events HTTP/1.1\r\n{host}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut got = Vec::new();
+    let first = loop {
+        let mut chunk = [0u8; 4096];
+        let n = tokio::time::timeout(TIMEOUT, sse.read(&mut chunk))
+            .await
+            .expect("the first event in time")
+            .unwrap();
+        assert!(n > 0, "the stream ended: {}", String::from_utf8_lossy(&got));
+        got.extend_from_slice(&chunk[..n]);
+        let text = String::from_utf8_lossy(&got);
+        if let Some(rest) = text.split("event: fleet\ndata: ").nth(1) {
+            if let Some((data, _)) = rest.split_once('\n') {
+                break data.to_owned();
+            }
+        }
+    };
+    let fleet: Value = serde_json::from_str(&first).unwrap();
+    assert!(fleet["buildings"].is_array(), "{first}");
+    drop(sse);
+
+    // Two Host headers, the foreign one first: refused, not the last one believed.
+    let (code, body, _) = exchange(
+        addr,
+        format!("GET / HTTP/1.1\r\nHost: evil.example\r\n{host}\r\n\r\n").as_bytes(),
+    )
+    .await;
+    assert_eq!(code, 400, "{body}");
+    assert!(body.contains("more than one Host header"), "{body}");
+
+    // A 9 KiB query or header: 431, and the answer is not lost to a reset.
+    for request in [
+        format!(
+            "GET /?q={} HTTP/1.1\r\n{host}\r\n\r\n",
+            "a".repeat(9 * 1024)
+        ),
+        format!(
+            "GET / HTTP/1.1\r\n{host}\r\nX-Long: {}\r\n\r\n",
+            "a".repeat(9 * 1024)
+        ),
+    ] {
+        let (code, body, clean) = exchange(addr, request.as_bytes()).await;
+        assert_eq!(code, 431, "{request:.40}: {body}");
+        assert!(body.contains("longer than 8192 bytes"), "{body}");
+        assert!(clean, "{request:.40}: the connection was reset");
+    }
+    stop.send(()).unwrap();
+    task.await.unwrap().unwrap();
+    session.close().await.unwrap();
+
+    // The connection over the limit is answered 503 (and closed cleanly), not dropped silently.
+    let (addr, stop, task, session) = lone_console(ConsoleOptions {
+        max_connections: 2,
+        ..ConsoleOptions::default()
+    })
+    .await;
+    // Two connections that say nothing hold the two places; the console accepts in order.
+    let idle = [
+        tokio::net::TcpStream::connect(addr).await.unwrap(),
+        tokio::net::TcpStream::connect(addr).await.unwrap(),
+    ];
+    let (code, body, clean) = exchange(
+        addr,
+        format!(
+            "GET /api/fleet HTTP/1.1\r\nHost: 127.0.0.1:{}\r\n\r\n",
+            addr.port()
+        )
+        .as_bytes(),
+    )
+    .await;
+    assert_eq!(code, 503, "{body}");
+    assert!(body.contains("too many connections at once (2)"), "{body}");
+    assert!(clean, "the 503 was reset");
+    drop(idle);
+    stop.send(()).unwrap();
+    task.await.unwrap().unwrap();
+    session.close().await.unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
