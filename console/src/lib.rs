@@ -90,6 +90,12 @@ pub enum ConsoleError {
     NotLoopback { addr: SocketAddr },
     #[error("console listener: {0}")]
     Listener(#[source] std::io::Error),
+    #[error("the page's address {addr:?}: {source}")]
+    Address {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("zenoh: {action}: {message}")]
     Zenoh {
         action: &'static str,
@@ -97,6 +103,40 @@ pub enum ConsoleError {
     },
     #[error("option `{field}`: {reason}")]
     Option { field: &'static str, reason: String },
+}
+
+/// Binds the page's address, `host:port`, whose host is an IP address or a name
+/// (`localhost:9760`). Every address a name resolves to must be a loopback address unless
+/// `allow_remote`; the first of them that binds is used (`localhost` may resolve to `::1`
+/// first on a machine without IPv6).
+pub async fn bind(addr: &str, allow_remote: bool) -> Result<TcpListener, ConsoleError> {
+    let address_error = |source| ConsoleError::Address {
+        addr: addr.to_owned(),
+        source,
+    };
+    let addrs: Vec<SocketAddr> = tokio::net::lookup_host(addr)
+        .await
+        .map_err(address_error)?
+        .collect();
+    if let Some(wide) = addrs.iter().find(|a| !a.ip().is_loopback()) {
+        if !allow_remote {
+            return Err(ConsoleError::NotLoopback { addr: *wide });
+        }
+    }
+    let mut last = None;
+    for a in &addrs {
+        match TcpListener::bind(a).await {
+            Ok(l) => return Ok(l),
+            Err(e) => last = Some(e),
+        }
+    }
+    Err(match last {
+        Some(e) => ConsoleError::Listener(e),
+        None => address_error(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            "resolves to no address",
+        )),
+    })
 }
 
 /// The page's address for a listener bound to `addr`.

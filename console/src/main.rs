@@ -4,15 +4,15 @@
 //! ```text
 //! triax-console                                         # every building found, page on 127.0.0.1:9760
 //! triax-console --connect tcp/site-router:7447 --zenoh-mode client --buildings hq,annex
+//! triax-console --listen localhost:9760                 # a name is resolved (loopback only)
 //! triax-console --listen 0.0.0.0:9760 --allow-remote    # no authentication: see the warning
 //! ```
 
-use std::net::SocketAddr;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
-use triax_console::{ConsoleOptions, DEFAULT_LISTEN};
+use triax_console::{ConsoleError, ConsoleOptions, DEFAULT_LISTEN};
 use triax_net::ZenohArgs;
 use triax_protocol::BuildingId;
 
@@ -24,13 +24,16 @@ use triax_protocol::BuildingId;
 #[command(mut_arg("listen", |a| a
     .long("zenoh-listen")
     .env("TRIAX_CONSOLE_ZENOH_LISTEN")
-    .help("Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeat or comma-separate); usually none")))]
+    .help("Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeat or comma-separate). \
+           Default: none, the console only connects (--connect, or multicast scouting), unless \
+           a --zenoh-config file lists listen endpoints")))]
 struct Cli {
     #[command(flatten)]
     zenoh: ZenohArgs,
-    /// Address of the page (HTTP). A non-loopback address needs --allow-remote.
+    /// Address of the page (HTTP), HOST:PORT with an IP address or a name (localhost:9760). A
+    /// non-loopback address needs --allow-remote.
     #[arg(id = "http_listen", long = "listen", value_name = "ADDR", env = "TRIAX_CONSOLE_LISTEN", default_value = DEFAULT_LISTEN)]
-    http_listen: SocketAddr,
+    http_listen: String,
     /// Serve on a non-loopback address. The console has NO authentication: anyone who reaches
     /// the port sees every building it sees.
     #[arg(long)]
@@ -73,28 +76,27 @@ async fn main() -> anyhow::Result<()> {
         allow_remote: cli.allow_remote,
         ..ConsoleOptions::default()
     };
-    if !cli.http_listen.ip().is_loopback() {
-        if !cli.allow_remote {
-            anyhow::bail!(
-                "--listen {} is not a loopback address; the console has no authentication. \
-                 Add --allow-remote to serve it anyway, or reach it through an SSH tunnel.",
-                cli.http_listen
-            );
-        }
-        eprintln!(
-            "WARNING: the console serves on {} with NO AUTHENTICATION: anyone who can reach this \
-             port sees every building, sensor and alert it sees. Put it behind a firewall, a VPN \
-             or an authenticating proxy.",
+    // Listening nowhere unless asked: the console only reads, so it has no reason to accept
+    // Zenoh connections, and a listening peer lets whoever reaches it publish into its session.
+    let config =
+        triax_net::outbound_config(&cli.zenoh.settings()).context("command-line Zenoh options")?;
+    let listener = match triax_console::bind(&cli.http_listen, cli.allow_remote).await {
+        Err(ConsoleError::NotLoopback { addr }) => anyhow::bail!(
+            "--listen {} is not a loopback address ({addr}); the console has no \
+             authentication. Add --allow-remote to serve it anyway, or reach it through an SSH \
+             tunnel.",
             cli.http_listen
+        ),
+        r => r.with_context(|| format!("binding --listen {}", cli.http_listen))?,
+    };
+    let addr = listener.local_addr().context("the page's address")?;
+    if !addr.ip().is_loopback() {
+        eprintln!(
+            "WARNING: the console serves on {addr} with NO AUTHENTICATION: anyone who can reach \
+             this port sees every building, sensor and alert it sees. Put it behind a firewall, \
+             a VPN or an authenticating proxy."
         );
     }
-    let settings = cli.zenoh.settings();
-    settings.validate().context("command-line Zenoh options")?;
-    let config = settings.to_config().context("Zenoh configuration")?;
-    let listener = tokio::net::TcpListener::bind(cli.http_listen)
-        .await
-        .with_context(|| format!("binding --listen {}", cli.http_listen))?;
-    let addr = listener.local_addr().context("the page's address")?;
     let session = zenoh::open(config)
         .await
         .map_err(|e| anyhow::anyhow!("joining Zenoh: {e}"))?;
