@@ -4,7 +4,9 @@
 //!
 //! The console only reads: it subscribes and queries, and never puts. Everything it keeps is
 //! bounded: buildings ([`MAX_BUILDINGS`]), alerts ([`MAX_ALERTS`]), the sensors listed per
-//! building (one status page, at most 5000 sensors).
+//! building (one status page, at most 5000 sensors), and per building a few checkpoints of the
+//! sensors' counters, from which the share of flagged samples over the last minute is taken
+//! ([`FLAGGED_SPAN`]).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -32,6 +34,16 @@ pub const STATUS_PAGE: usize = 5000;
 pub const HEARTBEAT_FRESH: Duration = Duration::from_secs(3);
 /// A sensor whose last batch is older than this, by its gateway's clock, is silent.
 pub const SILENT_AFTER: Duration = Duration::from_secs(10);
+/// A calibrated sensor is `flagged` when more than this share of its samples over the recent
+/// span carry a quality flag. Below it, a sensor that loses one batch in ten (each batch after
+/// a gap is flagged whole) still reads `gaps`, not `flagged`.
+pub const FLAGGED_ABOVE: f64 = 0.2;
+/// The recent span over which the flagged share is taken, by the gateway's clock: from the
+/// newest checkpoint at least this old to the latest status answer.
+pub const FLAGGED_SPAN: Duration = Duration::from_secs(60);
+/// Time between checkpoints of the counters: the span is [`FLAGGED_SPAN`] plus at most this
+/// (and one status interval), with no more than six checkpoints kept per building.
+pub const CHECKPOINT_EVERY: Duration = Duration::from_secs(15);
 
 /// How the fleet is watched.
 #[derive(Debug, Clone)]
@@ -60,6 +72,114 @@ struct BuildingState {
     status: Option<(Instant, GatewayStatus)>,
     status_error: Option<String>,
     latest_alerts: BTreeMap<SensorId, AlertEntry>,
+    counters: CounterHistory,
+    /// Per sensor, the flagged share as of the latest status answer.
+    flagged: BTreeMap<SensorId, FlaggedShare>,
+}
+
+/// The share of a sensor's samples that carry a quality flag over a span.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FlaggedShare {
+    /// `flagged / samples`, from 0 to 1.
+    pub share: f64,
+    pub samples: u64,
+    pub flagged: u64,
+    /// Length of the span by the gateway's clock; none: since the gateway started (until the
+    /// console has heard the gateway for [`FLAGGED_SPAN`]).
+    pub span_s: Option<f64>,
+}
+
+impl FlaggedShare {
+    /// The share of `flagged` among `samples`; none without samples.
+    pub fn of(samples: u64, flagged: u64, span_s: Option<f64>) -> Option<FlaggedShare> {
+        (samples > 0).then(|| FlaggedShare {
+            share: flagged.min(samples) as f64 / samples as f64,
+            samples,
+            flagged,
+            span_s,
+        })
+    }
+}
+
+/// The sensors' sample counters at one status answer.
+#[derive(Debug)]
+struct Checkpoint {
+    reported_at: OffsetDateTime,
+    /// Per sensor, `(samples, flagged_samples)`.
+    counts: BTreeMap<SensorId, (u64, u64)>,
+}
+
+/// Checkpoints of one gateway's counters, oldest first: the front is the newest one at least
+/// [`FLAGGED_SPAN`] older than the latest answer, once there is one.
+#[derive(Debug, Default)]
+struct CounterHistory {
+    started_at: Option<OffsetDateTime>,
+    checkpoints: VecDeque<Checkpoint>,
+}
+
+impl CounterHistory {
+    /// Each sensor's flagged share over the recent span as of `status`, which is then kept as
+    /// a checkpoint if the last one is [`CHECKPOINT_EVERY`] old.
+    fn update(&mut self, status: &GatewayStatus) -> BTreeMap<SensorId, FlaggedShare> {
+        let now = status.reported_at;
+        let restarted = self.started_at != Some(status.started_at);
+        let clock_back = self.checkpoints.back().is_some_and(|c| c.reported_at > now);
+        if restarted || clock_back {
+            // Counters start again at zero, or the gateway's clock no longer orders them.
+            self.checkpoints.clear();
+            self.started_at = Some(status.started_at);
+        }
+        let span = time::Duration::try_from(FLAGGED_SPAN).unwrap_or(time::Duration::MINUTE);
+        while self.checkpoints.len() >= 2 && self.checkpoints[1].reported_at <= now - span {
+            self.checkpoints.pop_front();
+        }
+        // Until a checkpoint is the span old, the counts since the gateway started: a shorter
+        // span would judge a sensor on a handful of batches.
+        let base = self
+            .checkpoints
+            .front()
+            .filter(|c| c.reported_at <= now - span);
+        let shares = status
+            .sensors
+            .iter()
+            .filter_map(|s| {
+                let since = base.and_then(|b| {
+                    let &(samples, flagged) = b.counts.get(&s.sensor_id)?;
+                    // A counter that went back belongs to another run: fall back to it whole.
+                    (samples <= s.samples && flagged <= s.flagged_samples).then_some((
+                        samples,
+                        flagged,
+                        (now - b.reported_at).as_seconds_f64(),
+                    ))
+                });
+                let share = match since {
+                    Some((samples, flagged, span_s)) => FlaggedShare::of(
+                        s.samples - samples,
+                        s.flagged_samples - flagged,
+                        Some(span_s),
+                    ),
+                    None => FlaggedShare::of(s.samples, s.flagged_samples, None),
+                };
+                Some((s.sensor_id.clone(), share?))
+            })
+            .collect();
+        let every = time::Duration::try_from(CHECKPOINT_EVERY).unwrap_or(time::Duration::MINUTE);
+        if self
+            .checkpoints
+            .back()
+            .is_none_or(|c| c.reported_at <= now - every)
+        {
+            self.checkpoints.push_back(Checkpoint {
+                reported_at: now,
+                counts: status
+                    .sensors
+                    .iter()
+                    .map(|s| (s.sensor_id.clone(), (s.samples, s.flagged_samples)))
+                    .collect(),
+            });
+        }
+        shares
+    }
 }
 
 #[derive(Debug, Default)]
@@ -133,6 +253,7 @@ impl Fleet {
         if let Some(st) = self.building(&mut s, &status.building.clone()) {
             st.gateway = Some(status.gateway.clone());
             st.status_error = None;
+            st.flagged = st.counters.update(&status);
             st.status = Some((Instant::now(), status));
         }
     }
@@ -235,6 +356,7 @@ impl Fleet {
                             wall,
                             self.options.expiry_warning,
                             b.latest_alerts.get(&s.sensor_id),
+                            b.flagged.get(&s.sensor_id).copied(),
                         )
                     })
                     .collect()
@@ -247,6 +369,12 @@ impl Fleet {
             }
         }
         sensors.sort_by(|a, b| a.sensor_id.cmp(&b.sensor_id));
+        // Each sensor's states are sorted worst first.
+        let worst_state = sensors
+            .iter()
+            .filter_map(|s| s.states.first())
+            .min()
+            .copied();
         BuildingView {
             building: id.clone(),
             gateway: b.gateway.clone(),
@@ -260,6 +388,7 @@ impl Fleet {
             dropped: status.map(|s| s.dropped),
             history: status.and_then(|s| s.history.clone()),
             total_sensors: status.map(|s| s.total_sensors),
+            worst_state,
             sensors,
         }
     }
@@ -307,6 +436,9 @@ pub enum SensorState {
     Expired,
     /// Before the record's `valid_from`.
     NotYetValid,
+    /// More than [`FLAGGED_ABOVE`] of the samples over the recent span carry a quality flag
+    /// (calibrated sensors only: every raw sample of an uncalibrated one is flagged).
+    Flagged,
     /// Within the warning period before `valid_until`.
     Expiring,
     /// No batch for [`SILENT_AFTER`] by the gateway's clock.
@@ -336,6 +468,9 @@ pub struct SensorView {
     pub missing_batches: u64,
     pub rejects: u64,
     pub flagged_samples: u64,
+    /// Share of flagged samples over the recent span ([`FLAGGED_SPAN`]); none before any
+    /// sample, or without one in the span.
+    pub flagged_share: Option<FlaggedShare>,
     pub mode: Mode,
     pub calibration_version: Option<u64>,
     #[serde(with = "time::serde::rfc3339::option")]
@@ -366,6 +501,7 @@ impl SensorView {
             missing_batches: 0,
             rejects: 0,
             flagged_samples: 0,
+            flagged_share: None,
             mode: Mode::None,
             calibration_version: None,
             valid_from: None,
@@ -388,7 +524,8 @@ fn alert_states(a: Option<&AlertEntry>) -> Vec<SensorState> {
 /// A sensor's row from its gateway's status (`reported_at` by the gateway's clock, received
 /// `status_age` ago) and the console's clock (`now`, for calibration validity, which is
 /// absolute time). A sensor's age is the gateway's view plus the status's own age, so that a
-/// gateway gone silent does not leave its sensors looking fresh.
+/// gateway gone silent does not leave its sensors looking fresh. `flagged` is the share of
+/// flagged samples over the recent span.
 pub fn sensor_view(
     s: &SensorStatus,
     reported_at: OffsetDateTime,
@@ -396,6 +533,7 @@ pub fn sensor_view(
     now: OffsetDateTime,
     expiry_warning: Duration,
     alert: Option<&AlertEntry>,
+    flagged: Option<FlaggedShare>,
 ) -> SensorView {
     let mut states = alert_states(alert);
     let days = |d: time::Duration| d.as_seconds_f64() / 86_400.0;
@@ -408,6 +546,9 @@ pub fn sensor_view(
         states.push(SensorState::NotYetValid);
     } else if expires_in.is_some_and(|d| d.as_seconds_f64() <= expiry_warning.as_secs_f64()) {
         states.push(SensorState::Expiring);
+    }
+    if s.calibration_version.is_some() && flagged.is_some_and(|f| f.share > FLAGGED_ABOVE) {
+        states.push(SensorState::Flagged);
     }
     let age = s.last_seen.map(|t| reported_at - t + status_age);
     if age.is_none_or(|a| a.as_seconds_f64() > SILENT_AFTER.as_secs_f64()) {
@@ -434,6 +575,7 @@ pub fn sensor_view(
         missing_batches: s.missing_batches,
         rejects: s.rejects,
         flagged_samples: s.flagged_samples,
+        flagged_share: flagged,
         mode: s.mode,
         calibration_version: s.calibration_version,
         valid_from: s.valid_from,
@@ -463,6 +605,8 @@ pub struct BuildingView {
     pub dropped: Option<u64>,
     pub history: Option<HistoryStatus>,
     pub total_sensors: Option<u64>,
+    /// The worst state of its sensors (none listed: none).
+    pub worst_state: Option<SensorState>,
     pub sensors: Vec<SensorView>,
 }
 
@@ -643,22 +787,30 @@ mod tests {
 
     #[test]
     fn states_from_status() {
-        let v = sensor_view(&status(Some(1)), t(1), Duration::ZERO, t(1), WARN, None);
+        let v = sensor_view(
+            &status(Some(1)),
+            t(1),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            None,
+            None,
+        );
         assert_eq!(v.states, [SensorState::Ok]);
-        let v = sensor_view(&status(None), t(1), Duration::ZERO, t(1), WARN, None);
+        let v = sensor_view(&status(None), t(1), Duration::ZERO, t(1), WARN, None, None);
         assert_eq!(v.states, [SensorState::Uncalibrated]);
 
         let mut s = status(Some(1));
         s.gaps = 2;
         s.rejects = 1;
-        let v = sensor_view(&s, t(60), Duration::ZERO, t(1), WARN, None);
+        let v = sensor_view(&s, t(60), Duration::ZERO, t(1), WARN, None, None);
         assert_eq!(
             v.states,
             [SensorState::Silent, SensorState::Gaps, SensorState::Rejects],
             "silent by the gateway's clock: 60 s since the last batch"
         );
         assert_eq!(v.last_seen_age_s, Some(60.0));
-        let v = sensor_view(&s, t(1), Duration::from_secs(30), t(1), WARN, None);
+        let v = sensor_view(&s, t(1), Duration::from_secs(30), t(1), WARN, None, None);
         assert_eq!(
             (v.states[0], v.last_seen_age_s),
             (SensorState::Silent, Some(31.0)),
@@ -670,7 +822,7 @@ mod tests {
     fn validity_warns_before_expiry_and_says_expired_after() {
         let mut s = status(Some(1));
         s.valid_until = Some(t(10 * 86_400));
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None, None);
         assert_eq!(v.states, [SensorState::Expiring]);
         assert!((v.expires_in_days.unwrap() - 10.0).abs() < 1e-9);
         let v = sensor_view(
@@ -680,14 +832,143 @@ mod tests {
             t(0),
             Duration::from_secs(86_400),
             None,
+            None,
         );
         assert_eq!(v.states, [SensorState::Ok], "outside a one-day warning");
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(10 * 86_400), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(10 * 86_400), WARN, None, None);
         assert_eq!(v.states, [SensorState::Expired]);
         s.valid_from = Some(t(5));
         s.valid_until = None;
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None);
+        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None, None);
         assert_eq!(v.states, [SensorState::NotYetValid]);
+    }
+
+    fn gateway_status(at_s: i64, sensors: Vec<SensorStatus>) -> GatewayStatus {
+        let rfc = |t: OffsetDateTime| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .unwrap()
+        };
+        serde_json::from_value(serde_json::json!({
+            "format_version": 1, "building": "hq", "gateway": "gw",
+            "started_at": rfc(t(-1000)), "reported_at": rfc(t(at_s)),
+            "malformed": 0, "dropped": 0, "pushes_accepted": 0, "pushes_refused": 0,
+            "total_sensors": sensors.len(), "sensors": sensors,
+        }))
+        .unwrap()
+    }
+
+    fn counted(id: &str, samples: u64, flagged: u64) -> SensorStatus {
+        let mut s = status(Some(1));
+        s.sensor_id = SensorId::new(id).unwrap();
+        s.samples = samples;
+        s.flagged_samples = flagged;
+        s
+    }
+
+    #[test]
+    fn the_flagged_share_is_taken_over_the_last_minute() {
+        let mut h = CounterHistory::default();
+        // First answer: since the gateway started (half of it flagged, long ago).
+        let first = h.update(&gateway_status(0, vec![counted("a", 1000, 500)]));
+        assert_eq!(first[&SensorId::new("a").unwrap()].share, 0.5);
+        assert_eq!(first[&SensorId::new("a").unwrap()].span_s, None);
+        // Every second 100 samples, none flagged, for two minutes: since the gateway started
+        // until the console has a checkpoint a minute old, then only the last minute.
+        let mut last = BTreeMap::new();
+        for i in 1..=120 {
+            let n = 1000 + 100 * i as u64;
+            last = h.update(&gateway_status(i, vec![counted("a", n, 500)]));
+            let a = last[&SensorId::new("a").unwrap()];
+            if i < 60 {
+                assert_eq!((a.share, a.span_s), (500.0 / n as f64, None), "at {i} s");
+            } else {
+                assert_eq!(a.share, 0.0, "at {i} s");
+            }
+        }
+        let a = last[&SensorId::new("a").unwrap()];
+        let span = a.span_s.unwrap();
+        assert!((60.0..=75.0).contains(&span), "{span}");
+        assert!(h.checkpoints.len() <= 6, "{}", h.checkpoints.len());
+        // Then everything flagged: above the threshold within a checkpoint interval.
+        let mut n = 1000 + 100 * 120;
+        let mut f = 500;
+        let mut at = 120;
+        let share = loop {
+            at += 1;
+            n += 100;
+            f += 100;
+            let s = h.update(&gateway_status(at, vec![counted("a", n, f)]))
+                [&SensorId::new("a").unwrap()];
+            if s.share > FLAGGED_ABOVE {
+                break s;
+            }
+        };
+        assert!(at - 120 <= 20, "flagged after {} s", at - 120);
+        assert!(share.share < 0.5);
+        // A restart: counters from zero, counted whole again.
+        let mut restarted = gateway_status(at + 1, vec![counted("a", 100, 100)]);
+        restarted.started_at = t(at);
+        let s = h.update(&restarted)[&SensorId::new("a").unwrap()];
+        assert_eq!((s.share, s.span_s), (1.0, None));
+    }
+
+    #[test]
+    fn a_flagged_sensor_says_so_and_its_building_takes_the_worst_state() {
+        let share = |s, f| FlaggedShare::of(s, f, Some(60.0));
+        let v = sensor_view(
+            &status(Some(1)),
+            t(1),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            None,
+            share(6000, 6000),
+        );
+        assert_eq!(v.states, [SensorState::Flagged]);
+        let v = sensor_view(
+            &status(Some(1)),
+            t(1),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            None,
+            share(6000, 1200),
+        );
+        assert_eq!(v.states, [SensorState::Ok], "20 % is not above 20 %");
+        let v = sensor_view(
+            &status(None),
+            t(1),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            None,
+            share(6000, 6000),
+        );
+        assert_eq!(
+            v.states,
+            [SensorState::Uncalibrated],
+            "raw outputs are flagged anyway"
+        );
+        assert_eq!(FlaggedShare::of(0, 0, None), None);
+
+        let f = Fleet::new(FleetOptions {
+            buildings: vec![],
+            status_interval: Duration::from_secs(2),
+            expiry_warning: WARN,
+        });
+        let mut st = gateway_status(0, vec![counted("a", 100, 0), counted("b", 100, 100)]);
+        st.reported_at = OffsetDateTime::now_utc();
+        for s in &mut st.sensors {
+            s.last_seen = Some(st.reported_at);
+            s.valid_from = Some(st.reported_at - time::Duration::DAY);
+        }
+        f.status(st);
+        let snap = f.snapshot();
+        let b = &snap.buildings[0];
+        assert_eq!(b.sensors[0].states, [SensorState::Ok]);
+        assert_eq!(b.sensors[1].states, [SensorState::Flagged]);
+        assert_eq!(b.sensors[1].flagged_share.unwrap().share, 1.0);
+        assert_eq!(b.worst_state, Some(SensorState::Flagged));
     }
 
     fn alert_json(b: &str, s: &str, level: &str, statement: &str) -> Vec<u8> {

@@ -38,6 +38,7 @@
   const fmtTime = (ms) => Number.isFinite(ms) ? new Date(ms).toISOString().replace('T', ' ').slice(0, 19) + 'Z' : '—';
   const fmtAge = (s) => s === null || s === undefined ? '—' : s < 1 ? 'now' : s < 120 ? `${s.toFixed(0)} s ago` : s < 7200 ? `${(s / 60).toFixed(0)} min ago` : `${(s / 3600).toFixed(1)} h ago`;
   const fmtNum = (x, d = 4) => x === null || x === undefined || !Number.isFinite(x) ? '—' : Number(x).toPrecision(d);
+  const fmtShare = (f) => !f ? '—' : `${(100 * f.share).toFixed(f.share > 0 && f.share < 0.01 ? 1 : 0)} %`;
   const fmtBytes = (b) => b >= 1 << 30 ? `${(b / (1 << 30)).toFixed(2)} GiB` : b >= 1 << 20 ? `${(b / (1 << 20)).toFixed(1)} MiB` : `${(b / 1024).toFixed(0)} KiB`;
   const nsToMs = (ns) => ns / 1e6;
   const msToNs = (ms) => (BigInt(Math.round(ms)) * 1000000n).toString();
@@ -119,13 +120,23 @@
       b.status_error && el('span', { class: 'notice' }, b.status_error));
     const rows = b.sensors.map((s) => renderSensorRow(b, s));
     const table = el('table', {},
-      el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', {}, t)))),
+      el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Flagged', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', { title: t === 'Flagged' ? FLAGGED_TITLE : null }, t)))),
       el('tbody', {}, rows));
     const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
     const more = b.total_sensors && b.total_sensors > b.sensors.length ? el('p', { class: 'meta' }, `Showing ${b.sensors.length} of ${b.total_sensors} sensors (the first status page).`) : null;
-    return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state },
-      el('h2', {}, `Building ${b.building} `, badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer')),
+    const worst = b.worst_state;
+    return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state, 'data-worst': worst ?? 'none' },
+      el('h2', {}, `Building ${b.building} `, worst ? badge(worst, worst.replace(/_/g, ' '), 'the worst state of its sensors') : null,
+        badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer')),
       meta, table, more);
+  }
+
+  const FLAGGED_TITLE = 'Share of the samples of the last minute that carry a quality flag (flagged above 20 %)';
+
+  function shareTitle(f) {
+    if (!f) return 'no sample in the last minute';
+    const over = f.span_s === null ? 'since the gateway started' : `over the last ${f.span_s.toFixed(0)} s`;
+    return `${f.flagged} of ${f.samples} samples flagged ${over}`;
   }
 
   function renderSensorRow(b, s) {
@@ -135,6 +146,7 @@
     return el('tr', { class: 'sensor', 'data-building': b.building, 'data-sensor': s.sensor_id, 'data-states': s.states.join(' ') },
       el('td', {}, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id)),
       el('td', {}, s.states.map((st) => badge(st))),
+      el('td', { class: 'num flagged-share', title: shareTitle(s.flagged_share) }, fmtShare(s.flagged_share)),
       el('td', {}, s.last_seen ? fmtAge(s.last_seen_age_s) : 'never'),
       el('td', { class: 'num' }, s.samples),
       el('td', { class: 'num' }, s.gaps ? `${s.gaps} (${s.missing_batches})` : '0'),
@@ -299,11 +311,13 @@
     const items = [];
     if (found) {
       items.push(badge(found.b.state === 'up' ? 'up' : 'down', found.b.state === 'up' ? 'gateway up' : 'gateway DOWN'));
-      if (found.s) items.push(...found.s.states.map((st) => badge(st)), ` last batch ${fmtAge(found.s.last_seen_age_s)}, ${found.s.samples} samples, ${found.s.gaps} gaps`);
+      const f = found.s && found.s.flagged_share;
+      if (found.s) items.push(...found.s.states.map((st) => badge(st)), ` last batch ${fmtAge(found.s.last_seen_age_s)}, ${found.s.samples} samples, ${found.s.gaps} gaps`,
+        f ? [', ', el('span', { id: 'flagged-share', title: shareTitle(f) }, `${fmtShare(f)} flagged`), f.span_s === null ? ' since the gateway started' : ' in the last minute'] : null);
     }
     const c = (live && live.correction) || (historyView && historyView.view && historyView.view.correction);
     if (c) items.push(` · mode ${c.mode}, calibration ${c.calibration_version ? 'v' + c.calibration_version : 'none'}, k = ${c.coverage_factor}, ${c.sample_rate_hz} Hz`);
-    box.replaceChildren(...items);
+    box.replaceChildren(...items.flat().filter((x) => x !== null));
     const list = $('sensor-alerts');
     if (list && fleet) {
       const mine = fleet.alerts.filter((a) => a.building === route.building && a.sensor_id === route.sensor);

@@ -8,9 +8,10 @@
 //! `chromium` and `chromium-driver`, installed by `scripts/test`) is driven over the W3C
 //! WebDriver protocol; screenshots go to `target/console-screenshots/`.
 //!
-//! - `console_in_a_browser`: the fleet view's states, an alert and its escaping, a live plot
-//!   that moves, the tilt plot, a gap, the calibration record, the history around an alert,
-//!   and a gateway that goes away and comes back.
+//! - `console_in_a_browser`: the fleet view's states (a sensor whose samples are flagged says
+//!   so, a building takes its worst state), an alert and its escaping, a live plot that moves,
+//!   the tilt plot, a gap, the calibration record, the history around an alert, and a gateway
+//!   that goes away and comes back.
 //! - `console_only_reads_and_refuses_what_it_must`: no put ever leaves the console; unknown
 //!   paths, other methods, foreign Host headers, long heads, bad parameters and a non-loopback
 //!   listener are refused.
@@ -489,12 +490,13 @@ async fn console_in_a_browser() {
     browser.go(&console.url);
     let states = browser
         .wait(
-            "the fleet view to list six sensors with gaps seen",
+            "the fleet view to list six sensors with gaps and flags seen",
             Duration::from_secs(30),
             "const rows = [...document.querySelectorAll('tr.sensor')];
              if (rows.length !== 6) return null;
              const m = Object.fromEntries(rows.map(r => [r.dataset.sensor, r.dataset.states]));
-             return m['acc-01'].includes('gaps') && m['acc-02'].includes('rejects') ? m : null;",
+             return m['acc-01'].includes('gaps') && m['acc-02'].includes('rejects')
+                && m['acc-03'].includes('flagged') ? m : null;",
         )
         .await;
     let state = |s: &str| {
@@ -509,17 +511,40 @@ async fn console_in_a_browser() {
     assert_eq!(state("acc-01"), ["gaps"], "{states}");
     // A truncated payload is lost, so the batch after it follows a gap.
     assert_eq!(state("acc-02"), ["gaps", "rejects"], "{states}");
-    assert_eq!(state("acc-03"), ["expiring"], "{states}");
+    // acc-03 uses its static set, calibrated to 1 Hz, on a 1–5 Hz sway: every batch is flagged
+    // `outside_frequency`, and the fleet says so (issue 26).
+    assert_eq!(state("acc-03"), ["flagged", "expiring"], "{states}");
+    let shares = browser.js(
+        "return Object.fromEntries([...document.querySelectorAll('tr.sensor')].map(r =>
+           [r.dataset.sensor, r.querySelector('.flagged-share').textContent]));",
+    );
+    let share = |s: &str| -> f64 {
+        let text = shares[s].as_str().unwrap();
+        text.trim_end_matches(" %")
+            .parse()
+            .unwrap_or_else(|_| panic!("{shares}"))
+    };
+    assert!(share("acc-03") > 20.0, "{shares}");
+    assert!(share("acc-04") < 20.0, "{shares}");
+    assert!(share("acc-01") < 20.0, "a batch in 15 lost: {shares}");
     let warning = browser.js(
-        "return document.querySelector('tr.sensor[data-sensor=\"acc-03\"]').children[8].textContent",
+        "return document.querySelector('tr.sensor[data-sensor=\"acc-03\"]').children[9].textContent",
     );
     assert!(warning.as_str().unwrap().contains("in 10.0 d"), "{warning}");
     assert_eq!(state("incl-01"), ["ok"], "{states}");
     let building = browser.js(
         "const b = document.querySelector('section.building[data-building=demo]');
-         return [b.dataset.state, b.querySelector('h2').textContent];",
+         return [b.dataset.state, b.querySelector('h2').textContent, b.dataset.worst];",
     );
     assert_eq!(building[0], "up", "{building}");
+    assert_eq!(
+        building[2], "uncalibrated",
+        "the worst of its sensors: {building}"
+    );
+    assert!(
+        building[1].as_str().unwrap().contains("uncalibrated"),
+        "{building}"
+    );
     browser.screenshot("fleet");
 
     // An alert from the alerting service shows on the fleet view; the hostile one is text.
@@ -540,6 +565,9 @@ async fn console_in_a_browser() {
              return r && r.dataset.states.includes('exceeded');",
         )
         .await;
+    let worst = browser
+        .js("return document.querySelector('section.building[data-building=demo]').dataset.worst");
+    assert_eq!(worst, "exceeded", "the building takes its worst state");
     alerts
         .put(hostile_key.to_string(), hostile.to_string())
         .await
@@ -692,6 +720,21 @@ async fn console_in_a_browser() {
         )
         .await;
     browser.screenshot("sensor-gap");
+    // The sensor view says what the fleet says: acc-03's samples are flagged.
+    browser.go(&format!("{}#/sensor/demo/acc-03", console.url));
+    let flagged = browser
+        .wait(
+            "acc-03's flagged state and share in its view",
+            Duration::from_secs(15),
+            "const h = document.getElementById('sensor-header');
+             const f = document.getElementById('flagged-share');
+             return h && h.querySelector('.badge.flagged') && f ? f.textContent : null;",
+        )
+        .await;
+    let flagged = flagged.as_str().unwrap();
+    let percent: f64 = flagged.trim_end_matches(" % flagged").parse().unwrap();
+    assert!(percent > 20.0, "{flagged}");
+    browser.screenshot("sensor-flagged");
 
     // The gateway goes away and comes back; the page stays connected and follows.
     browser.go(&console.url);
