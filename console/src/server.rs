@@ -3,7 +3,7 @@
 //! | path | answer |
 //! |---|---|
 //! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
-//! | `/app.js`, `/app.css` | its script and style, embedded in the binary |
+//! | `/app.js`, `/app.css`, `/favicon.svg` | its script, style and icon, embedded in the binary |
 //! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
 //! | `/api/alerts` | every alert kept, newest first |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
@@ -30,6 +30,7 @@ use crate::ConsoleOptions;
 const INDEX_HTML: &str = include_str!("assets/index.html");
 const APP_JS: &str = include_str!("assets/app.js");
 const APP_CSS: &str = include_str!("assets/app.css");
+const FAVICON_SVG: &str = include_str!("assets/favicon.svg");
 
 /// Longest range one history view reads.
 pub const MAX_HISTORY_SPAN_NS: i64 = 3600 * 1_000_000_000;
@@ -129,6 +130,10 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
         "/app.css" => {
             p.only(&[])?;
             ok(stream, "text/css; charset=utf-8", APP_CSS.into(), head_only).await
+        }
+        "/favicon.svg" => {
+            p.only(&[])?;
+            ok(stream, "image/svg+xml", FAVICON_SVG.into(), head_only).await
         }
         "/api/fleet" => {
             p.only(&[])?;

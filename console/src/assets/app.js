@@ -38,7 +38,22 @@
   const fmtTime = (ms) => Number.isFinite(ms) ? new Date(ms).toISOString().replace('T', ' ').slice(0, 19) + 'Z' : '—';
   const fmtAge = (s) => s === null || s === undefined ? '—' : s < 1 ? 'now' : s < 120 ? `${s.toFixed(0)} s ago` : s < 7200 ? `${(s / 60).toFixed(0)} min ago` : `${(s / 3600).toFixed(1)} h ago`;
   const fmtNum = (x, d = 4) => x === null || x === undefined || !Number.isFinite(x) ? '—' : Number(x).toPrecision(d);
+  // A coverage factor to three significant digits, without trailing zeros (2, 1.97).
+  const fmtK = (k) => Number.isFinite(k) ? String(Number(Number(k).toPrecision(3))) : '?';
+  // Units as the page writes them everywhere (the alerting service sends `m/s^2`).
+  const fmtUnit = (u) => String(u ?? '').replace(/\^2/g, '²').replace(/\^3/g, '³');
+  const fmtSpan = (s) => s >= 120 && s % 60 === 0 ? `${s / 60} min` : `${s} s`;
   const fmtShare = (f) => !f ? '—' : `${(100 * f.share).toFixed(f.share > 0 && f.share < 0.01 ? 1 : 0)} %`;
+  // The time input reads and writes ISO 8601 in UTC, as every other time on the page.
+  const fmtInput = (ms) => new Date(ms).toISOString().slice(0, 19).replace('T', ' ');
+  const parseInput = (text) => {
+    const m = /^\s*(\d{4})-(\d{2})-(\d{2})[ T](\d{2}):(\d{2})(?::(\d{2}))?Z?\s*$/.exec(text);
+    if (!m) return null;
+    const [y, mo, d, h, mi, se] = m.slice(1).map((x) => Number(x || 0));
+    const ms = Date.UTC(y, mo - 1, d, h, mi, se);
+    // Date.UTC rolls 2027-02-30 over to March: refuse what does not read back the same.
+    return fmtInput(ms) === `${m[1]}-${m[2]}-${m[3]} ${m[4]}:${m[5]}:${m[6] || '00'}` ? ms : null;
+  };
   const fmtBytes = (b) => b >= 1 << 30 ? `${(b / (1 << 30)).toFixed(2)} GiB` : b >= 1 << 20 ? `${(b / (1 << 20)).toFixed(1)} MiB` : `${(b / 1024).toFixed(0)} KiB`;
   const nsToMs = (ns) => ns / 1e6;
   const msToNs = (ms) => (BigInt(Math.round(ms)) * 1000000n).toString();
@@ -113,7 +128,7 @@
       el('span', {}, `gateway ${b.gateway ?? '?'}`),
       el('span', {}, heard),
       b.started_at && el('span', {}, `started ${fmtTime(Date.parse(b.started_at))}`),
-      b.total_sensors !== null && el('span', {}, `${b.total_sensors} sensors`),
+      el('span', { class: 'sensor-count' }, sensorCount(b)),
       b.malformed !== null && el('span', {}, `${b.malformed} malformed payloads`),
       b.dropped !== null && el('span', {}, `${b.dropped} dropped`),
       h && el('span', {}, `history ${fmtBytes(h.bytes)} of ${fmtBytes(h.max_bytes)}` + (h.oldest_ns ? ` since ${fmtTime(nsToMs(h.oldest_ns))}` : '')),
@@ -123,7 +138,8 @@
       el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Flagged', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', { title: t === 'Flagged' ? FLAGGED_TITLE : null }, t)))),
       el('tbody', {}, rows));
     const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
-    const more = b.total_sensors && b.total_sensors > b.sensors.length ? el('p', { class: 'meta' }, `Showing ${b.sensors.length} of ${b.total_sensors} sensors (the first status page).`) : null;
+    const listed = b.sensors.filter((s) => s.in_status).length;
+    const more = b.total_sensors && b.total_sensors > listed ? el('p', { class: 'meta' }, `Showing ${listed} of ${b.total_sensors} sensors (the first status page).`) : null;
     const worst = b.worst_state;
     return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state, 'data-worst': worst ?? 'none' },
       el('h2', {}, `Building ${b.building} `, worst ? badge(worst, worst.replace(/_/g, ' '), 'the worst state of its sensors') : null,
@@ -132,6 +148,14 @@
   }
 
   const FLAGGED_TITLE = 'Share of the samples of the last minute that carry a quality flag (flagged above 20 %)';
+
+  // How many sensors the list shows: the gateway's own, and those heard of only in an alert.
+  function sensorCount(b) {
+    const listed = b.sensors.filter((s) => s.in_status).length;
+    const alertOnly = b.sensors.length - listed;
+    const n = Math.max(b.total_sensors ?? 0, listed) + alertOnly;
+    return `${n} sensor${n === 1 ? '' : 's'}` + (alertOnly ? ` (${alertOnly} known only from an alert)` : '');
+  }
 
   function shareTitle(f) {
     if (!f) return 'no sample in the last minute';
@@ -144,7 +168,8 @@
     const validity = s.valid_until ? [fmtTime(Date.parse(s.valid_until)), s.expires_in_days !== null && s.expires_in_days < fleet.expiry_warning_days ? el('span', { class: s.expires_in_days <= 0 ? 'warning' : 'notice' }, s.expires_in_days <= 0 ? ' expired' : ` in ${s.expires_in_days.toFixed(1)} d`) : null]
       : s.calibration_version ? 'until superseded' : '—';
     return el('tr', { class: 'sensor', 'data-building': b.building, 'data-sensor': s.sensor_id, 'data-states': s.states.join(' ') },
-      el('td', {}, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id)),
+      el('td', {}, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id),
+        s.in_status ? null : el('span', { class: 'meta', title: 'not in the gateway\'s status' }, ' (alert only)')),
       el('td', {}, s.states.map((st) => badge(st))),
       el('td', { class: 'num flagged-share', title: shareTitle(s.flagged_share) }, fmtShare(s.flagged_share)),
       el('td', {}, s.last_seen ? fmtAge(s.last_seen_age_s) : 'never'),
@@ -172,8 +197,8 @@
         el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, `${a.building} / ${a.sensor_id}`)),
         el('td', {}, badge(a.level), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
         el('td', {}, a.kind.replace(/_/g, ' ')),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${a.unit}`),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${a.unit}`),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${fmtUnit(a.unit)}`),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${fmtUnit(a.unit)}`),
         el('td', { class: 'num' }, a.level === 'stale' ? '—' : `[${fmtNum(a.value - k * u)}, ${fmtNum(a.value + k * u)}]`),
         el('td', { class: 'num' }, `${fmtNum(a.window_s, 3)} s`),
         el('td', { class: 'num' }, `${(100 * a.flagged_fraction).toFixed(0)} %`),
@@ -197,15 +222,25 @@
     live = null; tilt = []; historyView = null; detail = null;
     const isLive = r.at === null;
     const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
+    // The span asked for is listed even if it is not one of the usual ones.
+    const spans = [...new Set([...SPANS_S, spanS])].sort((a, b) => a - b).filter((s) => !isLive || s <= LIVE_MAX_SPAN_S);
     const spanSel = el('select', { id: 'span', onchange: (e) => navigate({ span: Number(e.target.value) }) },
-      SPANS_S.filter((s) => !isLive || s <= LIVE_MAX_SPAN_S).map((s) => el('option', { value: s, selected: s === spanS ? 'selected' : null }, s < 120 ? `${s} s` : `${s / 60} min`)));
+      spans.map((s) => el('option', { value: s, selected: s === spanS ? 'selected' : null }, fmtSpan(s))));
     const atMs = isLive ? Date.now() : r.at / 1e6;
-    const atInput = el('input', { id: 'at', type: 'datetime-local', step: '1', value: new Date(atMs).toISOString().slice(0, 19) });
+    const atInput = el('input', { id: 'at', type: 'text', size: 19, spellcheck: 'false', placeholder: 'YYYY-MM-DD HH:MM:SS', value: fmtInput(atMs) });
+    const lookBack = () => {
+      const ms = parseInput(atInput.value);
+      if (ms === null) {
+        atInput.setAttribute('aria-invalid', 'true');
+        $('status-line').textContent = `"${atInput.value}" is not a time like ${fmtInput(Date.now())} (UTC)`;
+      } else navigate({ at: msToNs(ms) });
+    };
+    atInput.addEventListener('keydown', (e) => { if (e.key === 'Enter') lookBack(); });
     const controls = el('div', { class: 'controls' },
       el('button', { id: 'btn-live', class: isLive ? 'active' : '', onclick: () => navigate({ at: null }) }, 'Live'),
       el('button', { id: 'btn-back', onclick: () => step(-1), title: 'one span back' }, '◀'),
       el('label', {}, 'at (UTC) ', atInput),
-      el('button', { id: 'btn-go', onclick: () => { const ms = Date.parse(atInput.value + 'Z'); if (Number.isFinite(ms)) navigate({ at: msToNs(ms) }); } }, 'Look back'),
+      el('button', { id: 'btn-go', onclick: lookBack }, 'Look back'),
       el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward', disabled: isLive ? 'disabled' : null }, '▶'),
       el('label', {}, 'span ', spanSel));
     const plots = el('div', { id: 'plot', 'data-source': isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
@@ -316,7 +351,7 @@
         f ? [', ', el('span', { id: 'flagged-share', title: shareTitle(f) }, `${fmtShare(f)} flagged`), f.span_s === null ? ' since the gateway started' : ' in the last minute'] : null);
     }
     const c = (live && live.correction) || (historyView && historyView.view && historyView.view.correction);
-    if (c) items.push(` · mode ${c.mode}, calibration ${c.calibration_version ? 'v' + c.calibration_version : 'none'}, k = ${c.coverage_factor}, ${c.sample_rate_hz} Hz`);
+    if (c) items.push(` · mode ${c.mode}, calibration ${c.calibration_version ? 'v' + c.calibration_version : 'none'}, k = ${fmtK(c.coverage_factor)}, ${c.sample_rate_hz} Hz`);
     box.replaceChildren(...items.flat().filter((x) => x !== null));
     const list = $('sensor-alerts');
     if (list && fleet) {
@@ -324,7 +359,7 @@
       list.replaceChildren(mine.length ? el('table', {}, el('tbody', {}, mine.map((a) => el('tr', { class: 'alert', 'data-level': a.level },
         el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))),
         el('td', {}, badge(a.level)), el('td', {}, a.kind.replace(/_/g, ' ')),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(a.coverage_factor * a.standard_uncertainty, 2)} ${a.unit} vs ${fmtNum(a.threshold)}`),
+        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(a.coverage_factor * a.standard_uncertainty, 2)} ${fmtUnit(a.unit)} vs ${fmtNum(a.threshold)}`),
         el('td', { class: 'statement' }, a.statement))))) : el('p', { class: 'meta' }, 'None received since the console started.'));
     }
   }
@@ -407,20 +442,27 @@
         })),
       });
     } else tp.hidden = true;
-    const legend = [el('span', {}, `band: ±k·u, k = ${correction ? correction.coverage_factor : '?'}`), el('i', { style: null, class: 'gap-swatch' }), 'gap'];
+    const legend = [el('span', {}, `band: ±k·u, k = ${correction ? fmtK(correction.coverage_factor) : '?'}`), el('i', { style: null, class: 'gap-swatch' }), 'gap'];
     const flagItems = FLAGS.map(([n, c], i) => present & (1 << i) ? [el('i', { 'data-color': c }), n.replace(/_/g, ' ')] : null);
     $('legend').replaceChildren(...legend, ...flagItems.flat().filter(Boolean));
     for (const i of $('legend').querySelectorAll('i[data-color]')) i.style.background = i.dataset.color;
     const gs = $('legend').querySelector('.gap-swatch'); if (gs) gs.style.background = 'rgba(180,35,24,.15)';
   }
 
+  // About n ticks on round values, labelled with one number of decimals for all: the step's.
+  // Values are whole multiples of the step (no running sum), so none reads 0.30000000000000004.
   function niceTicks(lo, hi, n) {
-    const span = hi - lo;
-    const step0 = span / n;
-    const mag = Math.pow(10, Math.floor(Math.log10(step0)));
-    const step = [1, 2, 5, 10].map((m) => m * mag).find((s) => s >= step0) || step0;
+    const step0 = (hi - lo) / n;
+    const exp = Math.floor(Math.log10(step0));
+    const mag = Math.pow(10, exp);
+    const mult = [1, 2, 5, 10].find((m) => m * mag >= step0) || 10;
+    const step = mult * mag;
+    const decimals = Math.max(0, -exp - (mult === 10 ? 1 : 0));
     const out = [];
-    for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) out.push(v);
+    for (let i = Math.ceil(lo / step); i * step <= hi; i++) {
+      const v = i * step;
+      out.push({ v, label: (v === 0 ? 0 : v).toFixed(decimals).replace(/^-(0\.?0*)$/, '$1') });
+    }
     return out;
   }
 
@@ -444,13 +486,22 @@
     const X = (t) => left + (t - o.x0) / (o.x1 - o.x0) * pw;
     const Y = (v) => top + (hi - v) / (hi - lo) * ph;
     g.font = '11px system-ui, sans-serif'; g.fillStyle = '#5f6b76'; g.strokeStyle = '#eef0f3'; g.lineWidth = 1;
-    for (const v of niceTicks(lo, hi, 4)) { const y = Y(v); g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke(); g.fillText(fmtNum(v, 4), 4, y + 4); }
+    // A label is 11 px tall, centred on its line: one that would rise above the plot area is
+    // left out rather than drawn half under the title.
+    const ticks = niceTicks(lo, hi, 4).filter((t) => Y(t.v) - 6 >= top);
+    for (const t of ticks) { const y = Y(t.v); g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke(); g.fillText(t.label, 4, y + 4); }
+    canvas.dataset.yTicks = ticks.map((t) => t.label).join(' ');
+    canvas.dataset.yTickTop = ticks.length ? String(Math.min(...ticks.map((t) => Y(t.v))) - 6) : '';
+    canvas.dataset.plotTop = String(top);
     const spanMs = o.x1 - o.x0;
     const tStep = [100, 200, 500, 1000, 2000, 5000, 10000, 15000, 30000, 60000, 120000, 300000, 600000, 900000, 1800000].find((s) => spanMs / s <= 8) || 3600000;
     for (let t = Math.ceil(o.x0 / tStep) * tStep; t <= o.x1; t += tStep) {
       const x = X(t); g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
       const d = new Date(t).toISOString();
-      g.fillText(tStep < 1000 ? d.slice(14, 23) : d.slice(11, 19), x - 24, h - 4 - lanes * 4);
+      const label = tStep < 1000 ? d.slice(14, 23) : d.slice(11, 19);
+      // Centred under its line, but kept inside the canvas at either end.
+      const lw = g.measureText(label).width;
+      g.fillText(label, Math.max(2, Math.min(x - lw / 2, w - lw - 2)), h - 4 - lanes * 4);
     }
     g.fillStyle = 'rgba(180,35,24,.15)';
     for (const gap of o.gaps) {

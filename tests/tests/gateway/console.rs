@@ -11,7 +11,8 @@
 //! - `console_in_a_browser`: the fleet view's states (a sensor whose samples are flagged says
 //!   so, a building takes its worst state), an alert and its escaping, a live plot that moves,
 //!   the tilt plot, a gap, the calibration record, the history around an alert, and a gateway
-//!   that goes away and comes back.
+//!   that goes away and comes back; and the details (units, k, ticks, times typed in ISO 8601
+//!   UTC, spans, sensor counts, an icon).
 //! - `console_only_reads_and_refuses_what_it_must`: no put ever leaves the console; unknown
 //!   paths, other methods, foreign Host headers, long heads, bad parameters and a non-loopback
 //!   listener are refused.
@@ -534,7 +535,8 @@ async fn console_in_a_browser() {
     assert_eq!(state("incl-01"), ["ok"], "{states}");
     let building = browser.js(
         "const b = document.querySelector('section.building[data-building=demo]');
-         return [b.dataset.state, b.querySelector('h2').textContent, b.dataset.worst];",
+         return [b.dataset.state, b.querySelector('h2').textContent, b.dataset.worst,
+                 b.querySelector('.sensor-count').textContent];",
     );
     assert_eq!(building[0], "up", "{building}");
     assert_eq!(
@@ -545,6 +547,11 @@ async fn console_in_a_browser() {
         building[1].as_str().unwrap().contains("uncalibrated"),
         "{building}"
     );
+    assert_eq!(building[3], "6 sensors", "{building}");
+    let icon = browser.js(
+        "const l = document.querySelector('link[rel=icon]'); return l && l.getAttribute('href');",
+    );
+    assert_eq!(icon, "/favicon.svg");
     browser.screenshot("fleet");
 
     // An alert from the alerting service shows on the fleet view; the hostile one is text.
@@ -572,6 +579,27 @@ async fn console_in_a_browser() {
         .put(hostile_key.to_string(), hostile.to_string())
         .await
         .unwrap();
+    // A sensor the gateway does not list, heard of in an alert: listed and counted.
+    let stranger = json!({
+        "format_version": 1, "building": "demo", "sensor_id": "acc-99",
+        "kind": "peak_acceleration", "level": "possible", "value": 0.19,
+        "standard_uncertainty": 0.01, "coverage_factor": 2.0, "threshold": 0.2,
+        "unit": "m/s^2", "window_s": 4.0, "flagged_fraction": 0.0,
+        "statement": "peak near the limit", "at": now(),
+    });
+    alerts
+        .put("triax/demo/alert/acc-99", stranger.to_string())
+        .await
+        .unwrap();
+    let count = browser
+        .wait(
+            "the sensor known from an alert only",
+            Duration::from_secs(10),
+            "const rows = document.querySelectorAll('tr.sensor');
+             return rows.length === 7 ? document.querySelector('section.building[data-building=demo] .sensor-count').textContent : null;",
+        )
+        .await;
+    assert_eq!(count, "7 sensors (1 known only from an alert)");
     browser.go(&format!("{}#/alerts", console.url));
     let shown = browser
         .wait(
@@ -604,6 +632,13 @@ async fn console_in_a_browser() {
             .any(|v| v.as_str().unwrap().starts_with("exceeded ")),
         "{verdicts}"
     );
+    for v in verdicts.as_array().unwrap() {
+        let v = v.as_str().unwrap();
+        assert!(
+            v.contains("m/s²") && !v.contains("m/s^2"),
+            "one way to write units: {v}"
+        );
+    }
     browser.screenshot("alerts");
 
     // The alert links to the sensor view at its time: the history around it.
@@ -669,6 +704,24 @@ async fn console_in_a_browser() {
         inked.as_u64().unwrap() > 200,
         "the x axis is drawn in blue: {inked} pixels"
     );
+    // Tick labels: one precision per axis, none under the title.
+    let ticks = browser.js(
+        "return ['x', 'y', 'z'].map(a => { const c = document.getElementById('canvas-' + a);
+           return [c.dataset.yTicks, Number(c.dataset.yTickTop), Number(c.dataset.plotTop)]; });",
+    );
+    for axis in ticks.as_array().unwrap() {
+        let labels: Vec<&str> = axis[0].as_str().unwrap().split(' ').collect();
+        assert!(labels.len() >= 2, "{ticks}");
+        let decimals = |l: &str| l.split_once('.').map_or(0, |(_, d)| d.len());
+        assert!(
+            labels.iter().all(|l| decimals(l) == decimals(labels[0])),
+            "{ticks}"
+        );
+        assert!(
+            axis[1].as_f64().unwrap() >= axis[2].as_f64().unwrap(),
+            "{ticks}"
+        );
+    }
     let record = browser
         .wait(
             "the calibration record",
@@ -710,6 +763,27 @@ async fn console_in_a_browser() {
              return p && Number(p.dataset.tiltPoints) >= 2 && !t.hidden;",
         )
         .await;
+    let k = browser
+        .wait(
+            "incl-01's coverage factor",
+            Duration::from_secs(10),
+            "const h = document.getElementById('sensor-header').textContent;
+             const l = document.getElementById('legend').textContent;
+             return h.includes('k = ') && l.includes('k = ') ? [h, l] : null;",
+        )
+        .await;
+    for text in k.as_array().unwrap() {
+        let text = text.as_str().unwrap();
+        let k = text.split("k = ").nth(1).unwrap();
+        let k: String = k
+            .chars()
+            .take_while(|c| c.is_ascii_digit() || *c == '.')
+            .collect();
+        assert!(
+            k.replace('.', "").trim_start_matches('0').len() <= 3,
+            "k to three digits: {text}"
+        );
+    }
     browser.screenshot("sensor-tilt");
     browser.go(&format!("{}#/sensor/demo/acc-01", console.url));
     browser
@@ -736,6 +810,68 @@ async fn console_in_a_browser() {
     assert!(percent > 20.0, "{flagged}");
     browser.screenshot("sensor-flagged");
 
+    // A span that is not one of the list's is shown as itself.
+    let now_ns = now_ns();
+    let seven_at = now_ns - 60_000_000_000;
+    browser.go(&format!(
+        "{}#/sensor/demo/acc-04?at={seven_at}&span=7",
+        console.url
+    ));
+    let span = browser
+        .wait(
+            "a 7 s history view",
+            Duration::from_secs(20),
+            "const s = document.getElementById('span');
+             const line = document.getElementById('status-line').textContent;
+             return s && line.startsWith('history:') ? s.options[s.selectedIndex].textContent : null;",
+        )
+        .await;
+    assert_eq!(span, "7 s");
+    // The time is typed in ISO 8601 UTC, as the page writes it, and checked.
+    let input = browser.js("const i = document.getElementById('at'); return [i.type, i.value];");
+    assert_eq!(input[0], "text", "{input}");
+    let value = input[1].as_str().unwrap();
+    assert!(
+        value.len() == 19 && value.as_bytes()[4] == b'-' && value.as_bytes()[10] == b' ',
+        "YYYY-MM-DD HH:MM:SS: {input}"
+    );
+    let refused = browser.js(
+        "const i = document.getElementById('at'); i.value = '01/15/2027 8:00 AM';
+         document.getElementById('btn-go').click();
+         return [i.getAttribute('aria-invalid'), document.getElementById('status-line').textContent];",
+    );
+    assert_eq!(refused[0], "true", "{refused}");
+    assert!(
+        refused[1].as_str().unwrap().contains("is not a time like"),
+        "{refused}"
+    );
+    let earlier =
+        time::OffsetDateTime::from_unix_timestamp_nanos(i128::from(now_ns) - 120_000_000_000)
+            .unwrap();
+    let typed = format!(
+        "{:04}-{:02}-{:02} {:02}:{:02}:{:02}",
+        earlier.year(),
+        u8::from(earlier.month()),
+        earlier.day(),
+        earlier.hour(),
+        earlier.minute(),
+        earlier.second()
+    );
+    browser.js(&format!(
+        "const i = document.getElementById('at'); i.value = {typed:?}; document.getElementById('btn-go').click();"
+    ));
+    let at = browser
+        .wait(
+            "the typed time in the link",
+            Duration::from_secs(10),
+            &format!(
+                "const a = new URLSearchParams(location.hash.split('?')[1] || '').get('at');
+                 return a && a !== '{seven_at}' && document.getElementById('at').value;"
+            ),
+        )
+        .await;
+    assert_eq!(at, typed.as_str());
+
     // The gateway goes away and comes back; the page stays connected and follows.
     browser.go(&console.url);
     demo.stop_gateway().await;
@@ -754,7 +890,7 @@ async fn console_in_a_browser() {
             "the gateway shown up again",
             Duration::from_secs(20),
             "const b = document.querySelector('section.building[data-building=demo]');
-             return b && b.dataset.state === 'up' && document.querySelectorAll('tr.sensor').length === 6;",
+             return b && b.dataset.state === 'up' && document.querySelectorAll('tr.sensor').length === 7;",
         )
         .await;
     browser.go(&format!("{}#/sensor/demo/acc-04", console.url));
@@ -832,6 +968,9 @@ async fn console_only_reads_and_refuses_what_it_must() {
     assert!(body.contains("Content-Security-Policy: default-src 'none'; script-src 'self'"));
     let (code, body) = raw_http(addr, get("/api/fleet").as_bytes()).await;
     assert_eq!(code, 200, "{body}");
+    let (code, body) = raw_http(addr, get("/favicon.svg").as_bytes()).await;
+    assert_eq!(code, 200, "{body}");
+    assert!(body.contains("Content-Type: image/svg+xml"), "{body}");
     for (request, expected, says) in [
         (get("/etc/passwd"), 404, "no such page"),
         (
