@@ -431,6 +431,37 @@ impl SignedAlert {
     }
 }
 
+/// Small, valid messages for tests and examples across the workspace.
+pub mod sample {
+    use super::*;
+
+    /// An `exceeded` peak-acceleration alert of `sensor` in `building`, naming its window.
+    pub fn alert(building: &str, sensor: &str) -> Alert {
+        Alert {
+            format_version: crate::json::JSON_FORMAT_VERSION,
+            // Callers pass literal ids; a bad one is a bug in the caller's test.
+            building: BuildingId::new(building).expect("valid building id"),
+            sensor_id: SensorId::new(sensor).expect("valid sensor id"),
+            kind: AlertKind::PeakAcceleration,
+            level: AlertLevel::Exceeded,
+            value: 2.5,
+            standard_uncertainty: 0.1,
+            coverage_factor: 2.0,
+            threshold: 1.0,
+            unit: "m/s^2".into(),
+            window_s: 10.0,
+            flagged_fraction: 0.0,
+            statement: "exceeded".into(),
+            at: OffsetDateTime::from_unix_timestamp(1_800_000_010).expect("in range"),
+            late: false,
+            window_start_ns: Some(1_800_000_000_000_000_000),
+            window_end_ns: Some(1_800_000_009_990_000_000),
+            first_sequence: Some(0),
+            last_sequence: Some(99),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -313,28 +313,7 @@ mod tests {
     }
 
     fn alert() -> Alert {
-        use crate::messages::{AlertKind, AlertLevel};
-        Alert {
-            format_version: JSON_FORMAT_VERSION,
-            building: crate::BuildingId::new("hq").unwrap(),
-            sensor_id: crate::SensorId::new("acc-04").unwrap(),
-            kind: AlertKind::PeakAcceleration,
-            level: AlertLevel::Exceeded,
-            value: 2.5,
-            standard_uncertainty: 0.1,
-            coverage_factor: 2.0,
-            threshold: 1.0,
-            unit: "m/s^2".into(),
-            window_s: 10.0,
-            flagged_fraction: 0.0,
-            statement: "exceeded".into(),
-            at: time::OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap(),
-            late: false,
-            window_start_ns: Some(1_800_000_000_000_000_000),
-            window_end_ns: Some(1_800_000_009_990_000_000),
-            first_sequence: Some(7),
-            last_sequence: Some(26),
-        }
+        crate::messages::sample::alert("hq", "acc-04")
     }
 
     /// A signed alert verifies under its key; a forged, altered, foreign or bare one is read

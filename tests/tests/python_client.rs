@@ -619,7 +619,6 @@ async fn a_parquet_export_reads_back_identically_in_pandas() {
 /// altered, signed by a key it does not trust).
 #[tokio::test(flavor = "multi_thread")]
 async fn python_verifies_alert_signatures() {
-    use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
     use triax_protocol::signing::{sign_alert, to_hex, LabSigningKey};
     let py = python_interpreter();
     let port = free_port();
@@ -659,27 +658,7 @@ async fn python_verifies_alert_signatures() {
         .await
         .unwrap();
     util::wait_matching(&publisher).await;
-    let alert = Alert {
-        format_version: 1,
-        building: BuildingId::new("pal").unwrap(),
-        sensor_id: SensorId::new("acc-04").unwrap(),
-        kind: AlertKind::PeakAcceleration,
-        level: AlertLevel::Exceeded,
-        value: 2.5,
-        standard_uncertainty: 0.1,
-        coverage_factor: 2.0,
-        threshold: 1.0,
-        unit: "m/s^2".into(),
-        window_s: 10.0,
-        flagged_fraction: 0.0,
-        statement: "exceeded".into(),
-        at: time::OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap(),
-        late: false,
-        window_start_ns: Some(1_800_000_000_000_000_000),
-        window_end_ns: Some(1_800_000_009_990_000_000),
-        first_sequence: Some(0),
-        last_sequence: Some(99),
-    };
+    let alert = triax_protocol::messages::sample::alert("pal", "acc-04");
     let signed = sign_alert(&alert, &service);
     let mut altered = signed.clone();
     altered.alert_json = altered.alert_json.replace("\"value\":2.5", "\"value\":9.5");
