@@ -9,6 +9,13 @@
 //! another record; a sensor with no checkpoint kept before the range (its oldest data, once
 //! retention took the rest) starts from a fresh state.
 //!
+//! Every later checkpoint the scan meets is restored too, not only the first. Within one run of
+//! the gateway it equals the replay's own state; but the live kernel starts afresh when the
+//! gateway restarts (or forgets a sensor and meets it again), and goes on from a batch the
+//! history could not keep, and the checkpoint the worker writes then is the only record of it.
+//! So a batch's replay depends on the checkpoint before it and the batches between, exactly as
+//! its live correction did, wherever the query starts.
+//!
 //! Queries run on blocking threads, at most [`CONCURRENT_QUERIES`] at a time (others wait):
 //! a burst of queries takes at most that many threads from correction. Replies travel at the
 //! priority the querier gave its query (PROTOCOL.md advises a low one).
@@ -241,12 +248,12 @@ pub fn replay(
                 continue;
             }
         };
-        let kernel = kernel.get_or_insert_with(|| {
-            block
-                .checkpoint
-                .and_then(SensorKernel::restore)
-                .unwrap_or_else(|| SensorKernel::new(ctx.table.settings_of(sensor)))
-        });
+        // A checkpoint of an older format (a gateway before an upgrade) does not restore: the
+        // state so far is the best there is, or a fresh one at the start.
+        if let Some(restored) = block.checkpoint.and_then(SensorKernel::restore) {
+            kernel = Some(restored);
+        }
+        let kernel = kernel.get_or_insert_with(|| SensorKernel::new(ctx.table.settings_of(sensor)));
         for k in &block.kept {
             let version = match q.calibration {
                 Calibration::InForce => k.calibration_version,
@@ -313,6 +320,17 @@ pub async fn serve(
     }))
 }
 
+/// Why `sensor` cannot be replayed with its version `v`, if it cannot.
+fn lacks_version(ctx: &ReplayContext, sensor: &SensorId, v: u64) -> Option<String> {
+    match ctx.store.get(sensor, v) {
+        Ok(Some(_)) => None,
+        Ok(None) => Some(format!(
+            "history query: calibration: sensor {sensor} has no version {v}"
+        )),
+        Err(e) => Some(format!("calibration store: {e}")),
+    }
+}
+
 /// Answers one query; runs on a blocking thread.
 fn answer(ctx: &ReplayContext, query: &zenoh::query::Query) {
     let q = match HistoryQuery::parse(query.parameters().iter()) {
@@ -335,6 +353,16 @@ fn answer(ctx: &ReplayContext, query: &zenoh::query::Query) {
     });
     if let Some((after, _)) = &q.after {
         sensors.retain(|s| s >= after);
+    }
+    // A version number names a record of each sensor: a query over many sensors of which one
+    // lacks it is refused whole, before any batch, rather than answered up to that sensor.
+    if let Calibration::Version(v) = q.calibration {
+        if let Some(problem) = sensors.iter().find_map(|s| lacks_version(ctx, s, v)) {
+            if let Err(e) = query.reply_err(problem).wait() {
+                tracing::warn!(cause = %e, "history error reply failed");
+            }
+            return;
+        }
     }
     let mut left = q.limit;
     for sensor in &sensors {

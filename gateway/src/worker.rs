@@ -328,13 +328,18 @@ impl Shard {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
         }
         if let Some(sink) = &shared.history {
-            sink.offer(
+            let kept = sink.offer(
                 &state.entry,
                 &view,
                 corrected.verdict,
                 corrected.calibration_version,
                 corrected.checkpoint.as_deref(),
             );
+            if !kept {
+                // This batch moved the filters, and a replay will not see it: the next batch
+                // kept carries the state after it, so that its replay is what is published.
+                state.owe_checkpoint();
+            }
         }
         // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches on
         // its own link, and catches up from the history; it never holds up the gateway or the
@@ -597,9 +602,16 @@ impl SensorState {
         }
     }
 
+    /// Makes the next batch carry a checkpoint, whatever the interval says.
+    fn owe_checkpoint(&mut self) {
+        self.next_checkpoint_ns = i64::MIN;
+    }
+
     /// Whether the history is owed a checkpoint before the batch at `timestamp_ns`: at the
-    /// sensor's first batch, then every [`CHECKPOINT_INTERVAL_NS`] of its clock or
-    /// [`CHECKPOINT_INTERVAL_BATCHES`] batches, whichever comes first.
+    /// sensor's first batch (its kernel is fresh, and after a restart of the gateway only this
+    /// checkpoint tells a replay so), after a batch the history did not keep, then every
+    /// [`CHECKPOINT_INTERVAL_NS`] of its clock or [`CHECKPOINT_INTERVAL_BATCHES`] batches,
+    /// whichever comes first.
     fn checkpoint_due(&mut self, timestamp_ns: i64) -> bool {
         self.since_checkpoint = self.since_checkpoint.saturating_add(1);
         let due = timestamp_ns >= self.next_checkpoint_ns

@@ -29,6 +29,8 @@
 //! - `campaign` (ignored by default): a million hostile messages against one gateway.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
+//! - `replay_restart`: the history byte for byte the live stream across clean stops and kills of
+//!   the gateway (split-mode and dynamic sensors).
 //! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
 //!   sample's instant lies within ±k·u at the stated rate.
 
@@ -48,6 +50,8 @@ mod history;
 mod history_owner;
 #[path = "gateway/intervals.rs"]
 mod intervals;
+#[path = "gateway/replay_restart.rs"]
+mod replay_restart;
 #[path = "gateway/tilt.rs"]
 mod tilt;
 mod util;

@@ -11,6 +11,8 @@
 //!   an uninterrupted follower did, once each, in order, byte for byte.
 //! - `retention_holds_the_size_cap_and_counts_what_it_deleted`
 //! - `bad_history_queries_are_refused_by_name`
+//! - `a_version_number_over_a_wildcard_is_refused_whole`: one sensor without the version makes
+//!   the whole query one error, with no batches of the sensors that have it.
 //! - `the_history_survives_kill_9_within_its_durability_rule`: a gateway in a process of its own
 //!   killed four times mid-stream; every batch published more than 1.5 s before a kill is kept.
 //! - `a_consumer_beyond_the_site_router_recovers_a_30_s_cut`: a real `zenohd` between the
@@ -426,6 +428,41 @@ async fn bad_history_queries_are_refused_by_name() {
         let text = String::from_utf8_lossy(&err.payload().to_bytes()).into_owned();
         assert!(text.contains(named), "{params}: {text}");
     }
+    session.close().await.unwrap();
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_version_number_over_a_wildcard_is_refused_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &[
+            sample::record("va", 1),
+            sample::record("va", 2),
+            sample::record("vb", 1),
+        ],
+    );
+    let gw = start(config("hv", &store)).await;
+    let session = client(&gw.endpoint).await;
+    for id in ["va", "vb"] {
+        let publisher = blocking_publisher(&session, key_raw("hv", id)).await;
+        publisher.put(swaying(id, 0, 10)).await.unwrap();
+        wait_history_holds(&session, "hv", id, 0).await;
+    }
+    let mut request = HistoryRequest::sensor(&b("hv"), &s("va"));
+    request.sensors = "*".into();
+    request.calibration = Some("2".into());
+    let mut got = 0;
+    let err = fetch(&session, &request, TIMEOUT, &mut |_| got += 1)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("vb") && err.contains("no version 2"), "{err}");
+    assert_eq!(got, 0, "no batches, not even va's, which has version 2");
+    request.sensors = "va".into();
+    assert_eq!(read_history(&session, &request).await.len(), 1);
     session.close().await.unwrap();
     gw.stop().await;
 }
