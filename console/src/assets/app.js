@@ -17,6 +17,7 @@
   const AXIS_COLORS = ['#175cd3', '#1d7a3a', '#9a3412'];
   const SPANS_S = [10, 30, 120, 600, 3600];
   const LIVE_MAX_SPAN_S = 600;
+  const HISTORY_MAX_SPAN_S = 3600;
 
   // ---- DOM helpers: text only -------------------------------------------------------------
   function el(tag, attrs, ...children) {
@@ -80,26 +81,76 @@
     const parts = path.split('/').filter(Boolean);
     if (parts[0] === 'alerts') return { view: 'alerts' };
     if (parts[0] === 'sensor' && parts.length === 3) {
-      const at = params.get('at');
-      const span = Number(params.get('span')) || 30;
-      return { view: 'sensor', building: parts[1], sensor: parts[2], at: at ? Number(at) : null, span };
+      // A link is typed, pasted and edited by people: say what is wrong with it rather than
+      // throw, and never keep showing the previous view as if it were the one asked for.
+      const r = { view: 'sensor', building: parts[1], sensor: parts[2], at: null, span: 30, error: null };
+      const at = params.get('at'), span = params.get('span');
+      if (span !== null) {
+        if (/^\d{1,4}$/.test(span) && Number(span) >= 1 && Number(span) <= HISTORY_MAX_SPAN_S) r.span = Number(span);
+        else r.error = `span=${span} is not a whole number of seconds from 1 to ${HISTORY_MAX_SPAN_S}`;
+      }
+      if (at !== null) {
+        const ms = /^\d{1,19}$/.test(at) ? Number(at) / 1e6 : NaN;
+        if (!Number.isFinite(new Date(ms).getTime())) r.error = `at=${at} is not a time in nanoseconds since 1970-01-01 UTC`;
+        else if (ms - 0.75 * r.span * 1000 > Date.now()) r.error = `at=${at} (${fmtTime(ms)}) is in the future`;
+        else r.at = Number(at);
+      }
+      return r;
     }
     return { view: 'fleet' };
   }
 
   // ---- Live connection --------------------------------------------------------------------
+  function setConn(state, text) { $('conn').dataset.state = state; $('conn').textContent = text; }
+
   function connect(query) {
     if (source) source.close();
+    clearTimeout(retryTimer);
     const url = '/events' + (query ? '?' + query : '');
-    source = new EventSource(url);
-    $('conn').dataset.state = 'connecting';
-    $('conn').textContent = 'connecting…';
-    source.onopen = () => { $('conn').dataset.state = 'open'; $('conn').textContent = 'live'; };
-    source.onerror = () => { $('conn').dataset.state = 'reconnecting'; $('conn').textContent = 'console unreachable, retrying…'; };
-    source.addEventListener('fleet', (e) => { fleet = JSON.parse(e.data); onFleet(); });
+    const me = new EventSource(url);
+    source = me;
+    setConn('connecting', 'connecting…');
+    me.onopen = () => setConn('open', 'live');
+    me.onerror = () => {
+      if (source !== me) return;
+      // The browser retries by itself after a network error; after an HTTP answer other than
+      // the stream (a 400, a 503) it gives up: ask what the console said.
+      if (me.readyState === EventSource.CLOSED) explainRefusal(me, url, query);
+      else setConn('reconnecting', 'console unreachable, retrying…');
+    };
+    me.addEventListener('fleet', (e) => { const f = JSON.parse(e.data); if (f) { fleet = f; onFleet(); } });
     source.addEventListener('live', (e) => onLive(JSON.parse(e.data)));
     source.addEventListener('tilt', (e) => onTilt(JSON.parse(e.data)));
     source.addEventListener('problem', (e) => { const p = $('status-line'); if (p) p.textContent = JSON.parse(e.data).error; });
+  }
+
+  let retryTimer = null;
+  async function explainRefusal(me, url, query) {
+    const abort = new AbortController();
+    let status = 0, text = '';
+    try {
+      const resp = await fetch(url, { signal: abort.signal });
+      status = resp.status;
+      if (resp.ok) abort.abort(); else text = (await resp.text()).trim();
+    } catch (e) { /* unreachable after all */ }
+    if (source !== me) return;
+    if (status === 0 || status === 200) {
+      setConn('reconnecting', 'console unreachable, retrying…');
+      retryTimer = setTimeout(() => connect(query), 2000);
+    } else if (status === 503) {
+      setConn('refused', `console busy (${status}): ${text}; retrying in 5 s`);
+      retryTimer = setTimeout(() => connect(query), 5000);
+    } else {
+      setConn('refused', `console refused (${status}): ${text}`);
+    }
+  }
+
+  // What a request to the console answered, or why there was no answer, as `{ error }`.
+  async function getJson(path) {
+    let resp;
+    try { resp = await fetch(path); } catch (e) { return { error: `console unreachable (${e.message || e})` }; }
+    if (!resp.ok) return { error: `console refused (${resp.status}): ${(await resp.text()).trim()}` };
+    return resp.json();
   }
 
   function onFleet() {
@@ -241,9 +292,9 @@
       el('button', { id: 'btn-back', onclick: () => step(-1), title: 'one span back' }, '◀'),
       el('label', {}, 'at (UTC) ', atInput),
       el('button', { id: 'btn-go', onclick: lookBack }, 'Look back'),
-      el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward', disabled: isLive ? 'disabled' : null }, '▶'),
+      el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward, up to now', disabled: isLive || atMs >= latestAtMs(spanS) - 1000 ? 'disabled' : null }, '▶'),
       el('label', {}, 'span ', spanSel));
-    const plots = el('div', { id: 'plot', 'data-source': isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
+    const plots = el('div', { id: 'plot', 'data-source': r.error ? 'none' : isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
       AXES.map((ax) => el('div', { class: 'plot' }, el('canvas', { id: `canvas-${ax}`, width: 1000, height: 170 }), el('span', { class: 'title', id: `title-${ax}` }, `a${ax}`))),
       el('div', { class: 'plot', id: 'tilt-plot', hidden: 'hidden' }, el('canvas', { id: 'canvas-tilt', width: 1000, height: 170 }), el('span', { class: 'title' }, 'tilt: roll (blue), pitch (green), degrees, ±k·u shaded')),
       el('div', { class: 'legend', id: 'legend' }));
@@ -251,12 +302,14 @@
       el('h2', {}, el('a', { href: '#/' }, r.building), ' / ', r.sensor),
       el('div', { id: 'sensor-header', class: 'meta' }),
       controls,
-      el('div', { id: 'status-line', class: 'meta' }, isLive ? 'waiting for the live stream…' : 'reading the history…'),
+      r.error ? el('div', { id: 'status-line', class: 'warning', 'data-error': 'link' }, `This link cannot be shown: ${r.error}.`)
+        : el('div', { id: 'status-line', class: 'meta' }, isLive ? 'waiting for the live stream…' : 'reading the history…'),
       plots),
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
     loadDetail();
+    if (r.error) { connect(''); return; }
     const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
     if (isLive) connect(q.toString());
     else { connect(''); loadHistory(r.at, spanS); }
@@ -267,10 +320,13 @@
     location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span);
   }
 
+  // The latest `at` worth reading: its window (three quarters before, one after) ends now.
+  const latestAtMs = (spanS) => Date.now() - 0.25 * spanS * 1000;
+
   function step(dir) {
     const r = route;
-    const atNs = r.at === null ? Date.now() * 1e6 : r.at;
-    navigate({ at: msToNs(atNs / 1e6 + dir * r.span * 1000) });
+    const atMs = r.at === null ? Date.now() : r.at / 1e6;
+    navigate({ at: msToNs(Math.min(atMs + dir * r.span * 1000, latestAtMs(r.span))) });
   }
 
   function windowOf(atNs, spanS) {
@@ -282,11 +338,7 @@
     const [fromMs, toMs] = windowOf(atNs, spanS);
     const q = new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), width: String(plotWidth()) });
     const myRoute = route;
-    let body;
-    try {
-      const resp = await fetch('/api/history?' + q);
-      body = resp.ok ? await resp.json() : { error: await resp.text() };
-    } catch (e) { body = { error: String(e) }; }
+    const body = await getJson('/api/history?' + q);
     if (route !== myRoute) return;
     historyView = { ...body, fromMs, toMs };
     const v = body.view;
@@ -298,12 +350,9 @@
 
   async function loadDetail() {
     const myRoute = route;
-    try {
-      const q = new URLSearchParams({ building: route.building, sensor: route.sensor });
-      const resp = await fetch('/api/sensor?' + q);
-      detail = resp.ok ? await resp.json() : { error: await resp.text() };
-    } catch (e) { detail = { error: String(e) }; }
-    if (route === myRoute) renderRecord();
+    const q = new URLSearchParams({ building: route.building, sensor: route.sensor });
+    const answer = await getJson('/api/sensor?' + q);
+    if (route === myRoute) { detail = answer; renderRecord(); }
   }
 
   function renderRecord() {
@@ -562,6 +611,10 @@
     if (route.view === 'alerts') renderAlerts(); else renderFleet();
   }
 
+  // A script error must not pass unseen, leaving a view that looks current.
+  const pageError = (what) => { const e = $('page-error'); e.hidden = false; e.textContent = `page error: ${what}; reload the page`; };
+  window.addEventListener('error', (e) => pageError(e.message));
+  window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
   window.addEventListener('resize', () => scheduleDraw());
   setInterval(() => { if (route && route.view === 'sensor' && route.at === null) scheduleDraw(); }, 1000);

@@ -10,9 +10,10 @@
 //!
 //! - `console_in_a_browser`: the fleet view's states (a sensor whose samples are flagged says
 //!   so, a building takes its worst state), an alert and its escaping, a live plot that moves,
-//!   the tilt plot, a gap, the calibration record, the history around an alert, and a gateway
-//!   that goes away and comes back; and the details (units, k, ticks, times typed in ISO 8601
-//!   UTC, spans, sensor counts, an icon).
+//!   the tilt plot, a gap, the calibration record, the history around an alert and its steps
+//!   (never past now), links that cannot be shown, a refusal told from an outage, and a
+//!   gateway that goes away and comes back; no script error, no failed load on the way; and
+//!   the details (units, k, ticks, times typed in ISO 8601 UTC, spans, sensor counts, an icon).
 //! - `console_only_reads_and_refuses_what_it_must`: no put ever leaves the console; unknown
 //!   paths, other methods, foreign Host headers, long heads, bad parameters and a non-loopback
 //!   listener are refused.
@@ -138,6 +139,7 @@ impl Browser {
         };
         let caps = json!({"capabilities": {"alwaysMatch": {
             "browserName": "chrome",
+            "goog:loggingPrefs": { "browser": "ALL" },
             "goog:chromeOptions": {
                 "binary": chromium,
                 "args": [
@@ -197,6 +199,22 @@ impl Browser {
             }
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
+    }
+
+    /// Errors the page logged since the last call: uncaught exceptions and failed loads.
+    fn errors(&self) -> Vec<String> {
+        let v = self.cmd("POST", "se/log", Some(json!({ "type": "browser" })));
+        v.as_array()
+            .expect("a browser log")
+            .iter()
+            .filter(|e| e["level"] == "SEVERE")
+            .map(|e| e["message"].as_str().unwrap_or_default().to_owned())
+            .collect()
+    }
+
+    fn assert_no_errors(&self, when: &str) {
+        let errors = self.errors();
+        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
     }
 
     fn screenshot(&self, name: &str) {
@@ -548,6 +566,8 @@ async fn console_in_a_browser() {
         "{building}"
     );
     assert_eq!(building[3], "6 sensors", "{building}");
+    // The first event carries the fleet (not null), and the icon is there: nothing failed.
+    browser.assert_no_errors("the fleet view");
     let icon = browser.js(
         "const l = document.querySelector('link[rel=icon]'); return l && l.getAttribute('href');",
     );
@@ -657,6 +677,36 @@ async fn console_in_a_browser() {
         .await;
     assert!(history[0].as_str().unwrap().contains("?at="), "{history}");
     browser.screenshot("history-at-alert");
+    // ▶ from a recent time goes as far as now, not into the future, and then stops.
+    let stepped = browser.js(
+        "const before = location.hash; document.getElementById('btn-fwd').click(); return before;",
+    );
+    let forward = browser
+        .wait(
+            "the history one step forward",
+            Duration::from_secs(20),
+            &format!(
+                "const p = document.getElementById('plot');
+                 const line = document.getElementById('status-line').textContent;
+                 return location.hash !== {stepped} && p && p.dataset.source === 'history'
+                    && line.startsWith('history:')
+                    ? [Number(new URLSearchParams(location.hash.split('?')[1]).get('at')) / 1e6,
+                       Date.now(), Number(p.dataset.buckets),
+                       document.getElementById('btn-fwd').disabled] : null;"
+            ),
+        )
+        .await;
+    let (at_ms, now_ms) = (forward[0].as_f64().unwrap(), forward[1].as_f64().unwrap());
+    assert!(
+        at_ms + 0.25 * 30_000.0 <= now_ms + 1.0,
+        "the window ends by now: {forward}"
+    );
+    assert!(
+        forward[2].as_u64().unwrap() > 50,
+        "not an empty plot: {forward}"
+    );
+    assert_eq!(forward[3], true, "▶ stops at now: {forward}");
+    browser.assert_no_errors("stepping the history");
 
     // A live plot that opens with the recent past (read from the history) and moves.
     let opened = std::time::Instant::now();
@@ -809,9 +859,50 @@ async fn console_in_a_browser() {
     let percent: f64 = flagged.trim_end_matches(" % flagged").parse().unwrap();
     assert!(percent > 20.0, "{flagged}");
     browser.screenshot("sensor-flagged");
+    browser.assert_no_errors("the sensor views");
 
-    // A span that is not one of the list's is shown as itself.
+    // Links that cannot be shown say why, rather than throw and leave the previous view up.
+    browser.go(&console.url);
+    browser
+        .wait(
+            "the fleet view",
+            Duration::from_secs(10),
+            "return document.querySelectorAll('tr.sensor').length > 0",
+        )
+        .await;
     let now_ns = now_ns();
+    for (link, says) in [
+        ("at=abc&span=30".to_owned(), "at=abc is not a time"),
+        (
+            format!("at={}&span=30", now_ns + 3_600_000_000_000),
+            "is in the future",
+        ),
+        (
+            format!("at={}&span=0", now_ns - 60_000_000_000),
+            "span=0 is not",
+        ),
+    ] {
+        let error = browser
+            .wait(
+                &format!("the sensor view to refuse {link}"),
+                Duration::from_secs(10),
+                &format!(
+                    "if (!location.hash.endsWith({link:?})) location.hash = '#/sensor/demo/acc-04?' + {link:?};
+                     const e = document.querySelector('#sensor #status-line[data-error]');
+                     return e && e.textContent.includes({says:?}) && e.textContent;"
+                ),
+            )
+            .await;
+        assert!(
+            error
+                .as_str()
+                .unwrap()
+                .starts_with("This link cannot be shown"),
+            "{link}: {error}"
+        );
+    }
+    browser.screenshot("sensor-bad-link");
+    // A span that is not one of the list's is shown as itself.
     let seven_at = now_ns - 60_000_000_000;
     browser.go(&format!(
         "{}#/sensor/demo/acc-04?at={seven_at}&span=7",
@@ -871,6 +962,30 @@ async fn console_in_a_browser() {
         )
         .await;
     assert_eq!(at, typed.as_str());
+    browser.assert_no_errors("links and typed times");
+
+    // A refusal is told from an outage: a bad sensor id is the console's 400, not a lost line.
+    browser.go(&format!("{}#/sensor/demo/acc.04", console.url));
+    let refusal = browser
+        .wait(
+            "the refusal of a bad sensor id",
+            Duration::from_secs(10),
+            "const c = document.getElementById('conn');
+             return c.dataset.state === 'refused' ? c.textContent : null;",
+        )
+        .await;
+    let refusal = refusal.as_str().unwrap();
+    assert!(
+        refusal.contains("400") && refusal.contains("\"sensor\""),
+        "{refusal}"
+    );
+    browser.screenshot("sensor-refused");
+    let errors: Vec<String> = browser
+        .errors()
+        .into_iter()
+        .filter(|e| !e.contains("status of 400"))
+        .collect();
+    assert!(errors.is_empty(), "{errors:#?}");
 
     // The gateway goes away and comes back; the page stays connected and follows.
     browser.go(&console.url);
