@@ -19,6 +19,7 @@ use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::{
     Alert, AlertLevel, GatewayStatus, Heartbeat, HistoryStatus, SensorStatus,
 };
+use triax_protocol::signing::{read_alert, AlertTrust, TrustedKeys};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
 
@@ -54,6 +55,8 @@ pub struct FleetOptions {
     pub status_interval: Duration,
     /// Warn this long before a calibration's `valid_until`.
     pub expiry_warning: Duration,
+    /// The alerting services' public keys: only an alert signed by one of them is a verdict.
+    pub trusted_alert_keys: TrustedKeys,
 }
 
 /// What the console holds of one alert.
@@ -63,6 +66,17 @@ pub struct AlertEntry {
     pub alert: Alert,
     #[serde(with = "time::serde::rfc3339")]
     pub received_at: OffsetDateTime,
+    /// `verified` (signed by a trusted alerting key: a verdict), `unknown_key`,
+    /// `bad_signature` or `unsigned` (PROTOCOL.md §3.6): shown, never as a verdict.
+    pub trust: &'static str,
+    /// The key that signed it, when signed.
+    pub signed_by: Option<String>,
+}
+
+impl AlertEntry {
+    pub fn verified(&self) -> bool {
+        self.trust == "verified"
+    }
 }
 
 #[derive(Debug, Default)]
@@ -266,14 +280,23 @@ impl Fleet {
     }
 
     pub fn alert(&self, key: &str, payload: &[u8]) {
-        let alert = match (Key::parse(key), from_json::<Alert>(payload)) {
-            (Ok(Key::Alert(b, s)), Ok(a)) if a.building == b && a.sensor_id == s => a,
+        let read = read_alert(payload, &self.options.trusted_alert_keys);
+        let (alert, trust) = match (Key::parse(key), read) {
+            (Ok(Key::Alert(b, s)), Ok((a, t))) if a.building == b && a.sensor_id == s => (a, t),
             (_, Err(e)) => return self.malformed(key, &e.to_string()),
             _ => return self.malformed(key, "key and alert disagree"),
+        };
+        let signed_by = match &trust {
+            AlertTrust::Verified { public_key_hex }
+            | AlertTrust::UnknownKey { public_key_hex }
+            | AlertTrust::BadSignature { public_key_hex } => Some(public_key_hex.clone()),
+            AlertTrust::Unsigned => None,
         };
         let entry = AlertEntry {
             alert,
             received_at: OffsetDateTime::now_utc(),
+            trust: trust.name(),
+            signed_by,
         };
         let mut s = self.lock();
         let Some(st) = self.building(&mut s, &entry.alert.building.clone()) else {
@@ -430,6 +453,10 @@ pub enum GatewayState {
 pub enum SensorState {
     /// An alert at level `exceeded`.
     Exceeded,
+    /// The latest alert on the sensor's key is not signed by a trusted alerting key: it
+    /// claims something nobody vouches for (a forgery, or a service whose key is not
+    /// configured), and is not a verdict.
+    Unverified,
     /// No calibration: raw outputs flagged `uncalibrated`.
     Uncalibrated,
     /// Past the record's `valid_until`.
@@ -514,9 +541,10 @@ impl SensorView {
 }
 
 fn alert_states(a: Option<&AlertEntry>) -> Vec<SensorState> {
-    match a.map(|a| a.alert.level) {
-        Some(AlertLevel::Exceeded) => vec![SensorState::Exceeded],
-        Some(AlertLevel::Possible | AlertLevel::Stale) => vec![SensorState::Alert],
+    match a.map(|a| (a.verified(), a.alert.level)) {
+        Some((false, _)) => vec![SensorState::Unverified],
+        Some((true, AlertLevel::Exceeded)) => vec![SensorState::Exceeded],
+        Some((true, AlertLevel::Possible | AlertLevel::Stale)) => vec![SensorState::Alert],
         None => vec![],
     }
 }
@@ -955,6 +983,7 @@ mod tests {
             buildings: vec![],
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
+            trusted_alert_keys: TrustedKeys::default(),
         });
         let mut st = gateway_status(0, vec![counted("a", 100, 0), counted("b", 100, 100)]);
         st.reported_at = OffsetDateTime::now_utc();
@@ -981,16 +1010,33 @@ mod tests {
         .unwrap()
     }
 
+    fn service_key() -> triax_protocol::signing::LabSigningKey {
+        triax_protocol::signing::LabSigningKey::from_bytes(&[21; 32])
+    }
+
+    /// `alert_json`, signed by `key` as the alerting service publishes it.
+    fn signed_json(
+        key: &triax_protocol::signing::LabSigningKey,
+        b: &str,
+        s: &str,
+        level: &str,
+        statement: &str,
+    ) -> Vec<u8> {
+        let alert: Alert = from_json(&alert_json(b, s, level, statement)).unwrap();
+        triax_protocol::to_json(&triax_protocol::signing::sign_alert(&alert, key))
+    }
+
     #[test]
     fn alerts_are_checked_against_their_key_and_bounded() {
         let f = Fleet::new(FleetOptions {
             buildings: vec![],
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
+            trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
         });
         f.alert(
             "triax/hq/alert/acc-01",
-            &alert_json("hq", "acc-01", "exceeded", "<b>x</b>"),
+            &signed_json(&service_key(), "hq", "acc-01", "exceeded", "<b>x</b>"),
         );
         f.alert(
             "triax/hq/alert/acc-02",
@@ -1004,6 +1050,7 @@ mod tests {
         let snap = f.snapshot();
         assert_eq!(snap.alerts_total, 1);
         assert_eq!(snap.malformed_messages, 3);
+        assert_eq!(snap.alerts[0].trust, "verified");
         assert_eq!(
             snap.alerts[0].alert.statement, "<b>x</b>",
             "kept verbatim; the page escapes"
@@ -1012,6 +1059,29 @@ mod tests {
         assert_eq!(b.state, GatewayState::Unknown);
         assert_eq!(b.sensors[0].states, [SensorState::Exceeded]);
         assert!(!b.sensors[0].in_status);
+        // The same `exceeded` unsigned, or signed by another key: shown, never a verdict.
+        let forger = triax_protocol::signing::LabSigningKey::from_bytes(&[22; 32]);
+        f.alert(
+            "triax/hq/alert/acc-02",
+            &alert_json("hq", "acc-02", "exceeded", "unsigned"),
+        );
+        f.alert(
+            "triax/hq/alert/acc-03",
+            &signed_json(&forger, "hq", "acc-03", "exceeded", "forged"),
+        );
+        let snap = f.snapshot();
+        let states = |id: &str| {
+            snap.buildings[0]
+                .sensors
+                .iter()
+                .find(|s| s.sensor_id.as_str() == id)
+                .map(|s| s.states.clone())
+                .unwrap()
+        };
+        assert_eq!(states("acc-02"), [SensorState::Unverified]);
+        assert_eq!(states("acc-03"), [SensorState::Unverified]);
+        assert_eq!(snap.alerts[0].trust, "unknown_key");
+        assert_eq!(snap.alerts[1].trust, "unsigned");
         for i in 0..(MAX_ALERTS + 10) {
             f.alert(
                 "triax/hq/alert/acc-01",
@@ -1028,6 +1098,7 @@ mod tests {
             buildings: vec![BuildingId::new("hq").unwrap()],
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
+            trusted_alert_keys: TrustedKeys::default(),
         });
         f.alert(
             "triax/other/alert/x",

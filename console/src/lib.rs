@@ -37,6 +37,7 @@ use triax_protocol::BuildingId;
 use crate::fleet::{Fleet, FleetOptions};
 use crate::live::Feeds;
 use crate::server::Context;
+use triax_protocol::signing::TrustedKeys;
 
 /// Default address of the page.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:9760";
@@ -63,6 +64,9 @@ pub struct ConsoleOptions {
     pub max_history_queries: usize,
     /// How long one history page may take.
     pub history_timeout: Duration,
+    /// The alerting services' public keys (PROTOCOL.md §3.6): only an alert signed by one of
+    /// them is shown as a verdict.
+    pub trusted_alert_keys: TrustedKeys,
 }
 
 impl Default for ConsoleOptions {
@@ -76,6 +80,7 @@ impl Default for ConsoleOptions {
             max_streams: 16,
             max_history_queries: 2,
             history_timeout: Duration::from_secs(20),
+            trusted_alert_keys: TrustedKeys::default(),
         }
     }
 }
@@ -179,6 +184,7 @@ pub async fn serve(
         buildings: options.buildings.clone(),
         status_interval: options.status_interval,
         expiry_warning: options.expiry_warning,
+        trusted_alert_keys: options.trusted_alert_keys.clone(),
     }));
     let _watch = fleet::watch(&session, &fleet)
         .await

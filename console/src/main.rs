@@ -14,6 +14,7 @@ use anyhow::Context;
 use clap::Parser;
 use triax_console::{ConsoleError, ConsoleOptions, DEFAULT_LISTEN};
 use triax_net::ZenohArgs;
+use triax_protocol::signing::TrustedKeys;
 use triax_protocol::BuildingId;
 
 /// The operators' console: the fleet, each sensor's corrected stream with its uncertainty band,
@@ -48,6 +49,13 @@ struct Cli {
     /// Warn this many days before a calibration record's valid_until.
     #[arg(long, default_value_t = 30.0)]
     expiry_warning_days: f64,
+    /// An alerting service's public key, 64 hex characters (repeatable, or comma-separated):
+    /// only alerts it signed are shown as verdicts; any other is shown as unverified.
+    #[arg(long, env = "TRIAX_TRUSTED_ALERT_KEYS", value_delimiter = ',')]
+    trusted_alert_key: Vec<String>,
+    /// A file holding one such key, e.g. the service's triax-alert.key.pub (repeatable).
+    #[arg(long, value_name = "FILE")]
+    trusted_alert_key_file: Vec<std::path::PathBuf>,
     /// Log filter (tracing env-filter syntax).
     #[arg(long, env = "TRIAX_LOG", default_value = "info")]
     log: String,
@@ -58,6 +66,22 @@ fn seconds(flag: &str, s: f64) -> anyhow::Result<Duration> {
         .ok()
         .filter(|d| !d.is_zero())
         .with_context(|| format!("{flag} {s} is not a positive number"))
+}
+
+/// The alerting keys of `--trusted-alert-key` and `--trusted-alert-key-file`, each named when bad.
+fn trusted_alert_keys(cli: &Cli) -> anyhow::Result<TrustedKeys> {
+    let mut texts: Vec<(String, String)> = cli
+        .trusted_alert_key
+        .iter()
+        .map(|k| ("--trusted-alert-key".to_owned(), k.clone()))
+        .collect();
+    for f in &cli.trusted_alert_key_file {
+        let text = std::fs::read_to_string(f)
+            .with_context(|| format!("--trusted-alert-key-file {}", f.display()))?;
+        texts.push((format!("--trusted-alert-key-file {}", f.display()), text));
+    }
+    let hex: Vec<&str> = texts.iter().map(|(_, t)| t.as_str()).collect();
+    TrustedKeys::from_hex(&hex).map_err(|(i, e)| anyhow::anyhow!("{}: {e}", texts[i].0))
 }
 
 #[tokio::main]
@@ -74,6 +98,7 @@ async fn main() -> anyhow::Result<()> {
         status_interval: seconds("--status-interval-s", cli.status_interval_s)?,
         expiry_warning: seconds("--expiry-warning-days", cli.expiry_warning_days * 86_400.0)?,
         allow_remote: cli.allow_remote,
+        trusted_alert_keys: trusted_alert_keys(&cli)?,
         ..ConsoleOptions::default()
     };
     // Listening nowhere unless asked: the console only reads, so it has no reason to accept

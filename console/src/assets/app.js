@@ -62,6 +62,16 @@
     (atNs !== undefined ? `?at=${atNs}&span=${spanS || 60}` : '');
   const badge = (cls, text, title) => el('span', { class: `badge ${cls}`, title }, text ?? cls.replace(/_/g, ' '));
   const flagNames = (bits) => FLAGS.filter((_, i) => bits & (1 << i)).map(([n]) => n);
+  // An alert is a verdict only when a trusted alerting key signed it (PROTOCOL.md §3.6); any
+  // other is shown for what it is, with what it claims, never with the verdict's badge.
+  const TRUST = {
+    unsigned: 'not signed: anyone on the network can put such an alert',
+    unknown_key: 'signed by a key this console was not given (--trusted-alert-key)',
+    bad_signature: 'its signature does not verify: altered, or signed by another key',
+  };
+  const verified = (a) => a.trust === 'verified';
+  const verdict = (a) => verified(a) ? badge(a.level)
+    : badge('unverified', `unverified (claims ${a.level})`, `${a.trust.replace(/_/g, ' ')}: ${TRUST[a.trust] || ''}. Not a verdict.`);
 
   // ---- State ------------------------------------------------------------------------------
   let fleet = null;          // last fleet snapshot
@@ -230,10 +240,13 @@
       el('td', {}, s.mode),
       el('td', {}, s.calibration_version ? `v${s.calibration_version}` : 'none'),
       el('td', {}, validity),
-      el('td', {}, a ? [badge(a.level), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
+      el('td', {}, a ? [verdict(a), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
   }
 
-  const alertAtNs = (a) => msToNs(Date.parse(a.at));
+  // The middle of the window the alert judged (its own times, by the sensor's clock); the
+  // service's clock for an alert that names none (stale, or an older service).
+  const alertAtNs = (a) => (a.window_start_ns != null && a.window_end_ns != null)
+    ? Math.round((a.window_start_ns + a.window_end_ns) / 2) : msToNs(Date.parse(a.at));
   const windowSpan = (a) => Math.min(3600, Math.max(30, Math.ceil((a.window_s || 10) * 3)));
 
   // ---- Alerts view ------------------------------------------------------------------------
@@ -243,10 +256,10 @@
     const rows = fleet.alerts.map((a) => {
       const k = a.coverage_factor;
       const u = a.standard_uncertainty;
-      return el('tr', { class: 'alert', 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': a.level },
+      return el('tr', { class: 'alert', 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
         el('td', {}, fmtTime(Date.parse(a.at))),
         el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, `${a.building} / ${a.sensor_id}`)),
-        el('td', {}, badge(a.level), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
+        el('td', {}, verdict(a), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
         el('td', {}, a.kind.replace(/_/g, ' ')),
         el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${fmtUnit(a.unit)}`),
         el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${fmtUnit(a.unit)}`),
@@ -405,9 +418,9 @@
     const list = $('sensor-alerts');
     if (list && fleet) {
       const mine = fleet.alerts.filter((a) => a.building === route.building && a.sensor_id === route.sensor);
-      list.replaceChildren(mine.length ? el('table', {}, el('tbody', {}, mine.map((a) => el('tr', { class: 'alert', 'data-level': a.level },
+      list.replaceChildren(mine.length ? el('table', {}, el('tbody', {}, mine.map((a) => el('tr', { class: 'alert', 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
         el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))),
-        el('td', {}, badge(a.level)), el('td', {}, a.kind.replace(/_/g, ' ')),
+        el('td', {}, verdict(a)), el('td', {}, a.kind.replace(/_/g, ' ')),
         el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(a.coverage_factor * a.standard_uncertainty, 2)} ${fmtUnit(a.unit)} vs ${fmtNum(a.threshold)}`),
         el('td', { class: 'statement' }, a.statement))))) : el('p', { class: 'meta' }, 'None received since the console started.'));
     }

@@ -40,6 +40,7 @@ use triax_gateway::demo::{fleet, SimSensor};
 use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::batch::{BatchHeader, RawBatch};
 use triax_protocol::record::sample;
+use triax_protocol::signing::{sign_alert, LabSigningKey, TrustedKeys};
 use triax_protocol::{BuildingId, Key, SensorId};
 
 use crate::util::*;
@@ -418,8 +419,9 @@ struct Console {
 
 impl Console {
     /// A console connected to every endpoint of `connect` (peers do not relay between other
-    /// peers: whatever publishes alerts must be reachable from it directly, or via a router).
-    async fn start(connect: &[String]) -> Console {
+    /// peers: whatever publishes alerts must be reachable from it directly, or via a router),
+    /// trusting the alerting key `alert_key`.
+    async fn start(connect: &[String], alert_key: &LabSigningKey) -> Console {
         let config = ZenohSettings::loopback(ZenohMode::Peer, vec![], connect.to_vec())
             .to_config()
             .unwrap();
@@ -429,6 +431,7 @@ impl Console {
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let options = ConsoleOptions {
             status_interval: Duration::from_secs(1),
+            trusted_alert_keys: TrustedKeys::new(vec![alert_key.verifying_key()]),
             ..ConsoleOptions::default()
         };
         let task = tokio::spawn(triax_console::serve(
@@ -477,7 +480,14 @@ async fn console_in_a_browser() {
     )
     .await
     .unwrap();
-    let console = Console::start(&[demo.endpoint(), alerts_endpoint]).await;
+    // The alerting service's key, which the console is given; and a forger's.
+    let service_key = LabSigningKey::from_bytes(&[11; 32]);
+    let forger_key = LabSigningKey::from_bytes(&[12; 32]);
+    let signed = |v: &Value, key: &LabSigningKey| {
+        let alert: triax_protocol::messages::Alert = serde_json::from_value(v.clone()).unwrap();
+        String::from_utf8(triax_protocol::to_json(&sign_alert(&alert, key))).unwrap()
+    };
+    let console = Console::start(&[demo.endpoint(), alerts_endpoint], &service_key).await;
 
     // Alerts as `triax-alert` publishes them (PROTOCOL.md §3.6): a genuine `exceeded` on acc-04,
     // and a hostile one on acc-03 whose free text tries to inject markup and script.
@@ -580,8 +590,38 @@ async fn console_in_a_browser() {
         BuildingId::new("demo").unwrap(),
         SensorId::new("acc-04").unwrap(),
     );
+    // First a forgery: `exceeded` on acc-01, signed by a key the console does not trust.
+    let mut forged = exceeded.clone();
+    forged["sensor_id"] = json!("acc-01");
     alerts
-        .put(acc04.to_string(), exceeded.to_string())
+        .put("triax/demo/alert/acc-01", signed(&forged, &forger_key))
+        .await
+        .unwrap();
+    browser
+        .wait(
+            "acc-01's forged alert shown as unverified",
+            Duration::from_secs(20),
+            "const r = document.querySelector('tr.sensor[data-sensor=\"acc-01\"]');
+             return r && r.dataset.states.includes('unverified');",
+        )
+        .await;
+    let acc01 = browser.js(
+        "const r = document.querySelector('tr.sensor[data-sensor=\"acc-01\"]');
+         return [r.dataset.states, r.children[10].textContent];",
+    );
+    assert!(
+        !acc01[0].as_str().unwrap().contains("exceeded"),
+        "a forged alert is never a verdict: {acc01}"
+    );
+    assert!(
+        acc01[1]
+            .as_str()
+            .unwrap()
+            .contains("unverified (claims exceeded)"),
+        "{acc01}"
+    );
+    alerts
+        .put(acc04.to_string(), signed(&exceeded, &service_key))
         .await
         .unwrap();
     browser
@@ -608,7 +648,7 @@ async fn console_in_a_browser() {
         "statement": "peak near the limit", "at": now(),
     });
     alerts
-        .put("triax/demo/alert/acc-99", stranger.to_string())
+        .put("triax/demo/alert/acc-99", signed(&stranger, &service_key))
         .await
         .unwrap();
     let count = browser
@@ -641,6 +681,12 @@ async fn console_in_a_browser() {
     );
     assert_eq!(shown[2], 0, "no element injected");
     assert_eq!(shown[3], true, "no script ran");
+    // The hostile alert is unsigned: shown as such, never with a verdict.
+    let hostile_row = browser.js(
+        "const r = document.querySelector('tr.alert[data-sensor=\"acc-03\"]');
+         return [r.dataset.level, r.dataset.trust];",
+    );
+    assert_eq!(hostile_row, json!(["unverified", "unsigned"]));
     let verdicts = browser.js(
         "return [...document.querySelectorAll('tr.alert[data-sensor=\"acc-04\"]')].map(r => r.dataset.level + ' ' + r.children[4].textContent + ' vs ' + r.children[5].textContent)",
     );
