@@ -77,9 +77,14 @@ impl DemoConsole {
             format!("the console cannot listen on {listen}: choose another --console-listen, or --no-console")
         })?;
         let url = triax_console::url(listener.local_addr().context("the console's address")?);
-        let zenoh = ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![endpoint.to_owned()])
-            .to_config()
-            .context("the console's Zenoh configuration")?;
+        // Listening nowhere: the console only reads from the demo's gateway, and a listening
+        // peer would let anyone who reaches it publish (forged alerts) into its session.
+        let zenoh = triax_net::outbound_config(&ZenohSettings::loopback(
+            ZenohMode::Peer,
+            vec![],
+            vec![endpoint.to_owned()],
+        ))
+        .context("the console's Zenoh configuration")?;
         let options = triax_console::ConsoleOptions {
             // A literal of valid characters.
             buildings: vec![BuildingId::new("demo").expect("literal building id is valid")],
