@@ -628,3 +628,69 @@ async fn a_killed_export_leaves_the_earlier_file_whole() {
     session.close().await.unwrap();
     gw.stop().await;
 }
+
+/// Export speed, for BENCHMARKS.md: 10⁶ calibrated samples (10 000 batches of 100) in a
+/// gateway's history, exported to Parquet, to a fresh SDS tree, and to the same tree again
+/// (the merge path); each three times, timed whole (history query, Zenoh transfer, files).
+/// `cargo test --release -p triax-tests --test python_client -- --ignored export_speed
+/// --nocapture`.
+#[tokio::test(flavor = "multi_thread")]
+#[ignore = "a benchmark: BENCHMARKS.md quotes it"]
+async fn export_speed() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    util::seed_store(&store, &[sample::record("sp-1", 1)]);
+    let gw = util::start(util::config("sp", &store)).await;
+    let session = util::client(&gw.endpoint).await;
+    let node = util::blocking_publisher(&session, util::key_raw("sp", "sp-1")).await;
+    let batches = 10_000u64;
+    for seq in 0..batches {
+        let samples = (0..100)
+            .map(|i| {
+                let t = (seq * 100 + i) as f32 / 100.0;
+                [0.02 * (7.0 * t).sin(), 0.01 * (3.0 * t).cos(), 0.98]
+            })
+            .collect();
+        node.put(util::raw("sp-1", seq, samples)).await.unwrap();
+    }
+    util::wait_history_holds(&session, "sp", "sp-1", batches - 1).await;
+    let endpoint = gw.endpoint.clone();
+    let timed = |args: Vec<String>| async move {
+        let started = std::time::Instant::now();
+        let s = run(&strs(&args)).await.unwrap();
+        assert_eq!(s.samples, batches * 100);
+        started.elapsed().as_secs_f64()
+    };
+    let common = |format: &str, out: &Path| -> Vec<String> {
+        [
+            format,
+            "--connect",
+            &endpoint,
+            "--building",
+            "sp",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .map(str::to_owned)
+        .to_vec()
+    };
+    let mut rows = Vec::new();
+    for i in 0..3 {
+        let pq = timed(common("parquet", &dir.path().join("sp.parquet"))).await;
+        let fresh_root = dir.path().join(format!("sds-{i}"));
+        let fresh = timed(common("sds", &fresh_root)).await;
+        let again = timed(common("sds", &fresh_root)).await;
+        rows.push((pq, fresh, again));
+    }
+    let bytes = std::fs::metadata(dir.path().join("sp.parquet"))
+        .unwrap()
+        .len();
+    for (pq, fresh, again) in &rows {
+        println!(
+            "per 10⁶ samples: parquet {pq:.2} s, sds fresh {fresh:.2} s, sds again {again:.2} s"
+        );
+    }
+    println!("parquet: {:.1} bytes a sample", bytes as f64 / 1e6);
+    session.close().await.unwrap();
+    gw.stop().await;
+}
