@@ -16,10 +16,12 @@
 //! window entirely; `sequence_gap` marks every sample of its batch, and a window that is not
 //! all clean has its dominant frequency judged only as flagged (a hole breaks the spectrum).
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 
 use time::OffsetDateTime;
-use triax_protocol::messages::{Alert, AlertKind, AlertLevel, TiltSample};
+use triax_protocol::messages::{
+    Alert, AlertKind, AlertLevel, JudgedLevel, SensorJudgement, TiltSample,
+};
 use triax_protocol::{flags, BuildingId, CorrectedBatch, CorrectedSample, SensorId};
 
 use crate::config::{Config, Limits, Settings};
@@ -119,7 +121,44 @@ struct SensorState {
     watched_since: OffsetDateTime,
     tilt: TiltState,
     sent: HashMap<AlertKind, Sent>,
+    /// The latest judgement of the acceleration window, for the service's status.
+    last: LastJudged,
     span: tracing::Span,
+}
+
+/// What the latest batch's window came to, whether or not it raised an alert.
+#[derive(Debug, Clone, Default)]
+struct LastJudged {
+    /// When a window was last judged, by the service's clock.
+    at: Option<OffsetDateTime>,
+    window_ns: Option<(i64, i64)>,
+    sequences: Option<(u64, u64)>,
+    /// The latest batch's window was not judged: not whole, or the baseline still settling.
+    waiting: bool,
+    levels: BTreeMap<AlertKind, JudgedLevel>,
+}
+
+/// A window's alerts, and what it came to per kind; None when it was not judged.
+struct Evaluation {
+    alerts: Vec<Alert>,
+    judged: Option<Judged>,
+}
+
+struct Judged {
+    window_ns: (i64, i64),
+    sequences: Option<(u64, u64)>,
+    levels: BTreeMap<AlertKind, JudgedLevel>,
+}
+
+/// A kind's outcome: its judgement's level, `below` when it was estimated and judged below the
+/// limit, `not_judged` when there was nothing to judge.
+fn outcome(j: Option<&Judgement>, estimated: bool) -> JudgedLevel {
+    match j.map(|j| j.level) {
+        Some(AlertLevel::Exceeded) => JudgedLevel::Exceeded,
+        Some(AlertLevel::Possible | AlertLevel::Stale) => JudgedLevel::Possible,
+        None if estimated => JudgedLevel::Below,
+        None => JudgedLevel::NotJudged,
+    }
 }
 
 impl SensorState {
@@ -137,6 +176,7 @@ impl SensorState {
             watched_since: now,
             tilt: TiltState::default(),
             sent: HashMap::new(),
+            last: LastJudged::default(),
             span: tracing::info_span!("sensor", building = %key.0, sensor = %key.1),
         }
     }
@@ -526,7 +566,19 @@ impl Monitor {
         }
 
         let key = (building.clone(), sensor);
-        let alerts = evaluate_window(&key, state, &settings, now);
+        let Evaluation { alerts, judged } = evaluate_window(&key, state, &settings, now);
+        match judged {
+            Some(j) => {
+                state.last = LastJudged {
+                    at: Some(now),
+                    window_ns: Some(j.window_ns),
+                    sequences: j.sequences,
+                    waiting: false,
+                    levels: j.levels,
+                };
+            }
+            None => state.last.waiting = true,
+        }
         let span = state.span.clone();
         alerts
             .into_iter()
@@ -701,6 +753,34 @@ impl Monitor {
             .collect()
     }
 
+    /// Buildings listed in the configuration or with a watched sensor, by id.
+    pub fn buildings(&self) -> BTreeSet<BuildingId> {
+        self.sensors
+            .keys()
+            .map(|(b, _)| b.clone())
+            .chain(self.config.buildings.keys().cloned())
+            .collect()
+    }
+
+    /// What the service last judged of each watched sensor of `building`, by id.
+    pub fn judgements(&self, building: &BuildingId) -> Vec<SensorJudgement> {
+        self.sensors
+            .iter()
+            .filter(|((b, _), _)| b == building)
+            .map(|((_, sensor), st)| SensorJudgement {
+                sensor_id: sensor.clone(),
+                last_data_at: st.last_data,
+                judged_at: st.last.at,
+                window_start_ns: st.last.window_ns.map(|w| w.0),
+                window_end_ns: st.last.window_ns.map(|w| w.1),
+                first_sequence: st.last.sequences.map(|s| s.0),
+                last_sequence: st.last.sequences.map(|s| s.1),
+                waiting: st.last.waiting.then(|| "settling".to_owned()),
+                levels: st.last.levels.clone(),
+            })
+            .collect()
+    }
+
     /// Stale alerts for sensors silent for longer than `stale_after_s` at `now`.
     pub fn check_stale(&mut self, now: OffsetDateTime) -> Vec<Alert> {
         let settings = self.settings();
@@ -781,16 +861,21 @@ fn tilt_means(set: &[TiltSample]) -> (Estimate, Estimate) {
     )
 }
 
-/// Peak, RMS and dominant-frequency alerts of a sensor's current window, before rate limiting.
+/// Peak, RMS and dominant-frequency alerts of a sensor's current window, before rate limiting,
+/// and what the window came to.
 fn evaluate_window(
     key: &SensorKey,
     state: &SensorState,
     settings: &Settings,
     now: OffsetDateTime,
-) -> Vec<Alert> {
+) -> Evaluation {
+    let waiting = || Evaluation {
+        alerts: Vec::new(),
+        judged: None,
+    };
     let n = state.window.len();
     let (Some(first), Some(last)) = (state.window.front(), state.window.back()) else {
-        return Vec::new();
+        return waiting();
     };
     // Only whole windows are judged, and only once the baseline filter has settled before the
     // window's first sample: a window shorter than `window_s` (the first seconds of a stream,
@@ -799,8 +884,14 @@ fn evaluate_window(
     let period_ns = 1e9 / state.sample_rate_hz;
     let span_ns = (last.t_ns - first.t_ns) as f64 + period_ns;
     if span_ns < settings.window_s * 1e9 - 0.5 * period_ns || !first.settled {
-        return Vec::new();
+        return waiting();
     }
+    let window_ns = (first.t_ns, last.t_ns);
+    let sequences = state
+        .batches
+        .front()
+        .zip(state.batches.back())
+        .map(|(a, b)| (a.1, b.1));
     // The stream's own k where it asks for more than the configured one (few degrees of
     // freedom): the decision is at least as safe as each sample's interval.
     let k = state.k_max.max().map_or(settings.coverage_factor, |k| {
@@ -815,7 +906,23 @@ fn evaluate_window(
             .is_some_and(|l| state.bounds.rms_bound(k) >= l.threshold)
         || limits.frequency().next().is_some();
     if !wanted {
-        return Vec::new();
+        // Judged all the same: no estimate the window allows can reach a limit.
+        let levels = [
+            (AlertKind::PeakAcceleration, limits.pga().is_some()),
+            (AlertKind::RmsAcceleration, limits.rms().is_some()),
+        ]
+        .into_iter()
+        .filter(|(_, limited)| *limited)
+        .map(|(kind, _)| (kind, JudgedLevel::Below))
+        .collect();
+        return Evaluation {
+            alerts: Vec::new(),
+            judged: Some(Judged {
+                window_ns,
+                sequences,
+                levels,
+            }),
+        };
     }
     let grid_len = (span_ns / period_ns).round() as u32;
     let point = |t: &TimedSample| Point {
@@ -860,12 +967,8 @@ fn evaluate_window(
         key,
         k,
         window_s: f64::from(grid_len) / rate,
-        window_ns: (first.t_ns, last.t_ns),
-        sequences: state
-            .batches
-            .front()
-            .zip(state.batches.back())
-            .map(|(a, b)| (a.1, b.1)),
+        window_ns,
+        sequences,
         flagged_fraction: (n - clean.len()) as f64 / n as f64,
         flag_bits,
         now,
@@ -878,14 +981,19 @@ fn evaluate_window(
     };
     let mut alerts = Vec::new();
 
+    let mut levels = BTreeMap::new();
     if let Some(limit) = state.limits.pga() {
         let pick = |w: &WindowStats| w.peak.map(|p| p.estimate);
-        if let Some(j) = judge(
-            k,
-            limit,
+        let (clean_e, flagged_e) = (
             clean_stats.as_ref().and_then(pick),
             flagged_stats.as_ref().and_then(pick),
-        ) {
+        );
+        let j = judge(k, limit, clean_e, flagged_e);
+        levels.insert(
+            AlertKind::PeakAcceleration,
+            outcome(j.as_ref(), clean_e.or(flagged_e).is_some()),
+        );
+        if let Some(j) = j {
             let w = basis_stats(&j);
             let detail = match w.and_then(|w| w.peak.map(|p| (w.n_samples, p))) {
                 Some((n, p)) => method_detail("peak", n, p.axis, p.method),
@@ -903,12 +1011,16 @@ fn evaluate_window(
 
     if let Some(limit) = state.limits.rms() {
         let pick = |w: &WindowStats| w.rms.map(|p| p.estimate);
-        if let Some(j) = judge(
-            k,
-            limit,
+        let (clean_e, flagged_e) = (
             clean_stats.as_ref().and_then(pick),
             flagged_stats.as_ref().and_then(pick),
-        ) {
+        );
+        let j = judge(k, limit, clean_e, flagged_e);
+        levels.insert(
+            AlertKind::RmsAcceleration,
+            outcome(j.as_ref(), clean_e.or(flagged_e).is_some()),
+        );
+        if let Some(j) = j {
             let w = basis_stats(&j);
             let detail = match w.and_then(|w| w.rms.map(|p| (w.n_samples, p))) {
                 Some((n, p)) => format!(
@@ -952,6 +1064,15 @@ fn evaluate_window(
             judge(k, limit, clean_frequency, flagged_frequency),
         );
     }
+    if state.limits.frequency().next().is_some() {
+        levels.insert(
+            AlertKind::DominantFrequency,
+            outcome(
+                frequency_judgement.as_ref(),
+                clean_frequency.or(flagged_frequency).is_some(),
+            ),
+        );
+    }
     if let Some(j) = frequency_judgement {
         let detail =
             match basis_stats(&j).and_then(|w| w.dominant_frequency.map(|p| (w.n_samples, p))) {
@@ -966,7 +1087,14 @@ fn evaluate_window(
             &detail,
         ));
     }
-    alerts
+    Evaluation {
+        alerts,
+        judged: Some(Judged {
+            window_ns,
+            sequences,
+            levels,
+        }),
+    }
 }
 
 /// How a statistic was estimated, in words, for the alert's statement.

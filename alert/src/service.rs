@@ -26,7 +26,7 @@ use time::OffsetDateTime;
 use tokio::sync::mpsc;
 use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
-use triax_protocol::messages::{Alert, TiltSample};
+use triax_protocol::messages::{Alert, AlertingStatus, TiltSample};
 use triax_protocol::signing::{sign_alert, signing_key_from_hex, to_hex, LabSigningKey};
 use triax_protocol::{from_json, to_json, BuildingId, CorrectedBatch, Key, SensorId};
 
@@ -325,6 +325,8 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         followed.insert(b);
     }
 
+    let status = declare_status(&session, &config).await?;
+    let public_key_hex = to_hex(signing.verifying_key().as_bytes());
     let mut monitor = Monitor::new(config.clone(), OffsetDateTime::now_utc());
     let mut tick = tokio::time::interval(stale_check_period(&config));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -379,6 +381,12 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
                 }
                 monitor.check_stale(OffsetDateTime::now_utc())
             }
+            q = status.recv_async() => {
+                if let Ok(q) = q {
+                    answer_status(&monitor, &q, &public_key_hex).await;
+                }
+                Vec::new()
+            }
             _ = save.tick() => {
                 if let Some(p) = &config.state_path {
                     if let Err(e) = save_state(p, &positions) {
@@ -407,6 +415,48 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         .map_err(zenoh_error("close session"))?;
     tracing::info!("stopped");
     Ok(())
+}
+
+type StatusQueryable =
+    zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>;
+
+/// The queryable on `triax/<building>/alerting` of the watched buildings (PROTOCOL.md §3.8).
+async fn declare_status(
+    session: &zenoh::Session,
+    config: &Config,
+) -> Result<StatusQueryable, ServiceError> {
+    let expr = match (config.watch_all_buildings, config.buildings.keys().next()) {
+        (false, Some(b)) if config.buildings.len() == 1 => Key::Alerting(b.clone()).to_string(),
+        _ => "triax/*/alerting".to_owned(),
+    };
+    session
+        .declare_queryable(expr)
+        .await
+        .map_err(zenoh_error("declare the status queryable"))
+}
+
+/// Answers a status query: one reply per watched building its key expression names.
+async fn answer_status(monitor: &Monitor, query: &zenoh::query::Query, public_key_hex: &str) {
+    let wanted = query.key_expr().clone();
+    for b in monitor.buildings() {
+        let key = Key::Alerting(b.clone()).to_string();
+        let Ok(k) = zenoh::key_expr::KeyExpr::try_from(key.as_str()) else {
+            continue;
+        };
+        if !wanted.intersects(&k) {
+            continue;
+        }
+        let status = AlertingStatus {
+            format_version: triax_protocol::JSON_FORMAT_VERSION,
+            building: b.clone(),
+            public_key_hex: public_key_hex.to_owned(),
+            reported_at: OffsetDateTime::now_utc(),
+            sensors: monitor.judgements(&b),
+        };
+        if let Err(e) = query.reply(&key, to_json(&status)).await {
+            tracing::warn!(key = %key, cause = %e, "status reply failed");
+        }
+    }
 }
 
 /// How often staleness is checked: often enough to report within a quarter of the allowance.

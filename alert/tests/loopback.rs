@@ -5,10 +5,11 @@ use std::time::Duration;
 
 use triax_alert::config::{Config, ZenohMode, ZenohSettings};
 use triax_protocol::keys::{all_buildings, Stream};
-use triax_protocol::messages::{Alert, AlertKind, AlertLevel};
+use triax_protocol::messages::{Alert, AlertKind, AlertLevel, AlertingStatus, JudgedLevel};
 use triax_protocol::signing::{read_alert, to_hex, LabSigningKey, TrustedKeys};
 use triax_protocol::{
-    BatchHeader, BuildingId, CorrectedBatch, CorrectedSample, CorrectionInfo, Key, Mode, SensorId,
+    from_json, BatchHeader, BuildingId, CorrectedBatch, CorrectedSample, CorrectionInfo, Key, Mode,
+    SensorId,
 };
 
 /// The service's signing key in these tests.
@@ -160,6 +161,49 @@ async fn alerts_travel_over_zenoh_with_their_decision_and_staleness() {
     assert_eq!(exceeded.level, AlertLevel::Exceeded, "{exceeded:?}");
     assert!(exceeded.value - 2.0 * exceeded.standard_uncertainty > exceeded.threshold);
     assert!(exceeded.statement.contains("value − k·u > threshold"));
+    // It names the batches it judged, and the service's status says what it last judged of
+    // every sensor, alert or not (PROTOCOL.md §3.8).
+    assert!(exceeded.last_sequence.unwrap() <= sequence, "{exceeded:?}");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the status never named batch {sequence}"
+        );
+        let replies = site.get("triax/hq/alerting").await.unwrap();
+        let reply = replies.recv_async().await.expect("the service answers");
+        let st: AlertingStatus = from_json(&reply.result().unwrap().payload().to_bytes()).unwrap();
+        let done = st
+            .sensors
+            .iter()
+            .any(|s| s.sensor_id.as_str() == "acc-01" && s.last_sequence == Some(sequence));
+        if done {
+            break st;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(
+        status.public_key_hex,
+        to_hex(service_key().verifying_key().as_bytes())
+    );
+    let acc01 = &status.sensors[0];
+    assert_eq!(acc01.sensor_id.as_str(), "acc-01");
+    assert!(
+        acc01.judged_at.is_some() && acc01.waiting.is_none(),
+        "{acc01:?}"
+    );
+    assert_eq!(
+        acc01.levels.get(&AlertKind::PeakAcceleration),
+        Some(&JudgedLevel::Exceeded),
+        "{acc01:?}"
+    );
+    assert!(acc01.window_end_ns.unwrap() > acc01.window_start_ns.unwrap());
+    let acc02 = &status.sensors[1];
+    assert_eq!(acc02.sensor_id.as_str(), "acc-02");
+    assert!(
+        acc02.judged_at.is_none() && acc02.last_data_at.is_none(),
+        "{acc02:?}"
+    );
 
     // Silence: both the sensor that spoke and the expected one that never did go stale.
     let mut stale = std::collections::BTreeSet::new();

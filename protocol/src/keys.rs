@@ -11,6 +11,7 @@
 //! triax/<building>/alert/<sensor>                Alert (JSON), alerting → operators
 //! triax/<building>/history/<sensor>              history query → corrected batches (binary)
 //! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
+//! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -153,6 +154,8 @@ pub enum Key {
     Alert(BuildingId, SensorId),
     History(BuildingId, SensorId),
     Heartbeat(BuildingId),
+    /// What an alerting service last judged of the building's sensors (its queryable).
+    Alerting(BuildingId),
 }
 
 /// Why a key string is not a Triax key.
@@ -182,7 +185,8 @@ impl Key {
             | Key::Status(b)
             | Key::Alert(b, _)
             | Key::History(b, _)
-            | Key::Heartbeat(b) => b,
+            | Key::Heartbeat(b)
+            | Key::Alerting(b) => b,
         }
     }
 
@@ -195,7 +199,9 @@ impl Key {
             | Key::CalibrationAck(_, s)
             | Key::Alert(_, s)
             | Key::History(_, s) => Some(s),
-            Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) => None,
+            Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) | Key::Alerting(_) => {
+                None
+            }
         }
     }
 
@@ -222,6 +228,7 @@ impl Key {
             ["alert", s] => Key::Alert(b, sensor(s)?),
             ["history", s] => Key::History(b, sensor(s)?),
             ["heartbeat"] => Key::Heartbeat(b),
+            ["alerting"] => Key::Alerting(b),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -240,6 +247,7 @@ impl fmt::Display for Key {
             Key::Alert(b, s) => write!(f, "{ROOT}/{b}/alert/{s}"),
             Key::History(b, s) => write!(f, "{ROOT}/{b}/history/{s}"),
             Key::Heartbeat(b) => write!(f, "{ROOT}/{b}/heartbeat"),
+            Key::Alerting(b) => write!(f, "{ROOT}/{b}/alerting"),
         }
     }
 }
@@ -388,6 +396,7 @@ mod tests {
             Key::Alert(b("hq"), s("acc-01")),
             Key::History(b("hq"), s("acc-01")),
             Key::Heartbeat(b("hq")),
+            Key::Alerting(b("hq")),
         ];
         for k in keys {
             let text = k.to_string();

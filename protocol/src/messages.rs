@@ -326,7 +326,7 @@ impl JsonMessage for TiltSample {
 }
 
 /// What an alert is about.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AlertKind {
     PeakAcceleration,
@@ -393,6 +393,63 @@ impl JsonMessage for Alert {
     fn format_version(&self) -> u32 {
         self.format_version
     }
+}
+
+/// Answer of an alerting service to a query on `triax/<building>/alerting`: what it last
+/// judged of each sensor of the building, so that "judged, below every limit" can be told from
+/// "not judged" (a judgement below every limit publishes no alert).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AlertingStatus {
+    pub format_version: u32,
+    pub building: BuildingId,
+    /// The service's alert-signing public key (hex): which service answers.
+    pub public_key_hex: String,
+    #[serde(with = "time::serde::rfc3339")]
+    pub reported_at: OffsetDateTime,
+    /// Sensors the service watches in this building, by id.
+    pub sensors: Vec<SensorJudgement>,
+}
+
+impl JsonMessage for AlertingStatus {
+    const WHAT: &'static str = "alerting status";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
+}
+
+/// One sensor's latest judgement of its acceleration window.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorJudgement {
+    pub sensor_id: SensorId,
+    /// When the service last received data of this sensor, by its clock.
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub last_data_at: Option<OffsetDateTime>,
+    /// When the window was last judged, by the service's clock; absent before the first.
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub judged_at: Option<OffsetDateTime>,
+    /// The judged window (as in an alert, §3.6).
+    pub window_start_ns: Option<i64>,
+    pub window_end_ns: Option<i64>,
+    pub first_sequence: Option<u64>,
+    pub last_sequence: Option<u64>,
+    /// Why the latest batch's window was not judged, if it was not: `settling` (the window is
+    /// not whole, or the baseline filter has not settled before its first sample).
+    pub waiting: Option<String>,
+    /// Per kind with a limit: `below` (judged, no alert), `possible` or `exceeded` (before
+    /// rate limiting), or `not_judged` (no estimate: e.g. a quiet window's frequency).
+    pub levels: BTreeMap<AlertKind, JudgedLevel>,
+}
+
+/// The outcome of one kind's judgement.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JudgedLevel {
+    Below,
+    Possible,
+    Exceeded,
+    NotJudged,
 }
 
 /// What an alerting service's signature covers: these bytes, then the alert's JSON.
