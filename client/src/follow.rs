@@ -1,16 +1,32 @@
 //! Following a building's corrected streams without losing a batch (PROTOCOL.md §5.2).
 //!
 //! The gateway publishes the live stream with drop congestion control: a consumer that falls
-//! behind loses batches on its own link. A [`Follower`] notices, per sensor, a jump in sequence
-//! numbers and fetches exactly what it missed from the history before handing over the batch
-//! that showed the gap; it reads the gateway's heartbeat to notice a lost *last* batch; and,
-//! started with the last sequence numbers a consumer handled before it stopped, it first reads
-//! what the consumer missed while it was away. Batches come out per sensor in the order the
-//! gateway corrected them, each once: byte for byte what an uninterrupted subscriber received.
+//! behind loses batches on its own link. A [`Follower`] keeps, per sensor, the [`Position`] of
+//! the last batch it handed over (its sequence number and its first sample's time) and, before
+//! handing over a batch that does not follow on from it, reads from the history what lies
+//! between. The history is asked by time (`from_ns`, `to_ns`), not by sequence number: a node
+//! that restarts numbers its batches from 0 again, and a range of numbers then also matches its
+//! earlier run. Batches come out per sensor in the order the gateway corrected them, each once:
+//! byte for byte what an uninterrupted subscriber received, except that a batch flagged
+//! `duplicate` (a repeat of one already handed over) is passed on as it arrives live and never
+//! read back.
+//!
+//! What reveals a loss:
+//! - a live batch that is not the next in line (by number, and by time: no room for a whole
+//!   batch between the two);
+//! - the gateway's heartbeat, which names each active sensor's last published batch: a lost
+//!   *last* batch, after which the sensor fell silent;
+//! - heartbeats lost in turn (a jump in their numbering, a restarted gateway's, or the first one
+//!   seen): a sensor that fell silent meanwhile is named in none the follower received, so the
+//!   history is read on from the position of every sensor the heartbeat does not name.
+//!
+//! Started with the positions a consumer saved ([`FollowOptions::resume_at`]), it first reads
+//! what the consumer missed while it was away. A sensor it has no position for is followed from
+//! [`FollowOptions::new_sensors_from_ns`] (by default the moment it starts), its first batches
+//! read from the history if they were lost.
 //!
 //! What the history does not hold (lost before the gateway, or past retention) cannot be
-//! recovered: it is counted ([`FollowerCounters::unrecoverable`]), and the live batch after
-//! such a stretch carries `sequence_gap` anyway.
+//! recovered: where the numbering shows it, it is counted ([`FollowerCounters::unrecoverable`]).
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -26,22 +42,48 @@ use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use crate::history::{fetch, HistoryRequest};
 use crate::{zenoh_err, ClientError};
 
-/// A sequence number this far below the last one is a node restart, not a late batch (the
-/// gateway's own rule).
-const RESTART_BACKWARDS: u64 = 1024;
+/// Where a sensor's stream was left: the last batch handed over. Its time orders a sensor's
+/// batches across restarts of the node, where sequence numbers start again from 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Position {
+    pub sequence: u64,
+    /// The batch's first sample, ns since the Unix epoch, by the node's clock.
+    pub timestamp_ns: i64,
+}
+
+impl Position {
+    pub fn of(batch: &CorrectedBatch) -> Position {
+        Position {
+            sequence: batch.header.sequence,
+            timestamp_ns: batch.header.timestamp_ns,
+        }
+    }
+}
 
 /// What to follow, and from where.
 #[derive(Debug, Clone)]
 pub struct FollowOptions {
     pub building: BuildingId,
-    /// The last sequence number handled per sensor before a restart: what follows it is read
-    /// from the history first. Empty: start with the live stream.
+    /// The last batch handled per sensor before a restart ([`Delivery::position`]): what
+    /// follows it is read from the history first.
+    pub resume_at: BTreeMap<SensorId, Position>,
+    /// The last sequence number alone, as older saved state has it: placed in time through the
+    /// history (the newest kept batch with that number), then followed as [`Self::resume_at`].
+    /// Wrong only if the node restarted while the consumer was away and its new run passed
+    /// that number again (or the batch is past retention: then read by number); save
+    /// positions instead.
     pub resume_after: BTreeMap<SensorId, u64>,
+    /// A sensor in neither map is followed from this time on (ns since the Unix epoch, by the
+    /// node's clock): batches of it from then on are handed over, the first ones from the
+    /// history if they were lost. `None`: the moment the follower starts. `Some(i64::MIN)`:
+    /// everything the history holds of a sensor met for the first time.
+    pub new_sensors_from_ns: Option<i64>,
     /// How long one history query may take.
     pub query_timeout: Duration,
     /// Live batches (and heartbeats) the follower holds while it reads the history or its
-    /// consumer is busy; beyond that they are dropped, and read back from the history when the
-    /// next batch or heartbeat shows what is missing.
+    /// consumer is busy, and batches handed over that wait for the consumer (at most 1024);
+    /// beyond that live batches are dropped, and read back from the history when the next
+    /// batch or heartbeat shows what is missing.
     pub buffer_batches: usize,
 }
 
@@ -49,7 +91,9 @@ impl FollowOptions {
     pub fn new(building: BuildingId) -> FollowOptions {
         FollowOptions {
             building,
+            resume_at: BTreeMap::new(),
             resume_after: BTreeMap::new(),
+            new_sensors_from_ns: None,
             query_timeout: Duration::from_secs(10),
             buffer_batches: 4096,
         }
@@ -65,12 +109,19 @@ pub struct Delivery {
     pub recovered: bool,
 }
 
+impl Delivery {
+    /// What to save to resume after this batch ([`FollowOptions::resume_at`]).
+    pub fn position(&self) -> Position {
+        Position::of(&self.batch)
+    }
+}
+
 /// What the follower did.
 #[derive(Debug, Default)]
 pub struct FollowerCounters {
     pub live: AtomicU64,
     pub recovered: AtomicU64,
-    /// Batches a gap or a heartbeat said were missing that the history did not have.
+    /// Batches the numbering said were missing that the history did not have.
     pub unrecoverable: AtomicU64,
     pub history_queries: AtomicU64,
     pub history_errors: AtomicU64,
@@ -162,30 +213,33 @@ impl Fleet {
         })
     }
 
-    /// Starts following `options.building`: reads what `options.resume_after` says was missed,
-    /// then the live stream. A building the subscription does not cover gets nothing.
+    /// Starts following `options.building`: reads what `options.resume_at` (and
+    /// `resume_after`) say was missed, then the live stream. A building the subscription does
+    /// not cover gets nothing.
     pub fn follow(&self, options: FollowOptions) -> Follower {
         let (events_tx, mut events) = mpsc::channel(options.buffer_batches.max(1));
         self.routes
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .insert(options.building.clone(), events_tx);
-        let (tx, rx) = mpsc::channel(1024);
+        let (tx, rx) = mpsc::channel(options.buffer_batches.clamp(1, 1024));
         let counters = Arc::new(FollowerCounters::default());
         let mut state = State {
             session: self.session.clone(),
-            options: options.clone(),
-            last: options.resume_after.clone().into_iter().collect(),
+            new_sensors_from_ns: options.new_sensors_from_ns.unwrap_or_else(now_ns),
+            marks: options
+                .resume_at
+                .iter()
+                .map(|(s, p)| (s.clone(), Mark::at(*p)))
+                .collect(),
+            beats: HashMap::new(),
+            options,
             tx,
             counters: counters.clone(),
         };
         let task = tokio::spawn(async move {
-            let resumed: Vec<(SensorId, u64)> =
-                state.last.iter().map(|(s, l)| (s.clone(), *l)).collect();
-            for (sensor, last) in resumed {
-                if !state.recover(&sensor, last + 1, None).await {
-                    return;
-                }
+            if !state.resume().await {
+                return;
             }
             while let Some(event) = events.recv().await {
                 let open = match event {
@@ -208,7 +262,7 @@ impl Fleet {
 
 impl Follower {
     /// Subscribes to the building's corrected streams and heartbeat, reads what
-    /// `options.resume_after` says was missed, and starts following. (For many buildings, one
+    /// `options.resume_at` says was missed, and starts following. (For many buildings, one
     /// [`Fleet`] serves them all.)
     pub async fn start(
         session: &zenoh::Session,
@@ -236,11 +290,142 @@ impl Drop for Follower {
     }
 }
 
+/// Now, ns since the Unix epoch, by this machine's clock.
+fn now_ns() -> i64 {
+    let d = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
+    i64::try_from(d.as_nanos()).unwrap_or(i64::MAX)
+}
+
+/// The last batch handed over for a sensor (not counting duplicates), and where it ended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Mark {
+    position: Position,
+    /// Its first sample's time plus its duration: the node's next batch starts about here.
+    end_ns: i64,
+}
+
+impl Mark {
+    fn of(batch: &CorrectedBatch) -> Mark {
+        let position = Position::of(batch);
+        Mark {
+            position,
+            end_ns: position.timestamp_ns.saturating_add(duration_ns(batch)),
+        }
+    }
+
+    /// A saved position, whose batch's duration is not known.
+    fn at(position: Position) -> Mark {
+        Mark {
+            position,
+            end_ns: position.timestamp_ns,
+        }
+    }
+
+    /// The history's lower bound for what follows this batch.
+    fn after_ns(&self) -> i64 {
+        self.position.timestamp_ns.saturating_add(1)
+    }
+}
+
+/// How long a batch lasts: its sample count over its rate (finite and positive once decoded).
+fn duration_ns(batch: &CorrectedBatch) -> i64 {
+    (batch.samples.len() as f64 * 1e9 / batch.header.sample_rate_hz) as i64
+}
+
+fn is_duplicate(batch: &CorrectedBatch) -> bool {
+    batch.batch_flags & flags::DUPLICATE != 0
+}
+
+/// What to do with a live batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Next {
+    Deliver,
+    /// Handed over already, from the history.
+    Skip,
+    /// Read the history from `from_ns` up to this batch first: something may lie between.
+    Recover {
+        from_ns: i64,
+    },
+}
+
+/// Judges a live batch against the sensor's mark, or, for a sensor without one, the time from
+/// which new sensors are followed.
+fn judge(mark: Option<&Mark>, new_sensors_from_ns: i64, batch: &CorrectedBatch) -> Next {
+    if is_duplicate(batch) {
+        // A repeat: it moves nothing, and is passed on as the live stream carries it.
+        return Next::Deliver;
+    }
+    let h = &batch.header;
+    let duration_ns = i128::from(duration_ns(batch).max(1));
+    match mark {
+        None => {
+            // Room for a whole batch between the start and this one: earlier ones may be lost.
+            let room = i128::from(h.timestamp_ns) - i128::from(new_sensors_from_ns) >= duration_ns;
+            if room {
+                Next::Recover {
+                    from_ns: new_sensors_from_ns,
+                }
+            } else {
+                Next::Deliver
+            }
+        }
+        Some(m) if h.timestamp_ns <= m.position.timestamp_ns => Next::Skip,
+        Some(m) => {
+            // Next by number and by time: a node restarted in between could have numbered a
+            // new run up to the same number, but not without the time to send it.
+            let next = h.sequence == m.position.sequence.wrapping_add(1)
+                && i128::from(h.timestamp_ns) - i128::from(m.end_ns) < duration_ns;
+            if next {
+                Next::Deliver
+            } else {
+                Next::Recover {
+                    from_ns: m.after_ns(),
+                }
+            }
+        }
+    }
+}
+
+/// How far a history read goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Until {
+    /// Everything kept.
+    End,
+    /// Up to and including this batch (the last a heartbeat names).
+    Through(Position),
+    /// Up to this live batch, which the caller hands over itself.
+    Before(Position),
+}
+
+/// Batches the numbering says lie between `mark` and `target` (excluded), bounded, as the
+/// gateway's gap count is, by what fits in the time between them; none if the numbers went
+/// back (a node restart: the numbering says nothing).
+fn missing_between(mark: &Mark, target: Position) -> u64 {
+    let by_number = target
+        .sequence
+        .checked_sub(mark.position.sequence)
+        .map_or(0, |d| d.saturating_sub(1));
+    let duration_ns = i128::from((mark.end_ns - mark.position.timestamp_ns).max(1));
+    let between_ns = (i128::from(target.timestamp_ns) - i128::from(mark.end_ns)).max(0);
+    let by_clock = u64::try_from(between_ns / duration_ns + 1).unwrap_or(u64::MAX);
+    by_number.min(by_clock)
+}
+
+/// Heartbeat numbers remembered per gateway; beyond this many names (a building has one
+/// gateway) the memory starts afresh.
+const MAX_GATEWAYS: usize = 64;
+
 struct State {
     session: zenoh::Session,
     options: FollowOptions,
-    /// The last sequence number handed over, per sensor.
-    last: HashMap<SensorId, u64>,
+    /// [`FollowOptions::new_sensors_from_ns`], resolved.
+    new_sensors_from_ns: i64,
+    /// Per sensor, the last batch handed over.
+    marks: HashMap<SensorId, Mark>,
+    /// The last heartbeat number seen, per gateway.
+    beats: HashMap<String, u64>,
     tx: mpsc::Sender<Delivery>,
     counters: Arc<FollowerCounters>,
 }
@@ -248,8 +433,16 @@ struct State {
 impl State {
     /// Hands one batch over; false once the consumer has gone.
     async fn deliver(&mut self, payload: Vec<u8>, batch: CorrectedBatch, recovered: bool) -> bool {
-        self.last
-            .insert(batch.header.sensor_id.clone(), batch.header.sequence);
+        if !is_duplicate(&batch) {
+            let mark = Mark::of(&batch);
+            // In place for a known sensor: no id to copy per batch.
+            match self.marks.get_mut(&batch.header.sensor_id) {
+                Some(m) => *m = mark,
+                None => {
+                    self.marks.insert(batch.header.sensor_id.clone(), mark);
+                }
+            }
+        }
         let c = if recovered {
             &self.counters.recovered
         } else {
@@ -266,31 +459,68 @@ impl State {
             .is_ok()
     }
 
+    /// Reads what the consumer missed while it was away: places the sequence numbers of
+    /// `resume_after` in time, then reads every resumed sensor's history on from its mark.
+    async fn resume(&mut self) -> bool {
+        let by_number: Vec<(SensorId, u64)> = self
+            .options
+            .resume_after
+            .iter()
+            .filter(|(s, _)| !self.marks.contains_key(*s))
+            .map(|(s, l)| (s.clone(), *l))
+            .collect();
+        for (sensor, last) in by_number {
+            let mut request = HistoryRequest::sensor(&self.options.building, &sensor);
+            (request.from_seq, request.to_seq) = (Some(last), Some(last));
+            match self.read(&sensor, &request).await.last() {
+                Some(newest) => {
+                    self.marks.insert(sensor, Mark::of(&newest.batch));
+                }
+                None => {
+                    // Not kept (past retention): by number, as the saved state allows.
+                    request.from_seq = Some(last.saturating_add(1));
+                    request.to_seq = None;
+                    if !self.hand_over(&sensor, request, Until::End).await {
+                        return false;
+                    }
+                }
+            }
+        }
+        let marked: Vec<(SensorId, i64)> = self
+            .marks
+            .iter()
+            .map(|(s, m)| (s.clone(), m.after_ns()))
+            .collect();
+        for (sensor, from_ns) in marked {
+            if !self.recover(&sensor, from_ns, Until::End).await {
+                return false;
+            }
+        }
+        true
+    }
+
     async fn live(&mut self, payload: Vec<u8>) -> bool {
         let Ok(batch) = CorrectedBatch::decode(&payload) else {
             tracing::warn!("a corrected batch that does not decode skipped");
             return true;
         };
-        let (sensor, seq) = (batch.header.sensor_id.clone(), batch.header.sequence);
-        match self.last.get(&sensor).copied() {
-            Some(last)
-                if seq > last.saturating_add(1)
-                    && !self.recover(&sensor, last + 1, Some(seq - 1)).await =>
-            {
-                return false;
+        let sensor = batch.header.sensor_id.clone();
+        match judge(self.marks.get(&sensor), self.new_sensors_from_ns, &batch) {
+            Next::Skip => true,
+            Next::Deliver => self.deliver(payload, batch, false).await,
+            Next::Recover { from_ns } => {
+                let this = Position::of(&batch);
+                if !self.recover(&sensor, from_ns, Until::Before(this)).await {
+                    return false;
+                }
+                // Unless the history handed it over already (a node clock that went back).
+                let done = self
+                    .marks
+                    .get(&sensor)
+                    .is_some_and(|m| m.position.timestamp_ns >= this.timestamp_ns);
+                done || self.deliver(payload, batch, false).await
             }
-            // Already handed over from the history, unless the gateway flagged it a duplicate
-            // (published, so an uninterrupted subscriber got it too) or the node restarted.
-            Some(last)
-                if seq <= last
-                    && batch.batch_flags & flags::DUPLICATE == 0
-                    && !(seq == 0 || last - seq > RESTART_BACKWARDS) =>
-            {
-                return true;
-            }
-            _ => {}
         }
-        self.deliver(payload, batch, false).await
     }
 
     async fn heartbeat(&mut self, payload: &[u8]) -> bool {
@@ -298,29 +528,118 @@ impl State {
             tracing::warn!("a heartbeat that does not decode skipped");
             return true;
         };
-        for (sensor, s) in beat.sensors {
-            let Some(&last) = self.last.get(&sensor) else {
-                continue;
+        if self.beats.len() >= MAX_GATEWAYS && !self.beats.contains_key(&beat.gateway) {
+            self.beats.clear();
+        }
+        let lost_beats = match self.beats.insert(beat.gateway.clone(), beat.sequence) {
+            Some(previous) => beat.sequence != previous.wrapping_add(1),
+            // The first seen: what came before it is unknown.
+            None => true,
+        };
+        for (sensor, s) in &beat.sensors {
+            let last = Position {
+                sequence: s.last_sequence,
+                timestamp_ns: s.last_timestamp_ns,
             };
-            let behind = s.last_sequence > last && s.last_sequence - last <= RESTART_BACKWARDS;
-            if behind && !self.recover(&sensor, last + 1, Some(s.last_sequence)).await {
+            let from_ns = match self.marks.get(sensor) {
+                Some(m) if last.timestamp_ns > m.position.timestamp_ns => m.after_ns(),
+                Some(_) => continue,
+                None if last.timestamp_ns >= self.new_sensors_from_ns => self.new_sensors_from_ns,
+                None => continue,
+            };
+            if !self.recover(sensor, from_ns, Until::Through(last)).await {
                 return false;
+            }
+        }
+        if lost_beats {
+            // A sensor that fell silent while the heartbeats naming its last batches were lost
+            // is named in none: read on from where every sensor not named here was left.
+            let silent: Vec<(SensorId, i64)> = self
+                .marks
+                .iter()
+                .filter(|(s, _)| !beat.sensors.contains_key(*s))
+                .map(|(s, m)| (s.clone(), m.after_ns()))
+                .collect();
+            for (sensor, from_ns) in silent {
+                if !self.recover(&sensor, from_ns, Until::End).await {
+                    return false;
+                }
             }
         }
         true
     }
 
-    /// Reads `from..=to` (or everything from `from`) of `sensor` from the history and hands it
-    /// over; false once the consumer has gone.
-    async fn recover(&mut self, sensor: &SensorId, from: u64, to: Option<u64>) -> bool {
+    /// Reads `sensor`'s batches from `from_ns` on, up to `until`, and hands over each that is
+    /// not handed over yet; false once the consumer has gone.
+    async fn recover(&mut self, sensor: &SensorId, from_ns: i64, until: Until) -> bool {
         let mut request = HistoryRequest::sensor(&self.options.building, sensor);
-        request.from_seq = Some(from);
-        request.to_seq = to;
+        request.from_ns = Some(from_ns);
+        request.to_ns = match until {
+            Until::End => None,
+            Until::Through(p) | Until::Before(p) => Some(p.timestamp_ns.saturating_add(1)),
+        };
+        self.hand_over(sensor, request, until).await
+    }
+
+    /// Hands over, in the history's order, the batches `request` reads that come after the
+    /// sensor's mark, up to `until`; duplicates stay out (repeats of what was handed over).
+    async fn hand_over(
+        &mut self,
+        sensor: &SensorId,
+        request: HistoryRequest,
+        until: Until,
+    ) -> bool {
+        let got = self.read(sensor, &request).await;
+        let start = self.marks.get(sensor).copied();
+        let mut found = 0u64;
+        for r in got {
+            if is_duplicate(&r.batch) {
+                continue;
+            }
+            let p = Position::of(&r.batch);
+            if until == Until::Before(p) {
+                break;
+            }
+            let handed = self
+                .marks
+                .get(sensor)
+                .is_some_and(|m| p.timestamp_ns <= m.position.timestamp_ns);
+            if !handed {
+                if start.is_some_and(|m| p.sequence > m.position.sequence) {
+                    found += 1;
+                }
+                if !self.deliver(r.payload, r.batch, true).await {
+                    return false;
+                }
+            }
+            if until == Until::Through(p) {
+                break;
+            }
+        }
+        let wanted = match (start, until) {
+            (Some(m), Until::Before(t)) => missing_between(&m, t),
+            (Some(m), Until::Through(t)) => {
+                missing_between(&m, t) + u64::from(t.sequence > m.position.sequence)
+            }
+            _ => 0,
+        };
+        self.counters
+            .unrecoverable
+            .fetch_add(wanted.saturating_sub(found), Relaxed);
+        true
+    }
+
+    /// Every batch `request` reads; none (and counted) if the query failed.
+    async fn read(
+        &mut self,
+        sensor: &SensorId,
+        request: &HistoryRequest,
+    ) -> Vec<crate::history::Recovered> {
         self.counters.history_queries.fetch_add(1, Relaxed);
         let mut got = Vec::new();
         let fetched = fetch(
             &self.session,
-            &request,
+            request,
             self.options.query_timeout,
             &mut |r| got.push(r),
         )
@@ -329,21 +648,111 @@ impl State {
             self.counters.history_errors.fetch_add(1, Relaxed);
             tracing::warn!(sensor = %sensor, cause = %e, "history query failed");
         }
-        if let Some(to) = to {
-            let wanted = to - from + 1;
-            let found = got
-                .iter()
-                .filter(|r| (from..=to).contains(&r.batch.header.sequence))
-                .count() as u64;
-            self.counters
-                .unrecoverable
-                .fetch_add(wanted.saturating_sub(found), Relaxed);
+        got
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use triax_protocol::batch::Mode;
+    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo};
+
+    const SECOND: i64 = 1_000_000_000;
+
+    /// A batch of one second (10 samples at 10 Hz) starting at `t_s`.
+    fn batch(sequence: u64, t_s: i64, batch_flags: u16) -> CorrectedBatch {
+        CorrectedBatch {
+            header: BatchHeader {
+                sensor_id: SensorId::new("s").unwrap(),
+                sequence,
+                timestamp_ns: t_s * SECOND,
+                sample_rate_hz: 10.0,
+            },
+            batch_flags,
+            info: CorrectionInfo {
+                calibration_version: 1,
+                mode: Mode::Dynamic,
+                coverage_factor: 2.0,
+            },
+            samples: vec![
+                CorrectedSample {
+                    accel_mps2: [0.0; 3],
+                    uncertainty_mps2: [0.0; 3],
+                    flags: 0,
+                };
+                10
+            ],
         }
-        for r in got {
-            if !self.deliver(r.payload, r.batch, true).await {
-                return false;
+    }
+
+    #[test]
+    fn live_batches_are_judged_by_number_and_time() {
+        let m = Mark::of(&batch(7, 100, 0));
+        let judge = |b: &CorrectedBatch| judge(Some(&m), 0, b);
+        assert_eq!(judge(&batch(8, 101, 0)), Next::Deliver);
+        // A gap by number.
+        assert_eq!(
+            judge(&batch(10, 103, flags::SEQUENCE_GAP)),
+            Next::Recover {
+                from_ns: 100 * SECOND + 1
             }
+        );
+        // Handed over already from the history, whatever its number.
+        assert_eq!(judge(&batch(7, 100, 0)), Next::Skip);
+        assert_eq!(judge(&batch(3, 96, 0)), Next::Skip);
+        // A restarted node: numbers from 0 (or anything lower) again, later in time.
+        for seq in [0, 2, 5] {
+            assert_eq!(
+                judge(&batch(seq, 150, 0)),
+                Next::Recover {
+                    from_ns: 100 * SECOND + 1
+                },
+                "{seq}"
+            );
         }
-        true
+        // A new run that happens to reach the next number, with time for batches between.
+        assert_eq!(
+            judge(&batch(8, 140, 0)),
+            Next::Recover {
+                from_ns: 100 * SECOND + 1
+            }
+        );
+        // A repeat moves nothing and is passed on.
+        assert_eq!(judge(&batch(5, 98, flags::DUPLICATE)), Next::Deliver);
+    }
+
+    #[test]
+    fn a_sensor_met_for_the_first_time_is_read_from_the_start_if_batches_fit_before() {
+        let from = 100 * SECOND;
+        assert_eq!(judge(None, from, &batch(40, 99, 0)), Next::Deliver);
+        assert_eq!(
+            judge(None, from, &batch(40, 100, 0)),
+            Next::Deliver,
+            "no whole batch fits before it"
+        );
+        assert_eq!(
+            judge(None, from, &batch(41, 101, 0)),
+            Next::Recover { from_ns: from }
+        );
+        assert_eq!(
+            judge(None, i64::MIN, &batch(0, 0, 0)),
+            Next::Recover { from_ns: i64::MIN }
+        );
+    }
+
+    #[test]
+    fn missing_batches_are_bounded_by_number_and_by_clock() {
+        let m = Mark::of(&batch(7, 100, 0));
+        let at = |sequence, t_s| Position {
+            sequence,
+            timestamp_ns: t_s * SECOND,
+        };
+        assert_eq!(missing_between(&m, at(10, 103)), 2);
+        assert_eq!(missing_between(&m, at(8, 101)), 0);
+        // A numbering jump of 10^19 a second later: what fits in that second, plus one.
+        assert_eq!(missing_between(&m, at(u64::MAX - 1, 102)), 2);
+        // A restart says nothing by number.
+        assert_eq!(missing_between(&m, at(3, 200)), 0);
     }
 }

@@ -281,7 +281,6 @@ def cmd_subscribe(args):
 # --- History and losing nothing (PROTOCOL.md §5) -----------------------------------------------
 
 HISTORY_PAGE = 10000
-RESTART_BACKWARDS = 1024
 FLAG_DUPLICATE = 0x0080
 
 
@@ -289,14 +288,16 @@ def history_key(building, sensor):
     return f"{ROOT}/{check_id('building', building)}/history/{check_id('sensor', sensor)}"
 
 
-def fetch_history(session, building, sensor, from_seq=None, to_seq=None, timeout_s=10.0):
-    """Every kept batch of `sensor` with a sequence number in [from_seq, to_seq], page by page,
-    as (payload bytes, decoded batch), in the order the gateway received them."""
+def fetch_history(session, building, sensor, from_seq=None, to_seq=None, timeout_s=10.0,
+                  from_ns=None, to_ns=None):
+    """Every kept batch of `sensor` with a sequence number in [from_seq, to_seq] and a first
+    sample in [from_ns, to_ns), page by page, as (payload bytes, decoded batch), in the order the
+    gateway received them."""
     params = [f"limit={HISTORY_PAGE}"]
-    if from_seq is not None:
-        params.append(f"from_seq={from_seq}")
-    if to_seq is not None:
-        params.append(f"to_seq={to_seq}")
+    for name, value in [("from_seq", from_seq), ("to_seq", to_seq), ("from_ns", from_ns),
+                        ("to_ns", to_ns)]:
+        if value is not None:
+            params.append(f"{name}={value}")
     out = []
     after = None
     while True:
@@ -318,57 +319,115 @@ def fetch_history(session, building, sensor, from_seq=None, to_seq=None, timeout
             return out
 
 
-class Follower:
-    """A building's corrected batches, none lost that the history holds (PROTOCOL.md §5.2)."""
+def is_duplicate(batch):
+    return bool(batch["batch_flags"] & FLAG_DUPLICATE)
 
-    def __init__(self, session, building, last=None):
+
+def position(batch):
+    """Where a sensor's stream is left after `batch`: (sequence, timestamp_ns). The time orders
+    a sensor's batches across restarts of its node, where sequence numbers start again."""
+    return batch["sequence"], batch["timestamp_ns"]
+
+
+def duration_ns(batch):
+    return int(len(batch["samples"]) * 1e9 / batch["sample_rate_hz"])
+
+
+class Follower:
+    """A building's corrected batches, none lost that the history holds (PROTOCOL.md §5.2).
+
+    Per sensor it keeps a mark: the position of the last batch handed over (duplicates aside)
+    and where that batch ended. The history is always asked by time, never by sequence number
+    alone, since a restarted node numbers a new run from 0 again."""
+
+    def __init__(self, session, building, resume=None, new_sensors_from_ns=None):
         self.session = session
         self.building = building
-        # The last sequence number handed over, per sensor.
-        self.last = dict(last or {})
+        # sensor -> (sequence, timestamp_ns, end_ns) of the last batch handed over.
+        self.marks = {s: (seq, ts, ts) for s, (seq, ts) in (resume or {}).items()}
+        # A sensor never seen is followed from here on (by the node's clock).
+        self.new_from_ns = time.time_ns() if new_sensors_from_ns is None else new_sensors_from_ns
+        # The last heartbeat number seen, per gateway.
+        self.beats = {}
         self.live = session.declare_subscriber(corrected_key(building))
-        self.beats = session.declare_subscriber(f"{ROOT}/{check_id('building', building)}/heartbeat")
+        self.beats_sub = session.declare_subscriber(f"{ROOT}/{check_id('building', building)}/heartbeat")
         self.ready = []
         self.recovered = 0
-        for sensor, last_seq in list(self.last.items()):
-            self.recover(sensor, last_seq + 1, None)
+        for sensor, mark in list(self.marks.items()):
+            self.recover(sensor, mark[1] + 1)
 
-    def recover(self, sensor, from_seq, to_seq):
-        for payload, batch in fetch_history(self.session, self.building, sensor, from_seq, to_seq):
-            self.recovered += 1
-            self.hand_over(payload, batch)
+    def recover(self, sensor, from_ns, through=None, before=None):
+        """Hands over the kept batches of `sensor` from `from_ns` on, after its mark: up to and
+        including position `through`, or up to position `before` (a live batch the caller hands
+        over itself), or all. Duplicates stay out: repeats of what was handed over."""
+        target = through or before
+        to_ns = None if target is None else target[1] + 1
+        for payload, b in fetch_history(self.session, self.building, sensor, from_ns=from_ns, to_ns=to_ns):
+            if is_duplicate(b):
+                continue
+            p = position(b)
+            if before is not None and p == before:
+                break
+            mark = self.marks.get(sensor)
+            if mark is None or p[1] > mark[1]:
+                self.recovered += 1
+                self.hand_over(payload, b)
+            if through is not None and p == through:
+                break
 
     def hand_over(self, payload, batch):
-        self.last[batch["sensor_id"]] = batch["sequence"]
+        if not is_duplicate(batch):
+            self.marks[batch["sensor_id"]] = (*position(batch), batch["timestamp_ns"] + duration_ns(batch))
         self.ready.append((payload, batch))
 
     def on_live(self, payload):
         batch = decode_corrected(payload)
-        sensor, seq = batch["sensor_id"], batch["sequence"]
-        last = self.last.get(sensor)
-        if last is not None:
-            if seq > last + 1:
-                self.recover(sensor, last + 1, seq - 1)
-            elif seq <= last:
-                duplicate = batch["batch_flags"] & FLAG_DUPLICATE
-                restart = seq == 0 or last - seq > RESTART_BACKWARDS
-                if not duplicate and not restart:
-                    return  # already handed over from the history
-        self.hand_over(payload, batch)
+        sensor = batch["sensor_id"]
+        seq, ts = position(batch)
+        if is_duplicate(batch):
+            self.hand_over(payload, batch)  # a repeat, passed on as the live stream carries it
+            return
+        mark = self.marks.get(sensor)
+        if mark is None:
+            # Room for a whole batch since we started: its first batches may have been lost.
+            if ts - self.new_from_ns >= max(duration_ns(batch), 1):
+                self.recover(sensor, self.new_from_ns, before=(seq, ts))
+        elif ts <= mark[1]:
+            return  # already handed over from the history
+        elif not (seq == mark[0] + 1 and ts - mark[2] < max(duration_ns(batch), 1)):
+            # Not next in line by number and time: a gap, or a restarted node's new run.
+            self.recover(sensor, mark[1] + 1, before=(seq, ts))
+        mark = self.marks.get(sensor)
+        if mark is None or ts > mark[1]:
+            self.hand_over(payload, batch)
 
     def on_heartbeat(self, payload):
         beat = json.loads(payload)
         if beat.get("format_version") != 1:
             return
-        for sensor, s in beat.get("sensors", {}).items():
-            last = self.last.get(sensor)
-            if last is not None and last < s["last_sequence"] <= last + RESTART_BACKWARDS:
-                self.recover(sensor, last + 1, s["last_sequence"])
+        previous = self.beats.get(beat["gateway"])
+        self.beats[beat["gateway"]] = beat["sequence"]
+        # The first seen, a jump, or a restarted gateway: heartbeats were lost.
+        lost_beats = previous is None or beat["sequence"] != previous + 1
+        listed = beat.get("sensors", {})
+        for sensor, s in listed.items():
+            last = (s["last_sequence"], s["last_timestamp_ns"])
+            mark = self.marks.get(sensor)
+            if mark is not None and last[1] > mark[1]:
+                self.recover(sensor, mark[1] + 1, through=last)
+            elif mark is None and last[1] >= self.new_from_ns:
+                self.recover(sensor, self.new_from_ns, through=last)
+        if lost_beats:
+            # A sensor that fell silent while the heartbeats naming its last batches were lost
+            # is named in none: read on from where every sensor not named here was left.
+            for sensor, mark in list(self.marks.items()):
+                if sensor not in listed:
+                    self.recover(sensor, mark[1] + 1)
 
     def poll(self):
         """The batches ready now, in order (an empty list if none)."""
         while True:
-            sample = self.beats.try_recv()
+            sample = self.beats_sub.try_recv()
             if sample is None:
                 break
             self.on_heartbeat(sample.payload.to_bytes())
@@ -385,8 +444,9 @@ class Follower:
 
 
 def resume_state(path):
-    """The last sequence number per sensor in an output file of `follow --out`. A line cut short
-    by a kill is removed: its batch was not handed over, and comes again from the history."""
+    """The position (sequence, timestamp_ns) of the last batch per sensor in an output file of
+    `follow --out`, duplicates aside. A line cut short by a kill is removed: its batch was not
+    handed over, and comes again from the history."""
     last = {}
     try:
         with open(path, "rb") as f:
@@ -399,7 +459,8 @@ def resume_state(path):
             f.truncate(len(whole))
     for line in whole.splitlines():
         b = json.loads(line)
-        last[b["sensor_id"]] = b["sequence"]
+        if not is_duplicate(b):
+            last[b["sensor_id"]] = position(b)
     return last
 
 

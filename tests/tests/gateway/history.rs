@@ -9,6 +9,12 @@
 //! - `a_follower_loses_nothing_across_an_outage`: twenty sensors; a follower stops for a while
 //!   and resumes from its last sequence numbers; together its two runs handed over exactly what
 //!   an uninterrupted follower did, once each, in order, byte for byte.
+//! - `a_sensor_that_falls_silent_while_the_follower_is_stalled_is_caught_up`: the heartbeats
+//!   that named its last batches were lost with them; a jump in their numbering makes the
+//!   follower read on from where every sensor not named was left (issue 27).
+//! - `a_node_that_restarts_its_numbering_is_followed_by_time`: a follower stalled across a node
+//!   restart hands over the old run's tail and the new run's start once each, in order, and a
+//!   follower resumed from a saved position goes on from the right run (issue 27).
 //! - `retention_holds_the_size_cap_and_counts_what_it_deleted`
 //! - `bad_history_queries_are_refused_by_name`
 //! - `a_version_number_over_a_wildcard_is_refused_whole`: one sensor without the version makes
@@ -23,9 +29,11 @@ use std::f64::consts::PI;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::Duration;
 
-use triax_client::{history::fetch, FollowOptions, Follower, HistoryRequest};
+use triax_client::follow::Position;
+use triax_client::{history::fetch, Delivery, FollowOptions, Follower, HistoryRequest};
 use triax_gateway::{CorrectionMode, SensorSettings};
-use triax_protocol::batch::{flags, CorrectedBatch, RawBatch};
+use triax_protocol::batch::{flags, BatchHeader, CorrectedBatch, RawBatch};
+use triax_protocol::messages::Heartbeat;
 use triax_protocol::messages::{PushAck, PushOutcome};
 use triax_protocol::record::sample;
 use triax_protocol::signing::{sign, LabSigningKey};
@@ -339,6 +347,244 @@ async fn a_follower_loses_nothing_across_an_outage() {
         );
     }
     drop((steady, back));
+    node.close().await.unwrap();
+    consumer.close().await.unwrap();
+    gw.stop().await;
+}
+
+/// Deliveries per sensor: position and payload, in the order handed over.
+#[derive(Default)]
+struct Handed(BTreeMap<String, Vec<(u64, i64, Vec<u8>)>>);
+
+impl Handed {
+    fn take(&mut self, d: &Delivery) {
+        let h = &d.batch.header;
+        self.0.entry(h.sensor_id.to_string()).or_default().push((
+            h.sequence,
+            h.timestamp_ns,
+            d.payload.clone(),
+        ));
+    }
+
+    fn count(&self, sensor: &str) -> usize {
+        self.0.get(sensor).map_or(0, Vec::len)
+    }
+
+    fn sequences(&self, sensor: &str) -> Vec<u64> {
+        self.0
+            .get(sensor)
+            .map(|v| v.iter().map(|(s, _, _)| *s).collect())
+            .unwrap_or_default()
+    }
+}
+
+/// Hands over from `follower` until `done` holds of what was handed over.
+async fn follow_until(
+    follower: &mut Follower,
+    handed: &mut Handed,
+    done: impl Fn(&Handed) -> bool,
+) {
+    while !done(handed) {
+        let Ok(d) = tokio::time::timeout(TIMEOUT, follower.next()).await else {
+            let so_far: BTreeMap<&String, (usize, usize)> = handed
+                .0
+                .iter()
+                .map(|(s, v)| {
+                    let distinct: std::collections::BTreeSet<(u64, i64)> =
+                        v.iter().map(|(q, t, _)| (*q, *t)).collect();
+                    (s, (v.len(), distinct.len()))
+                })
+                .collect();
+            panic!("the follower stopped short; handed over (batches, distinct): {so_far:?}");
+        };
+        handed.take(&d.expect("the follower runs"));
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sensor_that_falls_silent_while_the_follower_is_stalled_is_caught_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &[sample::record("quiet", 1), sample::record("busy", 1)],
+    );
+    let gw = start(config("hs", &store)).await;
+    let (node, consumer) = (client(&gw.endpoint).await, client(&gw.endpoint).await);
+    let mut options = FollowOptions::new(b("hs"));
+    // Small buffers: a consumer that stops reading soon makes the follower drop what comes.
+    options.buffer_batches = 8;
+    let mut follower = Follower::start(&consumer, options).await.unwrap();
+    let quiet = blocking_publisher(&node, key_raw("hs", "quiet")).await;
+    let busy = blocking_publisher(&node, key_raw("hs", "busy")).await;
+    let mut handed = Handed::default();
+    for seq in 0..20 {
+        quiet.put(swaying("quiet", seq, 10)).await.unwrap();
+        busy.put(swaying("busy", seq, 10)).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    follow_until(&mut follower, &mut handed, |h| {
+        h.count("quiet") == 20 && h.count("busy") == 20
+    })
+    .await;
+    // The consumer stalls. `quiet` sends its last batches and falls silent; `busy` goes on.
+    let beats = consumer
+        .declare_subscriber(Key::Heartbeat(b("hs")).to_string())
+        .with(zenoh::handlers::FifoChannel::new(1000))
+        .await
+        .unwrap();
+    let quiet_end = 80u64;
+    for seq in 20..quiet_end {
+        quiet.put(swaying("quiet", seq, 10)).await.unwrap();
+        busy.put(swaying("busy", seq, 10)).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stopped = stop.clone();
+    let streaming = tokio::spawn(async move {
+        let mut seq = quiet_end;
+        while !stopped.load(Relaxed) {
+            busy.put(swaying("busy", seq, 10)).await.unwrap();
+            seq += 1;
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        seq
+    });
+    // Until the heartbeat no longer names `quiet`: every one that did went by the stalled
+    // follower, which dropped them.
+    loop {
+        let beat = tokio::time::timeout(TIMEOUT, beats.recv_async())
+            .await
+            .expect("heartbeats in time")
+            .unwrap();
+        let beat: Heartbeat = from_json(&beat.payload().to_bytes()).unwrap();
+        if !beat.sensors.contains_key(&s("quiet")) && beat.sensors.contains_key(&s("busy")) {
+            break;
+        }
+    }
+    stop.store(true, Relaxed);
+    let busy_end = streaming.await.unwrap();
+    // The consumer reads again: everything comes, once, in order.
+    follow_until(&mut follower, &mut handed, |h| {
+        h.count("quiet") >= quiet_end as usize && h.count("busy") >= busy_end as usize
+    })
+    .await;
+    assert_eq!(
+        handed.sequences("quiet"),
+        (0..quiet_end).collect::<Vec<_>>()
+    );
+    assert_eq!(handed.sequences("busy"), (0..busy_end).collect::<Vec<_>>());
+    assert_eq!(follower.counters().unrecoverable.load(Relaxed), 0);
+    drop(follower);
+    node.close().await.unwrap();
+    consumer.close().await.unwrap();
+    gw.stop().await;
+}
+
+/// Batch `seq` of run `run` of a 100 Hz node sending ten samples a batch; run 1 starts 200 s
+/// after run 0, numbered from 0 again.
+fn of_run(sensor: &str, run: i64, seq: u64) -> Vec<u8> {
+    let t0_ns = 1_800_000_000_000_000_000 + run * 200_000_000_000;
+    RawBatch {
+        header: BatchHeader {
+            sensor_id: s(sensor),
+            sequence: seq,
+            timestamp_ns: t0_ns + seq as i64 * 100_000_000,
+            sample_rate_hz: 100.0,
+        },
+        temperature_c: None,
+        samples: (0..10)
+            .map(|i| {
+                [
+                    0.01 * i as f32,
+                    (run * 1000 + seq as i64) as f32 * 1e-4,
+                    0.981,
+                ]
+            })
+            .collect(),
+    }
+    .encode()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_node_that_restarts_its_numbering_is_followed_by_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(&store, &[sample::record("rn", 1)]);
+    let gw = start(config("hn", &store)).await;
+    let (node, consumer) = (client(&gw.endpoint).await, client(&gw.endpoint).await);
+    let mut options = FollowOptions::new(b("hn"));
+    options.buffer_batches = 8;
+    let mut follower = Follower::start(&consumer, options).await.unwrap();
+    let publisher = blocking_publisher(&node, key_raw("hn", "rn")).await;
+    let mut handed = Handed::default();
+    for seq in 0..30 {
+        publisher.put(of_run("rn", 0, seq)).await.unwrap();
+    }
+    follow_until(&mut follower, &mut handed, |h| h.count("rn") == 30).await;
+    // Stalled: run 0 goes on to 100, then the node restarts and numbers run 1 from 0 to 59.
+    for seq in 30..100 {
+        publisher.put(of_run("rn", 0, seq)).await.unwrap();
+    }
+    for seq in 0..60 {
+        publisher.put(of_run("rn", 1, seq)).await.unwrap();
+    }
+    // Reading again: the heartbeat names run 1's batch 59, and the rest of run 1 comes live.
+    follow_until(&mut follower, &mut handed, |h| h.count("rn") >= 160).await;
+    let sent_1 = 70;
+    for seq in 60..sent_1 {
+        publisher.put(of_run("rn", 1, seq)).await.unwrap();
+    }
+    follow_until(&mut follower, &mut handed, |h| {
+        h.count("rn") >= 100 + sent_1 as usize
+    })
+    .await;
+    let expected: Vec<u64> = (0..100).chain(0..sent_1).collect();
+    assert_eq!(
+        handed.sequences("rn"),
+        expected,
+        "each run whole, once, in order"
+    );
+    // Byte for byte what the history holds, in its order.
+    let kept = read_history(&consumer, &HistoryRequest::sensor(&b("hn"), &s("rn"))).await;
+    let payloads: Vec<&Vec<u8>> = handed.0["rn"].iter().map(|(_, _, p)| p).collect();
+    assert_eq!(payloads, kept.iter().collect::<Vec<_>>());
+    drop(follower);
+    // A follower resumed from a saved position goes on in run 1, although run 0 also had
+    // that number and what follows it.
+    let (sequence, timestamp_ns, _) = handed.0["rn"].last().unwrap().clone();
+    for seq in sent_1..sent_1 + 10 {
+        publisher.put(of_run("rn", 1, seq)).await.unwrap();
+    }
+    let mut last_sent = HistoryRequest::sensor(&b("hn"), &s("rn"));
+    let last_ns = CorrectedBatch::decode(&kept[kept.len() - 1])
+        .unwrap()
+        .header
+        .timestamp_ns
+        + 10 * 100_000_000;
+    (last_sent.from_ns, last_sent.to_ns) = (Some(last_ns), Some(last_ns + 1));
+    wait_until_async("run 1's last batch kept", || async {
+        triax_client::history::any_kept(&consumer, &last_sent, TIMEOUT)
+            .await
+            .unwrap()
+    })
+    .await;
+    let mut options = FollowOptions::new(b("hn"));
+    options.resume_at.insert(
+        s("rn"),
+        Position {
+            sequence,
+            timestamp_ns,
+        },
+    );
+    let mut resumed = Follower::start(&consumer, options).await.unwrap();
+    let mut after = Handed::default();
+    follow_until(&mut resumed, &mut after, |h| h.count("rn") >= 10).await;
+    assert_eq!(
+        after.sequences("rn"),
+        (sent_1..sent_1 + 10).collect::<Vec<_>>()
+    );
+    drop(resumed);
     node.close().await.unwrap();
     consumer.close().await.unwrap();
     gw.stop().await;
