@@ -385,19 +385,34 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
         publishers.push(node.declare_publisher(key).await.unwrap());
     }
-    // Let both followers subscribe before the first batch.
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    let rounds = 220u64;
+    // Stamped by the wall clock from after both followers started: a follower follows a
+    // sensor it has never met from its own start on (PROTOCOL.md §5.2), reading from the
+    // history whatever came before it subscribed, however slowly it starts on a busy machine.
+    let t0_ns = i64::try_from(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_nanos(),
+    )
+    .unwrap()
+        + 1_000_000_000;
+    // At least 22 s of rounds, and on until the killed follower has been back for a while.
+    let min_rounds = 220u64;
     let started = tokio::time::Instant::now();
     let mut killed_at = None;
     let mut restarted = false;
-    for seq in 0..rounds {
+    let mut seq = 0u64;
+    while seq < min_rounds || !restarted {
+        assert!(
+            seq < 10 * min_rounds,
+            "the away follower never wrote every sensor"
+        );
         for (id, p) in ids.iter().zip(&publishers) {
             let batch = RawBatch {
                 header: triax_protocol::batch::BatchHeader {
                     sensor_id: SensorId::new(id.as_str()).unwrap(),
                     sequence: seq,
-                    timestamp_ns: START_NS + seq as i64 * 100_000_000,
+                    timestamp_ns: t0_ns + seq as i64 * 100_000_000,
                     sample_rate_hz: 100.0,
                 },
                 temperature_c: None,
@@ -408,7 +423,14 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
             p.put(batch.encode()).await.unwrap();
         }
         let t = started.elapsed();
-        if killed_at.is_none() && t > Duration::from_secs(4) {
+        // Killed once it has written every sensor at least once, so that it has somewhere to
+        // resume from for each.
+        let away_has_all = || {
+            let written = followed(&away_file);
+            ids.iter()
+                .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
+        };
+        if killed_at.is_none() && t > Duration::from_secs(4) && away_has_all() {
             // SIGKILL: no chance to finish a line or save anything.
             away.0.kill().unwrap();
             away.0.wait().unwrap();
@@ -419,8 +441,9 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
             restarted = true;
         }
         tokio::time::sleep_until(started + Duration::from_millis(100 * (seq + 1))).await;
+        seq += 1;
     }
-    assert!(restarted, "the follower was killed and started again");
+    let rounds = seq;
     let total = ids.len() * rounds as usize;
     let count = |f: &std::path::Path| followed(f).values().map(Vec::len).sum::<usize>();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
@@ -438,10 +461,18 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
             (0..rounds).collect::<Vec<_>>(),
             "{id}: the steady follower"
         );
+        let (steady_seqs, away_seqs): (Vec<u64>, Vec<u64>) = (
+            a[id].iter().map(|(s, _)| *s).collect(),
+            c.get(id)
+                .map_or(vec![], |v| v.iter().map(|(s, _)| *s).collect()),
+        );
         assert_eq!(
-            a.get(id),
-            c.get(id),
-            "{id}: the resumed follower, once each, same bytes"
+            steady_seqs, away_seqs,
+            "{id}: the resumed follower, once each (killed at {killed_at:?})"
+        );
+        assert!(
+            a.get(id) == c.get(id),
+            "{id}: the resumed follower, same bytes"
         );
     }
     drop((steady, away));
