@@ -387,10 +387,7 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
         .ok_or_else(|| ExportError::Usage(format!("--out {}: not a file name", a.out.display())))?
         .to_string_lossy()
         .into_owned();
-    let tmp = tempfile::Builder::new()
-        .prefix(&format!(".{name}."))
-        .suffix(".partial")
-        .tempfile_in(&dir)
+    let tmp = crate::whole::temp_beside(&dir, &format!(".{name}."), ".partial")
         .map_err(output_error(&a.out))?;
     let session = session(&a.zenoh).await?;
     preflight(&session, &a, &request).await?;
@@ -422,9 +419,7 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
     }
     let _ = session.close().await;
     let rows = writer.finish().map_err(parquet_error(&a))?;
-    tmp.as_file().sync_all().map_err(output_error(&a.out))?;
-    tmp.persist(&a.out)
-        .map_err(|e| output_error(&a.out)(e.error))?;
+    crate::whole::commit(tmp, &a.out).map_err(output_error(&a.out))?;
     Ok(Summary {
         batches,
         samples: rows,
@@ -581,16 +576,7 @@ async fn sds(a: Sds) -> Result<Summary, ExportError> {
     })
 }
 
-/// Writes `bytes` as the whole of `path`: a temporary file beside it, synced, renamed over it.
+/// Writes `bytes` as the whole of `path` ([`crate::whole`]).
 fn write_whole(path: &Path, bytes: &[u8]) -> Result<(), ExportError> {
-    use std::io::Write;
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".triax-export-")
-        .tempfile_in(dir)
-        .map_err(output_error(path))?;
-    tmp.write_all(bytes).map_err(output_error(path))?;
-    tmp.as_file().sync_all().map_err(output_error(path))?;
-    tmp.persist(path).map_err(|e| output_error(path)(e.error))?;
-    Ok(())
+    crate::whole::write(path, [bytes]).map_err(output_error(path))
 }

@@ -10,6 +10,7 @@ pub mod history;
 pub mod mseed;
 pub mod parquet;
 pub mod stationxml;
+mod whole;
 
 pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters};
 pub use history::{HistoryRequest, Recovered};

@@ -687,25 +687,14 @@ fn merge(old: Vec<Parsed>, fresh: Vec<Parsed>) -> Vec<Parsed> {
     out
 }
 
-/// Writes `records` as the whole of `path`: a temporary file beside it, synced, renamed over it.
+/// Writes `records` as the whole of `path` ([`crate::whole`]).
 fn replace(path: &Path, records: &[Parsed]) -> Result<(), MseedError> {
-    let io = |source| MseedError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    // Every day file has a parent: it lies under <root>/<year>/<net>/<sta>/<cha>.D.
-    let dir = path.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(io)?;
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".triax-export-")
-        .tempfile_in(dir)
-        .map_err(io)?;
-    for r in records {
-        tmp.write_all(&r.bytes).map_err(io)?;
-    }
-    tmp.as_file().sync_all().map_err(io)?;
-    tmp.persist(path).map_err(|e| io(e.error))?;
-    Ok(())
+    crate::whole::write(path, records.iter().map(|r| r.bytes.as_slice())).map_err(|source| {
+        MseedError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    })
 }
 
 /// BTIME (10 bytes) for an instant to the nearest 100 µs, and the microseconds from there

@@ -277,6 +277,12 @@ async fn exports_are_exactly_right_in_the_users_tools() {
         .await
         .unwrap();
     assert_eq!(summary.samples, ALL * PER_BATCH as u64);
+    // Readable by others, as a file written directly would be (not a temporary file's 0600).
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&pq).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o644, "{mode:o}");
+    }
     let root = dir.path().join("sds");
     let records = b.records_dir.to_str().unwrap().to_owned();
     let sds_args = argv("sds", &root, &["--records", &records]);
