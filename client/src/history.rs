@@ -70,26 +70,8 @@ pub async fn any_kept(
     request: &HistoryRequest,
     timeout: Duration,
 ) -> Result<bool, ClientError> {
-    let selector = request.selector(1, None);
-    let replies = session
-        .get(&selector)
-        .consolidation(ConsolidationMode::None)
-        .timeout(timeout)
-        .await
-        .map_err(zenoh_err("history query"))?;
-    let mut any = false;
-    while let Ok(reply) = replies.recv_async().await {
-        match reply.result() {
-            Ok(_) => any = true,
-            Err(e) => {
-                return Err(ClientError::History {
-                    selector,
-                    message: String::from_utf8_lossy(&e.payload().to_bytes()).into_owned(),
-                })
-            }
-        }
-    }
-    Ok(any)
+    let (n, _) = page(session, &request.selector(1, None), timeout, &mut |_| {}).await?;
+    Ok(n > 0)
 }
 
 /// One batch read back from a history: its payload as the gateway sent it, decoded.
@@ -111,37 +93,46 @@ pub async fn fetch(
     let mut after: Option<String> = None;
     loop {
         let selector = request.selector(PAGE, after.as_deref());
-        let replies = session
-            .get(&selector)
-            .consolidation(ConsolidationMode::None)
-            .timeout(timeout)
-            .await
-            .map_err(zenoh_err("history query"))?;
-        let mut in_page = 0;
-        while let Ok(reply) = replies.recv_async().await {
-            let sample = match reply.result() {
-                Ok(s) => s,
-                Err(e) => {
-                    return Err(ClientError::History {
-                        selector,
-                        message: String::from_utf8_lossy(&e.payload().to_bytes()).into_owned(),
-                    })
-                }
-            };
-            let payload = sample.payload().to_bytes().to_vec();
-            let batch = CorrectedBatch::decode(&payload).map_err(|e| ClientError::History {
-                selector: selector.clone(),
-                message: format!("a reply does not decode: {e}"),
-            })?;
-            after = sample
-                .attachment()
-                .map(|a| String::from_utf8_lossy(&a.to_bytes()).into_owned());
-            in_page += 1;
-            each(Recovered { payload, batch });
-        }
+        let (in_page, last) = page(session, &selector, timeout, each).await?;
+        after = last;
         total += in_page;
         if in_page < PAGE || after.is_none() {
             return Ok(total);
         }
     }
+}
+
+/// One answer of the history query `selector`: how many batches it held, each handed to `each`,
+/// and the cursor of the last one.
+async fn page(
+    session: &zenoh::Session,
+    selector: &str,
+    timeout: Duration,
+    each: &mut (dyn FnMut(Recovered) + Send),
+) -> Result<(usize, Option<String>), ClientError> {
+    let failed = |message: String| ClientError::History {
+        selector: selector.to_owned(),
+        message,
+    };
+    let replies = session
+        .get(selector)
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+        .await
+        .map_err(zenoh_err("history query"))?;
+    let (mut n, mut after) = (0, None);
+    while let Ok(reply) = replies.recv_async().await {
+        let sample = reply
+            .result()
+            .map_err(|e| failed(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()))?;
+        let payload = sample.payload().to_bytes().to_vec();
+        let batch = CorrectedBatch::decode(&payload)
+            .map_err(|e| failed(format!("a reply does not decode: {e}")))?;
+        after = sample
+            .attachment()
+            .map(|a| String::from_utf8_lossy(&a.to_bytes()).into_owned());
+        n += 1;
+        each(Recovered { payload, batch });
+    }
+    Ok((n, after))
 }
