@@ -12,6 +12,9 @@
 //!   force, where the calibration's error cancels;
 //! - **channels** ([`channel`]): dead or stuck outputs, white noise above the record's
 //!   `output_noise` (second differences, the lab's own estimator), isolated spikes;
+//! - **co-located pairs** ([`colocated`]): B's gain over A's per axis from the ambient
+//!   vibration's cross-spectrum in a band of the structure's modes, against 1 within the two
+//!   records' uncertainties and against its own baseline; it reaches the horizontal axes;
 //! - **verdicts** ([`cusum`]): every sequential test is a CUSUM of exact log-likelihood
 //!   ratios whose thresholds follow from a stated average run length to a false alarm
 //!   (`h = ln(sides · ARL)`, Lorden's bound), so the false-alarm rate is designed, not tuned.
@@ -29,6 +32,7 @@
 
 pub mod block;
 pub mod channel;
+pub mod colocated;
 pub mod config;
 pub mod cusum;
 pub mod gravity;

@@ -261,6 +261,38 @@ impl Mode {
     }
 }
 
+/// The building's vibration at a sensor: two lightly damped modes (1.3 and 4.1 Hz, 2 %
+/// damping) per axis, each carrying half the power. Several sensors given the same samples are
+/// co-located.
+#[derive(Debug, Clone)]
+pub struct Vibration {
+    rng: SmallRng,
+    modes: [Mode; 2],
+}
+
+impl Vibration {
+    pub fn new(seed: u64, sample_rate_hz: f64) -> Vibration {
+        Vibration {
+            rng: SmallRng::seed_from_u64(seed),
+            modes: [
+                Mode::new(1.3, 0.02, sample_rate_hz),
+                Mode::new(4.1, 0.02, sample_rate_hz),
+            ],
+        }
+    }
+
+    /// `n` samples of vibration whose RMS per axis is `rms_mps2`, into `out` (cleared first).
+    pub fn batch(&mut self, rms_mps2: f64, n: usize, out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        let each = rms_mps2 / 2f64.sqrt();
+        for _ in 0..n {
+            let a = self.modes[0].step(each, &mut self.rng);
+            let b = self.modes[1].step(each, &mut self.rng);
+            out.push([a[0] + b[0], a[1] + b[1], a[2] + b[2]]);
+        }
+    }
+}
+
 /// A simulated sensor node in the building.
 #[derive(Debug, Clone)]
 pub struct FieldSensor {
@@ -268,7 +300,8 @@ pub struct FieldSensor {
     truth: SensorTruth,
     rng: SmallRng,
     index: u64,
-    modes: [Mode; 2],
+    vibration: Vibration,
+    vibration_buf: Vec<[f64; 3]>,
     up: Vector3<f64>,
     faults: Vec<(i64, Fault)>,
     gain: [f64; 3],
@@ -285,10 +318,8 @@ impl FieldSensor {
         let up = up / up.norm();
         FieldSensor {
             rng: SmallRng::seed_from_u64(config.seed),
-            modes: [
-                Mode::new(1.3, 0.02, config.sample_rate_hz),
-                Mode::new(4.1, 0.02, config.sample_rate_hz),
-            ],
+            vibration: Vibration::new(config.seed ^ 0x00B1_B2A7_10E5, config.sample_rate_hz),
+            vibration_buf: Vec::with_capacity(config.batch_samples),
             truth,
             config,
             index: 0,
@@ -348,8 +379,39 @@ impl FieldSensor {
         }
     }
 
+    /// The vibration's RMS per axis at `t_s` seconds after the start, m/s²: the day's or the
+    /// night's.
+    pub fn vibration_rms_at(&self, t_s: f64) -> f64 {
+        if (6.0..22.0).contains(&self.hour_at(t_s)) {
+            self.config.vibration_day_mps2
+        } else {
+            self.config.vibration_night_mps2
+        }
+    }
+
+    /// Time of the next batch's first sample, s after the start.
+    pub fn next_time_s(&self) -> f64 {
+        self.index as f64 / self.config.sample_rate_hz
+    }
+
     /// The next batch: its samples into `out` (cleared first) and its header.
     pub fn next_batch(&mut self, out: &mut Vec<[f32; 3]>) -> BatchInfo {
+        let rms = self.vibration_rms_at(self.next_time_s());
+        let mut vibration = std::mem::take(&mut self.vibration_buf);
+        self.vibration
+            .batch(rms, self.config.batch_samples, &mut vibration);
+        let info = self.next_batch_with(out, &vibration);
+        self.vibration_buf = vibration;
+        info
+    }
+
+    /// The next batch with the vibration given, one sample of it (m/s², sensor frame) per
+    /// sample of the batch: co-located sensors share it.
+    pub fn next_batch_with(
+        &mut self,
+        out: &mut Vec<[f32; 3]>,
+        vibration: &[[f64; 3]],
+    ) -> BatchInfo {
         out.clear();
         let first = self.index;
         let timestamp_ns = self.time_ns(first);
@@ -358,12 +420,6 @@ impl FieldSensor {
         let t_s = first as f64 / fs;
         let temperature = self.temperature_at(t_s);
         let dt = temperature - REFERENCE_C;
-        let hour = self.hour_at(t_s);
-        let rms = if (6.0..22.0).contains(&hour) {
-            self.config.vibration_day_mps2
-        } else {
-            self.config.vibration_night_mps2
-        };
         let truth = &self.truth;
         let s: &Matrix3<f64> = &truth.static_sensitivity;
         let thermal_gain = truth.gain_drift_per_c.map(|c| 1.0 + c * dt);
@@ -373,12 +429,8 @@ impl FieldSensor {
         let v_zero = -(s
             * (truth.static_offset_mps2 + truth.offset_drift_mps2_per_c * dt + self.offset_mps2));
         let spike_p = self.spikes.map(|(_, per_hour, _)| per_hour / 3600.0 / fs);
-        for _ in 0..self.config.batch_samples {
-            // Each mode carries half the vibration's power.
-            let a = self.modes[0].step(rms / 2f64.sqrt(), &mut self.rng);
-            let b = self.modes[1].step(rms / 2f64.sqrt(), &mut self.rng);
-            let vibration = Vector3::new(a[0] + b[0], a[1] + b[1], a[2] + b[2]);
-            let response = v_gravity + truth.dynamic_sensitivity * vibration;
+        for vib in vibration {
+            let response = v_gravity + truth.dynamic_sensitivity * Vector3::from(*vib);
             let mut v = [0.0f32; 3];
             for k in 0..3 {
                 let noise: f64 = self.rng.sample(StandardNormal);
@@ -399,7 +451,7 @@ impl FieldSensor {
             self.last = v;
             out.push(v);
         }
-        self.index += self.config.batch_samples as u64;
+        self.index += vibration.len() as u64;
         let reading = temperature
             + self.config.temperature_noise_c * self.rng.sample::<f64, _>(StandardNormal);
         BatchInfo {

@@ -8,10 +8,11 @@ use std::time::Instant;
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
+use triax_health::colocated::PairConfig;
 use triax_health::sim::{field_sensor_truth, Fault, FieldConfig, FieldSensor, EPOCH_NS};
 use triax_health::{HealthConfig, HealthReport, LocalGravity, SensorHealth, Verdict};
 
-use crate::util::{not_ok, Run, HOUR_NS, SECOND_NS};
+use crate::util::{not_ok, Pair, Run, HOUR_NS, SECOND_NS};
 
 fn threads() -> usize {
     std::env::var("TRIAX_HEALTH_MC_THREADS")
@@ -449,4 +450,94 @@ fn cost_per_sample() {
         "monitor: {} bytes (plus its record's corrector when it loads its own)",
         std::mem::size_of::<SensorHealth>()
     );
+}
+
+/// Bendat & Piersol's random error of the gain ratio, held to the spread of the estimates:
+/// `TRIAX_HEALTH_MC_TRIALS` (100) pairs, each with its own two lab records, one hour of
+/// daytime vibration at 1 mg RMS per axis. The standardised errors `(r − r_true)/u` must have
+/// a standard deviation within 15 % of 1 and a mean within 3/√n of 0.
+///
+/// `cargo test --release -p triax-health --test health -- --ignored bendat_piersol --nocapture`
+#[test]
+#[ignore]
+fn bendat_piersol_uncertainty_matches_the_spread() {
+    let trials = env_usize("TRIAX_HEALTH_MC_TRIALS", 100);
+    let errors = parallel(trials, |i| {
+        let field = FieldConfig {
+            start_hour: 10.0,
+            ..crate::colocated::building()
+        };
+        let mut pair = Pair::new(60_000 + i as u64, field, &PairConfig::default());
+        pair.run_until(EPOCH_NS + HOUR_NS + 10 * SECOND_NS, |_| false);
+        let latest = pair.check.latest();
+        [0, 1, 2].map(|axis| {
+            let e = latest[axis].expect("an estimate");
+            (e.ratio - pair.true_ratio(axis, [1.0; 3])) / e.uncertainty
+        })
+    });
+    for axis in 0..3 {
+        let z: Vec<f64> = errors.iter().map(|e| e[axis]).collect();
+        let n = z.len() as f64;
+        let mean = z.iter().sum::<f64>() / n;
+        let sd = (z.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        eprintln!("axis {axis}: standardised error mean {mean:+.3}, sd {sd:.3} over {n} pairs");
+        assert!((sd - 1.0).abs() < 0.15, "axis {axis}: sd {sd}");
+        assert!(mean.abs() < 3.0 / n.sqrt(), "axis {axis}: mean {mean}");
+    }
+}
+
+/// A 0.5 % gain change on B's horizontal x channel, at a random time of the second day (the
+/// first is the baseline), at 1 mg RMS of daytime vibration: the relative test is `suspect`
+/// on x within 24 h; y is not. `TRIAX_HEALTH_MC_TRIALS` (10) pairs.
+///
+/// `cargo test --release -p triax-health --test health -- --ignored colocated_drift --nocapture`
+#[test]
+#[ignore]
+fn colocated_drift_found_within_a_day() {
+    let trials = env_usize("TRIAX_HEALTH_MC_TRIALS", 10);
+    let results = parallel(trials, |i| {
+        let seed = 70_000 + i as u64;
+        let mut rng = SmallRng::seed_from_u64(seed);
+        let mut pair = Pair::new(seed, crate::colocated::building(), &PairConfig::default());
+        let fault_ns = EPOCH_NS + 24 * HOUR_NS + (rng.gen::<f64>() * 24.0 * HOUR_NS as f64) as i64;
+        pair.b.inject(
+            fault_ns,
+            Fault::GainStep {
+                channel: 0,
+                relative: 0.005,
+            },
+        );
+        pair.run_until(fault_ns, |_| false);
+        let before = pair.check.relative_report();
+        assert!(
+            before.iter().all(|t| t.verdict != Verdict::Suspect),
+            "trial {i}: {before:?}"
+        );
+        let found = pair.run_until(fault_ns + 30 * HOUR_NS, |c| {
+            c.relative_report()[0].verdict == Verdict::Suspect
+        });
+        let after = pair.check.relative_report();
+        (
+            found.map(|t| (t - fault_ns) as f64 / HOUR_NS as f64),
+            after[0],
+            after[1].verdict,
+        )
+    });
+    let mut delays: Vec<f64> = results.iter().filter_map(|r| r.0).collect();
+    delays.sort_by(f64::total_cmp);
+    for (found, x, _) in &results {
+        eprintln!(
+            "found after {found:?} h: change {:+.4} ± {:.4}",
+            x.statistic, x.uncertainty
+        );
+    }
+    eprintln!(
+        "0.5 % on B's x: {} of {trials} found, delay median {:.1} h, max {:.1} h",
+        delays.len(),
+        delays.get(delays.len() / 2).copied().unwrap_or(f64::NAN),
+        delays.last().copied().unwrap_or(f64::NAN)
+    );
+    assert_eq!(delays.len(), trials);
+    assert!(delays.iter().all(|&d| d <= 24.0), "{delays:?}");
+    assert!(results.iter().all(|r| r.2 != Verdict::Suspect));
 }

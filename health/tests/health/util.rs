@@ -1,8 +1,13 @@
 //! Shared helpers: a calibrated simulated sensor in the field with its monitor.
 
-use triax_health::sim::{calibrate, field_sensor_truth, Fault, FieldConfig, FieldSensor};
+use nalgebra::{Matrix3, Vector3};
+use triax_calibration::corrector::Corrector;
+use triax_health::colocated::{ColocatedPair, PairConfig};
+use triax_health::sim::{
+    calibrate, field_sensor_truth, Fault, FieldConfig, FieldSensor, Vibration,
+};
 use triax_health::{HealthConfig, HealthReport, SensorHealth};
-use triax_protocol::record::CalibrationRecord;
+use triax_protocol::record::{CalibrationRecord, SetKind};
 
 pub const SECOND_NS: i64 = 1_000_000_000;
 pub const HOUR_NS: i64 = 3600 * SECOND_NS;
@@ -109,4 +114,118 @@ pub fn not_ok(r: &HealthReport) -> Vec<String> {
             )
         })
         .collect()
+}
+
+/// Two co-located sensors (the same vibration, each its own lab record and noise) and the
+/// pair check on their corrected readings, corrected as the gateway does: the dynamic set at
+/// each batch's temperature.
+pub struct Pair {
+    pub a: FieldSensor,
+    pub b: FieldSensor,
+    pub records: [CalibrationRecord; 2],
+    correctors: [Corrector; 2],
+    pub check: ColocatedPair,
+    vibration: Vibration,
+    vib: Vec<[f64; 3]>,
+    raw: Vec<[f32; 3]>,
+    accel: Vec<[f64; 3]>,
+    pub now_ns: i64,
+}
+
+impl Pair {
+    pub fn new(seed: u64, field: FieldConfig, config: &PairConfig) -> Pair {
+        let truth = field_sensor_truth();
+        let records = [0, 1].map(|k| {
+            calibrate(&truth, seed * 2 + k, if k == 0 { "a" } else { "b" })
+                .expect("the simulated lab calibrates")
+        });
+        let correctors = [0, 1].map(|k| Corrector::from_record(&records[k]).expect("loads"));
+        let check = ColocatedPair::new(&records[0], &records[1], config).expect("a valid pair");
+        let sensor = |k: u64| {
+            FieldSensor::new(
+                field_sensor_truth(),
+                FieldConfig {
+                    seed: seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (0xA11CE + k),
+                    ..field.clone()
+                },
+            )
+        };
+        Pair {
+            a: sensor(0),
+            b: sensor(1),
+            records,
+            correctors,
+            check,
+            vibration: Vibration::new(seed ^ 0xB0_11D1, field.sample_rate_hz),
+            vib: Vec::new(),
+            raw: Vec::new(),
+            accel: Vec::new(),
+            now_ns: field.start_ns,
+        }
+    }
+
+    fn correct(
+        corrector: &Corrector,
+        temperature_c: Option<f32>,
+        raw: &[[f32; 3]],
+        out: &mut Vec<[f64; 3]>,
+    ) {
+        let base = corrector.set(SetKind::Dynamic);
+        let at = temperature_c.and_then(|t| base.at_temperature(f64::from(t)));
+        let set = at.as_ref().unwrap_or(base);
+        out.clear();
+        out.extend(raw.iter().map(|v| set.accel(v.map(f64::from))));
+    }
+
+    /// Feeds both sensors until `until_ns`, checking `stop` every minute of data; returns the
+    /// time it first held.
+    pub fn run_until(
+        &mut self,
+        until_ns: i64,
+        mut stop: impl FnMut(&ColocatedPair) -> bool,
+    ) -> Option<i64> {
+        let fs = self.a.config().sample_rate_hz;
+        let n = self.a.config().batch_samples;
+        let mut batches = 0u64;
+        while self.now_ns < until_ns {
+            let rms = self.a.vibration_rms_at(self.a.next_time_s());
+            self.vibration.batch(rms, n, &mut self.vib);
+            for (k, sensor) in [&mut self.a, &mut self.b].into_iter().enumerate() {
+                let info = sensor.next_batch_with(&mut self.raw, &self.vib);
+                Self::correct(
+                    &self.correctors[k],
+                    info.temperature_c,
+                    &self.raw,
+                    &mut self.accel,
+                );
+                if k == 0 {
+                    self.check.feed_a(info.timestamp_ns, fs, &self.accel);
+                } else {
+                    self.check.feed_b(info.timestamp_ns, fs, &self.accel);
+                }
+                self.now_ns = info.timestamp_ns + (n as f64 * 1e9 / fs) as i64;
+            }
+            batches += 1;
+            if batches.is_multiple_of((60.0 * fs / n as f64) as u64) && stop(&self.check) {
+                return Some(self.now_ns);
+            }
+        }
+        None
+    }
+
+    /// B's true gain over A's along A's axis `axis`, with B's output channel gains multiplied
+    /// by `gain_b`: `(Ŝ_B⁻¹·G·S)_ii / (Ŝ_A⁻¹·S)_ii` (the other axes' motion is uncorrelated
+    /// with this one's and biases nothing).
+    pub fn true_ratio(&self, axis: usize, gain_b: [f64; 3]) -> f64 {
+        let s = field_sensor_truth().dynamic_sensitivity;
+        let estimate = |r: &CalibrationRecord| {
+            Matrix3::from_fn(|i, j| r.dynamic.sensitivity[i][j])
+                .try_inverse()
+                .expect("a loaded record inverts")
+        };
+        let g = Matrix3::from_diagonal(&Vector3::from(gain_b));
+        let b = estimate(&self.records[1]) * g * s;
+        let a = estimate(&self.records[0]) * s;
+        b[(axis, axis)] / a[(axis, axis)]
+    }
 }

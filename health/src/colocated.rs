@@ -1,0 +1,775 @@
+//! Co-located sensors: each axis's gain ratio from the ambient vibration, which reaches the
+//! horizontal axes that gravity cannot.
+//!
+//! Two sensors on the same part of a structure see the same motion at low frequency. With
+//! `x` sensor A's corrected reading along one of its axes and `y` sensor B's along the same
+//! direction (B's readings turned into A's frame by the declared mounting `R`, `y = (R·a_B)_i`),
+//! the frequency response between them in a band is B's gain relative to A's. Per segment of
+//! `segment_s`, Hann-windowed, the DFT at the band's bins (Goertzel's recurrence, referred to a
+//! common time grid so that the two nodes' sampling phases do not matter) gives the auto- and
+//! cross-spectra; over `estimate_s` of segments the ratio is (Bendat & Piersol's H₁, its
+//! denominator less the record's white noise, which would bias it low by `N/S`):
+//!
+//! ```text
+//! r = Re Σ G_xy / (Σ G_xx − N_x),   γ² = |Σ G_xy|² / (Σ G_xx · Σ G_yy)
+//! u(r)/r = √(1 − γ²) / (|γ|·√(2·n_d))       (Bendat & Piersol, eq. 9.73)
+//! ```
+//!
+//! with `n_d` the independent averages: segments times bins over 1.5 (a Hann window's
+//! equivalent noise bandwidth, in bins). The real part, because co-located readings are in
+//! phase: the sensors' time stamps must agree to better than a millisecond (a 1 ms offset
+//! costs 0.05 % at 5 Hz).
+//!
+//! **Absolute:** `r − 1` against `√(u(r)² + u²_A + u²_B)`, `u_A` and `u_B` the relative gain
+//! uncertainties of the two records' dynamic sets along the axis (`−dᵀ·S⁻¹·δS·d` for unit
+//! motion along `d`, from each record's 12×12 covariance), `watch` and `suspect` beyond
+//! Student's t at the absolute probabilities and the Welch–Satterthwaite ν.
+//! **Relative:** after `baseline_s` of estimates, the baseline (their weighted mean) holds both
+//! calibrations' errors, which then cancel; each later estimate's `d = r − r₀` feeds a
+//! two-sided CUSUM designed for `shift` (a relative gain change), as in [`crate::cusum`].
+//!
+//! Cost: per sample of each sensor, a window value and two multiply-adds per bin and axis
+//! (63 bins·axes for the default 1–5 Hz band in 5 s segments: about 130 operations), no
+//! allocation; the buffers are made once.
+
+use triax_calibration::corrector::{Corrector, SetCorrector};
+use triax_calibration::student::{welch_satterthwaite, CoverageTable, MAX_DOF};
+use triax_protocol::record::{CalibrationRecord, SetKind};
+
+use crate::config::HealthError;
+use crate::cusum::{Sequential, Thresholds, Verdict};
+use crate::report::TestReport;
+
+/// Completed segments a sensor may hold while the other catches up.
+const PENDING: usize = 8;
+
+/// A pair's settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairConfig {
+    /// Band the ratio is estimated in, Hz: the structure's modes, where the motion stands well
+    /// above the sensors' noise.
+    pub band_hz: [f64; 2],
+    pub segment_s: f64,
+    /// B's axes in A's frame: `a_A = mounting · a_B` for the same motion.
+    pub mounting: [[f64; 3]; 3],
+    /// Span of segments one estimate averages, s.
+    pub estimate_s: f64,
+    /// Estimates whose coherence is below this are too quiet to judge (left out).
+    pub min_coherence: f64,
+    /// Sensor time of estimates the relative test's baseline takes, s.
+    pub baseline_s: f64,
+    /// Relative gain change the relative test is designed for.
+    pub shift: f64,
+    pub watch_arl_days: f64,
+    pub suspect_arl_days: f64,
+    pub absolute_watch_probability: f64,
+    pub absolute_suspect_probability: f64,
+}
+
+impl Default for PairConfig {
+    fn default() -> Self {
+        PairConfig {
+            band_hz: [1.0, 5.0],
+            segment_s: 5.0,
+            mounting: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            estimate_s: 3600.0,
+            min_coherence: 0.5,
+            baseline_s: 86_400.0,
+            shift: 0.005,
+            watch_arl_days: 30.0,
+            suspect_arl_days: 10_000.0,
+            absolute_watch_probability: 0.99,
+            absolute_suspect_probability: 0.999,
+        }
+    }
+}
+
+impl PairConfig {
+    fn validate(&self) -> Result<(), HealthError> {
+        let bad =
+            |field: &'static str, problem: String| Err(HealthError::Config { field, problem });
+        let [low, high] = self.band_hz;
+        if !(low > 0.0 && high > low && high.is_finite()) {
+            return bad(
+                "band_hz",
+                format!("{low} to {high} Hz is not a band above 0"),
+            );
+        }
+        if !(self.segment_s.is_finite() && self.segment_s * low >= 2.0) {
+            return bad(
+                "segment_s",
+                format!(
+                    "{} s holds fewer than two periods of {low} Hz",
+                    self.segment_s
+                ),
+            );
+        }
+        if !(self.estimate_s.is_finite() && self.estimate_s >= 10.0 * self.segment_s) {
+            return bad(
+                "estimate_s",
+                format!("{} s is fewer than ten segments", self.estimate_s),
+            );
+        }
+        let m = &self.mounting;
+        for i in 0..3 {
+            for j in 0..3 {
+                let dot: f64 = (0..3).map(|k| m[i][k] * m[j][k]).sum();
+                let want = if i == j { 1.0 } else { 0.0 };
+                let orthonormal = (dot - want).abs() < 1e-6;
+                if !orthonormal {
+                    return bad(
+                        "mounting",
+                        format!("{m:?} is not a rotation (rows {i} and {j} give {dot})"),
+                    );
+                }
+            }
+        }
+        let positive = [
+            ("baseline_s", self.baseline_s),
+            ("shift", self.shift),
+            ("watch_arl_days", self.watch_arl_days),
+            ("suspect_arl_days", self.suspect_arl_days),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, format!("{v} must be finite and above 0"));
+            }
+        }
+        if !(0.0..1.0).contains(&self.min_coherence) {
+            return bad(
+                "min_coherence",
+                format!("{} is not in 0 to 1", self.min_coherence),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// One sensor's DFT at the band's bins over the current segment.
+#[derive(Debug, Clone)]
+struct Segment {
+    /// Goertzel states (s₁, s₂) per axis and bin, `3 × bins`.
+    state: Vec<[f64; 2]>,
+    /// 2·cos ω per bin, ω the bin's angle per sample.
+    coefficient: Vec<f64>,
+    frequency_hz: Vec<f64>,
+    index: Option<i64>,
+    first_ns: i64,
+    n: u32,
+    /// Samples in a whole segment.
+    len: u32,
+    sum_w2: f64,
+    /// Expected time of the next sample, ns; a break drops the segment.
+    next_ns: i64,
+    sample_rate_hz: f64,
+}
+
+/// A completed segment's spectra.
+#[derive(Debug, Clone)]
+struct Spectrum {
+    index: i64,
+    /// X per axis and bin, referred to the segment's grid start.
+    x: Vec<[f64; 2]>,
+    sum_w2: f64,
+}
+
+#[derive(Debug, Clone)]
+struct Side {
+    segment: Segment,
+    pending: Vec<Spectrum>,
+    /// Spectrum buffers to reuse, so that a segment's end allocates nothing once running.
+    spare: Vec<Vec<[f64; 2]>>,
+    /// White-noise variance of the corrected reading per axis (of A's frame), (m/s²)².
+    noise_var: [f64; 3],
+    /// Relative gain variance per axis of A's frame, and the reciprocal of its ν.
+    gain_var: [f64; 3],
+    gain_inv_dof: f64,
+}
+
+/// One axis's accumulated spectra over an estimate.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Sums {
+    gxx: f64,
+    gyy: f64,
+    gxy: [f64; 2],
+    noise_x: f64,
+}
+
+/// One estimate of B's gain relative to A's along one axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GainRatio {
+    pub end_ns: i64,
+    pub ratio: f64,
+    /// Standard uncertainty of `ratio` from the finite averages.
+    pub uncertainty: f64,
+    pub coherence_sq: f64,
+    pub averages: f64,
+}
+
+#[derive(Debug, Clone)]
+struct AxisTest {
+    latest: Option<GainRatio>,
+    absolute: Option<(f64, f64, f64)>,
+    absolute_suspect_since_ns: Option<i64>,
+    baseline_w: f64,
+    baseline_wr: f64,
+    baseline_first_ns: Option<i64>,
+    baseline: Option<(f64, f64)>,
+    seq: Sequential,
+    excursion: (f64, f64),
+    latest_d: Option<(f64, f64)>,
+    estimates: u64,
+}
+
+/// The gain-ratio check of a pair of co-located sensors, each under one record.
+#[derive(Debug, Clone)]
+pub struct ColocatedPair {
+    config: PairConfig,
+    bins: usize,
+    a: Side,
+    b: Side,
+    sums: [Sums; 3],
+    segments: u32,
+    segments_per_estimate: u32,
+    axes: [AxisTest; 3],
+    watch: std::sync::Arc<CoverageTable>,
+    suspect: std::sync::Arc<CoverageTable>,
+}
+
+impl Segment {
+    fn new(bins: usize) -> Segment {
+        Segment {
+            state: vec![[0.0; 2]; 3 * bins],
+            coefficient: vec![0.0; bins],
+            frequency_hz: vec![0.0; bins],
+            index: None,
+            first_ns: 0,
+            n: 0,
+            len: 0,
+            sum_w2: 0.0,
+            next_ns: 0,
+            sample_rate_hz: 0.0,
+        }
+    }
+}
+
+/// Relative gain variance along unit `d` of a reading through `record`'s dynamic set (`set`,
+/// loaded from it), turned by `turn` (B into A's frame), and the reciprocal of its ν.
+fn gain_variance(
+    record: &CalibrationRecord,
+    set: &SetCorrector,
+    turn: &[[f64; 3]; 3],
+) -> ([f64; 3], f64) {
+    let columns = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]].map(|e| set.scale(e));
+    let s_inv = [0, 1, 2].map(|k| [0, 1, 2].map(|j| columns[j][k]));
+    let set = record.set(SetKind::Dynamic);
+    let mut out = [0.0; 3];
+    for (axis, var) in out.iter_mut().enumerate() {
+        // The direction, in this sensor's frame, of axis `axis` of A's frame.
+        let d = [turn[axis][0], turn[axis][1], turn[axis][2]];
+        let dt_s_inv = [0, 1, 2].map(|j| (0..3).map(|k| d[k] * s_inv[k][j]).sum::<f64>());
+        let c = |p: usize| dt_s_inv[p / 3] * d[p % 3];
+        if let Some(cov) = &set.covariance {
+            for p in 0..9 {
+                for q in 0..9 {
+                    *var += c(p) * cov[p][q] * c(q);
+                }
+            }
+        }
+    }
+    (out, set.covariance_dof.map_or(0.0, |nu| 1.0 / nu))
+}
+
+impl ColocatedPair {
+    /// A pair check for sensor A under `record_a` and sensor B under `record_b`.
+    pub fn new(
+        record_a: &CalibrationRecord,
+        record_b: &CalibrationRecord,
+        config: &PairConfig,
+    ) -> Result<ColocatedPair, HealthError> {
+        config.validate()?;
+        let first = (config.band_hz[0] * config.segment_s).ceil() as usize;
+        let last = (config.band_hz[1] * config.segment_s).floor() as usize;
+        let bins = last.saturating_sub(first) + 1;
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let m = config.mounting;
+        // B's reading of A's axis i is row i of the mounting: its direction in B's frame.
+        let side =
+            |record: &CalibrationRecord, turn: &[[f64; 3]; 3]| -> Result<Side, HealthError> {
+                let corrector = Corrector::from_record(record)?;
+                let noise = corrector
+                    .set(SetKind::Dynamic)
+                    .covariance_filtered_parts([0.0; 3], 1.0, [0.0; 3])
+                    .noise;
+                let mut noise_var = [0.0; 3];
+                for (i, nv) in noise_var.iter_mut().enumerate() {
+                    for j in 0..3 {
+                        for k in 0..3 {
+                            *nv += turn[i][j] * noise[j][k] * turn[i][k];
+                        }
+                    }
+                }
+                let (gain_var, gain_inv_dof) =
+                    gain_variance(record, corrector.set(SetKind::Dynamic), turn);
+                Ok(Side {
+                    segment: Segment::new(bins),
+                    pending: Vec::with_capacity(PENDING + 1),
+                    spare: (0..PENDING + 1).map(|_| vec![[0.0; 2]; 3 * bins]).collect(),
+                    noise_var,
+                    gain_var,
+                    gain_inv_dof,
+                })
+            };
+        let per_day = 86_400.0 / config.estimate_s;
+        let thresholds = Thresholds::from_arl(
+            config.watch_arl_days * per_day,
+            config.suspect_arl_days * per_day,
+            2,
+        );
+        let axis = || AxisTest {
+            latest: None,
+            absolute: None,
+            absolute_suspect_since_ns: None,
+            baseline_w: 0.0,
+            baseline_wr: 0.0,
+            baseline_first_ns: None,
+            baseline: None,
+            seq: Sequential::new(thresholds),
+            excursion: (0.0, 0.0),
+            latest_d: None,
+            estimates: 0,
+        };
+        let mut pair = ColocatedPair {
+            bins,
+            a: side(record_a, &identity)?,
+            b: side(record_b, &m)?,
+            sums: [Sums::default(); 3],
+            segments: 0,
+            segments_per_estimate: (config.estimate_s / config.segment_s).round() as u32,
+            axes: [axis(), axis(), axis()],
+            watch: CoverageTable::shared(config.absolute_watch_probability),
+            suspect: CoverageTable::shared(config.absolute_suspect_probability),
+            config: config.clone(),
+        };
+        for side in [&mut pair.a, &mut pair.b] {
+            for (k, f) in (first..=last).enumerate() {
+                side.segment.frequency_hz[k] = f as f64 / config.segment_s;
+            }
+        }
+        Ok(pair)
+    }
+
+    /// Sensor A's corrected readings (m/s², its frame), the first at `timestamp_ns`.
+    pub fn feed_a(&mut self, timestamp_ns: i64, sample_rate_hz: f64, accel_mps2: &[[f64; 3]]) {
+        self.feed(true, timestamp_ns, sample_rate_hz, accel_mps2);
+    }
+
+    /// Sensor B's corrected readings (m/s², its own frame: the mounting turns them).
+    pub fn feed_b(&mut self, timestamp_ns: i64, sample_rate_hz: f64, accel_mps2: &[[f64; 3]]) {
+        self.feed(false, timestamp_ns, sample_rate_hz, accel_mps2);
+    }
+
+    fn feed(&mut self, is_a: bool, timestamp_ns: i64, sample_rate_hz: f64, accel: &[[f64; 3]]) {
+        if !(sample_rate_hz.is_finite() && sample_rate_hz > 0.0) {
+            return;
+        }
+        let segment_ns = (self.config.segment_s * 1e9).round() as i64;
+        let period_ns = 1e9 / sample_rate_hz;
+        let m = self.config.mounting;
+        for (i, a) in accel.iter().enumerate() {
+            let t = timestamp_ns + (i as f64 * period_ns).round() as i64;
+            let v = if is_a {
+                *a
+            } else {
+                [0, 1, 2].map(|r| m[r][0] * a[0] + m[r][1] * a[1] + m[r][2] * a[2])
+            };
+            let index = t.div_euclid(segment_ns);
+            let side = if is_a { &mut self.a } else { &mut self.b };
+            let seg = &mut side.segment;
+            let broke = seg.index.is_some()
+                && (seg.sample_rate_hz != sample_rate_hz
+                    || ((t - seg.next_ns) as f64).abs() > 0.5 * period_ns);
+            if seg.index != Some(index) || broke {
+                if let (false, Some(done)) = (broke, seg.index) {
+                    let buffer = side.spare.pop().unwrap_or_default();
+                    match Self::close(seg, done, segment_ns, buffer) {
+                        Ok(spectrum) => self.complete(is_a, spectrum),
+                        Err(buffer) => side.spare.push(buffer),
+                    }
+                }
+                let side = if is_a { &mut self.a } else { &mut self.b };
+                Self::open(
+                    &mut side.segment,
+                    index,
+                    t,
+                    sample_rate_hz,
+                    self.config.segment_s,
+                );
+            }
+            let side = if is_a { &mut self.a } else { &mut self.b };
+            let place = (t - index * segment_ns) as f64 / segment_ns as f64;
+            Self::push(&mut side.segment, v, t, period_ns, place);
+        }
+    }
+
+    fn open(seg: &mut Segment, index: i64, t_ns: i64, sample_rate_hz: f64, segment_s: f64) {
+        seg.index = Some(index);
+        seg.first_ns = t_ns;
+        seg.n = 0;
+        seg.len = (segment_s * sample_rate_hz).round() as u32;
+        seg.sum_w2 = 0.0;
+        seg.next_ns = t_ns;
+        seg.sample_rate_hz = sample_rate_hz;
+        for (c, f) in seg.coefficient.iter_mut().zip(&seg.frequency_hz) {
+            *c = 2.0 * (2.0 * std::f64::consts::PI * f / sample_rate_hz).cos();
+        }
+        for s in &mut seg.state {
+            *s = [0.0; 2];
+        }
+    }
+
+    /// Adds a sample at `place` (0 to 1) in its segment of the common grid.
+    #[inline]
+    fn push(seg: &mut Segment, v: [f64; 3], t_ns: i64, period_ns: f64, place: f64) {
+        // Hann by the sample's time on the grid, so that both sensors weigh the same instants
+        // alike whatever their sampling phase.
+        let w = 0.5 - 0.5 * (2.0 * std::f64::consts::PI * place).cos();
+        seg.sum_w2 += w * w;
+        let bins = seg.coefficient.len();
+        for (axis, x) in v.iter().enumerate() {
+            let x = w * x;
+            let states = &mut seg.state[axis * bins..(axis + 1) * bins];
+            for (s, c) in states.iter_mut().zip(&seg.coefficient) {
+                let next = x + c * s[0] - s[1];
+                s[1] = s[0];
+                s[0] = next;
+            }
+        }
+        seg.n += 1;
+        seg.next_ns = t_ns + period_ns.round() as i64;
+    }
+
+    /// The segment's spectrum, into `x`, if it is whole (at least 95 % of its samples);
+    /// otherwise `x` back.
+    fn close(
+        seg: &mut Segment,
+        index: i64,
+        segment_ns: i64,
+        mut x: Vec<[f64; 2]>,
+    ) -> Result<Spectrum, Vec<[f64; 2]>> {
+        seg.index = None;
+        if 20 * seg.n < 19 * seg.len || seg.n < 2 {
+            return Err(x);
+        }
+        let bins = seg.coefficient.len();
+        let n = f64::from(seg.n);
+        let grid_ns = index * segment_ns;
+        let offset_s = (seg.first_ns - grid_ns) as f64 * 1e-9;
+        x.resize(3 * bins, [0.0; 2]);
+        for axis in 0..3 {
+            for k in 0..bins {
+                let f = seg.frequency_hz[k];
+                let w = 2.0 * std::f64::consts::PI * f / seg.sample_rate_hz;
+                let [s1, s2] = seg.state[axis * bins + k];
+                // y = s₁ − e^{−iω}·s₂ = Σ x_m e^{iω(n−1−m)}; X = e^{−iω(n−1)}·y, then referred
+                // from the first sample's time to the grid's: e^{−i2πf·offset}.
+                let y = [s1 - w.cos() * s2, w.sin() * s2];
+                let phase = -w * (n - 1.0) - 2.0 * std::f64::consts::PI * f * offset_s;
+                let (sin, cos) = phase.sin_cos();
+                x[axis * bins + k] = [y[0] * cos - y[1] * sin, y[0] * sin + y[1] * cos];
+            }
+        }
+        Ok(Spectrum {
+            index,
+            x,
+            sum_w2: seg.sum_w2,
+        })
+    }
+
+    fn complete(&mut self, is_a: bool, spectrum: Spectrum) {
+        let (mine, other) = if is_a {
+            (&mut self.a, &mut self.b)
+        } else {
+            (&mut self.b, &mut self.a)
+        };
+        if let Some(pos) = other.pending.iter().position(|s| s.index == spectrum.index) {
+            let theirs = other.pending.swap_remove(pos);
+            let (xa, xb) = if is_a {
+                (spectrum, theirs)
+            } else {
+                (theirs, spectrum)
+            };
+            self.combine(&xa, &xb);
+            self.a.spare.push(xa.x);
+            self.b.spare.push(xb.x);
+            return;
+        }
+        // Segments the other sensor will never deliver (a gap) are dropped oldest first.
+        while let Some(i) = mine.pending.iter().position(|s| s.index >= spectrum.index) {
+            let stale = mine.pending.swap_remove(i);
+            mine.spare.push(stale.x);
+        }
+        if mine.pending.len() == PENDING {
+            if let Some(oldest) = (0..mine.pending.len()).min_by_key(|&i| mine.pending[i].index) {
+                let stale = mine.pending.swap_remove(oldest);
+                mine.spare.push(stale.x);
+            }
+        }
+        mine.pending.push(spectrum);
+    }
+
+    fn combine(&mut self, a: &Spectrum, b: &Spectrum) {
+        let bins = self.bins;
+        let end_ns = (a.index + 1) * (self.config.segment_s * 1e9).round() as i64;
+        for axis in 0..3 {
+            let s = &mut self.sums[axis];
+            for k in 0..bins {
+                let x = a.x[axis * bins + k];
+                let y = b.x[axis * bins + k];
+                s.gxx += x[0] * x[0] + x[1] * x[1];
+                s.gyy += y[0] * y[0] + y[1] * y[1];
+                // conj(x)·y
+                s.gxy[0] += x[0] * y[0] + x[1] * y[1];
+                s.gxy[1] += x[0] * y[1] - x[1] * y[0];
+            }
+            s.noise_x += self.a.noise_var[axis] * a.sum_w2 * bins as f64;
+        }
+        self.segments += 1;
+        if self.segments >= self.segments_per_estimate {
+            self.estimate(end_ns);
+        }
+    }
+
+    fn estimate(&mut self, end_ns: i64) {
+        let averages = f64::from(self.segments) * self.bins as f64 / 1.5;
+        for axis in 0..3 {
+            let s = self.sums[axis];
+            let denominator = s.gxx - s.noise_x;
+            let coherence_sq = (s.gxy[0] * s.gxy[0] + s.gxy[1] * s.gxy[1])
+                / (s.gxx * s.gyy).max(f64::MIN_POSITIVE);
+            if denominator <= 0.0 || coherence_sq < self.config.min_coherence {
+                continue;
+            }
+            let ratio = s.gxy[0] / denominator;
+            let relative = (1.0 - coherence_sq).max(0.0).sqrt()
+                / (coherence_sq.sqrt() * (2.0 * averages).sqrt());
+            let estimate = GainRatio {
+                end_ns,
+                ratio,
+                uncertainty: relative * ratio.abs(),
+                coherence_sq,
+                averages,
+            };
+            self.judge(axis, estimate);
+        }
+        self.sums = [Sums::default(); 3];
+        self.segments = 0;
+    }
+
+    fn judge(&mut self, axis: usize, e: GainRatio) {
+        let (ua, ub) = (self.a.gain_var[axis], self.b.gain_var[axis]);
+        let t = &mut self.axes[axis];
+        t.latest = Some(e);
+        t.estimates += 1;
+        let random_var = e.uncertainty * e.uncertainty;
+        let parts = [
+            (random_var, 1.0 / (2.0 * e.averages)),
+            (ua, self.a.gain_inv_dof),
+            (ub, self.b.gain_inv_dof),
+        ];
+        let var: f64 = parts.iter().map(|(v, _)| v).sum();
+        let nu = welch_satterthwaite(&parts).clamp(1.0, f64::from(MAX_DOF));
+        let (d, u) = (e.ratio - 1.0, var.sqrt());
+        t.absolute = Some((d, u, nu));
+        if t.absolute_suspect_since_ns.is_none() && d.abs() > self.suspect.factor(nu) * u {
+            t.absolute_suspect_since_ns = Some(e.end_ns);
+        }
+        let w = 1.0 / random_var.max(f64::MIN_POSITIVE);
+        match t.baseline {
+            None => {
+                let first = *t.baseline_first_ns.get_or_insert(e.end_ns);
+                t.baseline_w += w;
+                t.baseline_wr += w * e.ratio;
+                if (e.end_ns - first) as f64 * 1e-9 + self.config.estimate_s
+                    >= self.config.baseline_s
+                {
+                    t.baseline = Some((t.baseline_wr / t.baseline_w, 1.0 / t.baseline_w));
+                }
+            }
+            Some((r0, var0)) => {
+                let d = e.ratio - r0;
+                let u = (random_var + var0).sqrt();
+                let delta = self.config.shift / u;
+                let z = d / u;
+                t.seq.update(
+                    delta * (z - delta / 2.0),
+                    delta * (-z - delta / 2.0),
+                    e.end_ns,
+                );
+                let (up, down) = t.seq.sides();
+                let side = if down > up { down } else { up };
+                if side > 0.0 {
+                    t.excursion.0 += w;
+                    t.excursion.1 += w * d;
+                } else {
+                    t.excursion = (0.0, 0.0);
+                }
+                t.latest_d = Some((d, u));
+            }
+        }
+    }
+
+    /// The latest estimate per axis of A's frame.
+    pub fn latest(&self) -> [Option<GainRatio>; 3] {
+        [0, 1, 2].map(|i| self.axes[i].latest)
+    }
+
+    /// Per axis: B's gain over A's minus 1, against the two calibrations' uncertainties.
+    pub fn absolute_report(&self) -> [TestReport; 3] {
+        [0, 1, 2].map(|i| {
+            let t = &self.axes[i];
+            let Some((d, u, nu)) = t.absolute else {
+                return TestReport::pending();
+            };
+            let verdict = if t.absolute_suspect_since_ns.is_some() {
+                Verdict::Suspect
+            } else if d.abs() > self.watch.factor(nu) * u {
+                Verdict::Watch
+            } else {
+                Verdict::Ok
+            };
+            TestReport {
+                verdict,
+                judged: true,
+                statistic: d,
+                uncertainty: u,
+                since_ns: match verdict {
+                    Verdict::Suspect => t.absolute_suspect_since_ns,
+                    Verdict::Watch => t.latest.map(|e| e.end_ns),
+                    Verdict::Ok => None,
+                },
+                evidence_nats: 0.0,
+                observations: t.estimates,
+            }
+        })
+    }
+
+    /// Per axis: the ratio's change since the baseline.
+    pub fn relative_report(&self) -> [TestReport; 3] {
+        [0, 1, 2].map(|i| {
+            let t = &self.axes[i];
+            let Some((d, u)) = t.latest_d else {
+                return TestReport::pending();
+            };
+            let (statistic, uncertainty) = match (t.excursion, t.baseline) {
+                ((w, wd), Some((_, var0))) if w > 0.0 => (wd / w, (1.0 / w + var0).sqrt()),
+                _ => (d, u),
+            };
+            TestReport {
+                verdict: t.seq.verdict(),
+                judged: true,
+                statistic,
+                uncertainty,
+                since_ns: t.seq.since_ns(),
+                evidence_nats: t.seq.value(),
+                observations: t.seq.observations(),
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use triax_protocol::record::sample;
+
+    /// A record with S = I and no output noise (its stated uncertainty keeps it loadable).
+    fn unit_record(id: &str) -> CalibrationRecord {
+        let mut r = sample::record(id, 1);
+        for set in [&mut r.static_set, &mut r.dynamic] {
+            set.sensitivity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+            set.offset = [0.0; 3];
+        }
+        r.sensor.output_noise = None;
+        r
+    }
+
+    /// Two tones, 1.3 and 4.1 Hz, along A's x; B is turned a quarter turn about z (its y is
+    /// A's x) and reads 1.01 times as much, sampled 3 ms later than A: the ratio on x is 1.01
+    /// to the Goertzel sums' round-off, at coherence 1; y and z see nothing and give no
+    /// estimate.
+    #[test]
+    fn two_tones_give_the_ratio_by_hand() {
+        let config = PairConfig {
+            estimate_s: 60.0,
+            // B's x is A's −y, B's y is A's x: a_A = M·a_B.
+            mounting: [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+            ..PairConfig::default()
+        };
+        let mut pair = ColocatedPair::new(&unit_record("a"), &unit_record("b"), &config).unwrap();
+        let fs = 100.0;
+        let motion = |t: f64| {
+            0.02 * (2.0 * std::f64::consts::PI * 1.3 * t).sin()
+                + 0.01 * (2.0 * std::f64::consts::PI * 4.1 * t + 0.3).cos()
+        };
+        let start_ns = 1_767_225_600_000_000_000i64;
+        let lag_ns = 3_000_000;
+        let mut a = Vec::new();
+        let mut b = Vec::new();
+        for batch in 0..700 {
+            a.clear();
+            b.clear();
+            for i in 0..10 {
+                let n = batch * 10 + i;
+                let ta = n as f64 / fs;
+                let tb = ta + lag_ns as f64 * 1e-9;
+                a.push([motion(ta), 0.0, 0.0]);
+                b.push([0.0, 1.01 * motion(tb), 0.0]);
+            }
+            let t0 = start_ns + batch * 100_000_000;
+            pair.feed_a(t0, fs, &a);
+            pair.feed_b(t0 + lag_ns, fs, &b);
+        }
+        let [x, y, z] = pair.latest();
+        let x = x.expect("an estimate on x");
+        assert!((x.ratio - 1.01).abs() < 1e-9, "{x:?}");
+        assert!((x.coherence_sq - 1.0).abs() < 1e-9, "{x:?}");
+        assert!(x.uncertainty < 1e-6, "{x:?}");
+        // 12 segments of 5 s, bins 5..=25 (1–5 Hz at 0.2 Hz): 12·21/1.5 averages.
+        assert_eq!(x.averages, 12.0 * 21.0 / 1.5);
+        assert!(y.is_none() && z.is_none());
+        let abs = pair.absolute_report();
+        assert!((abs[0].statistic - 0.01).abs() < 1e-9);
+        assert!(!abs[1].judged);
+    }
+
+    /// Relative gain variance by hand: S = diag(0.1), Var(S₀₀) = 10⁻⁸ gives (10⁻⁴/0.1)² = 10⁻⁶
+    /// along x; through a quarter turn, B's y (A's x) takes S₁₁'s.
+    #[test]
+    fn gain_variance_by_hand() {
+        let mut r = unit_record("g");
+        r.dynamic.sensitivity = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]];
+        let mut cov = [[0.0; 12]; 12];
+        cov[0][0] = 1e-8;
+        cov[4][4] = 4e-8;
+        r.dynamic.covariance = Some(Box::new(cov));
+        let c = Corrector::from_record(&r).unwrap();
+        let set = c.set(SetKind::Dynamic);
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let (var, _) = gain_variance(&r, set, &identity);
+        assert!((var[0] - 1e-6).abs() < 1e-18 && (var[1] - 4e-6).abs() < 1e-18);
+        let turn = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        let (var, _) = gain_variance(&r, set, &turn);
+        assert!((var[0] - 4e-6).abs() < 1e-18 && (var[1] - 1e-6).abs() < 1e-18);
+    }
+
+    #[test]
+    fn refuses_a_mounting_that_is_not_a_rotation() {
+        let config = PairConfig {
+            mounting: [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1.0]],
+            ..PairConfig::default()
+        };
+        let e = ColocatedPair::new(&unit_record("a"), &unit_record("b"), &config).unwrap_err();
+        assert!(e.to_string().contains("mounting"), "{e}");
+    }
+}
