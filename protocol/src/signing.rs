@@ -109,13 +109,14 @@ pub fn public_key_from_hex(text: &str) -> Result<VerifyingKey, SigningError> {
 pub fn sign(record: &CalibrationRecord, key: &SigningKey) -> SignedRecord {
     // to_json always yields UTF-8 (serde_json writes UTF-8 only).
     let record_json = String::from_utf8(to_json(record)).expect("JSON is UTF-8");
-    let signature = key.sign(&SignedRecord::signing_message(&record_json));
+    let (public_key_hex, signature_hex) =
+        signed_by(key, &SignedRecord::signing_message(&record_json));
     SignedRecord {
         format_version: JSON_FORMAT_VERSION,
         algorithm: SIGNATURE_ALGORITHM.into(),
-        public_key_hex: to_hex(key.verifying_key().as_bytes()),
+        public_key_hex,
         record_json,
-        signature_hex: to_hex(&signature.to_bytes()),
+        signature_hex,
     }
 }
 
@@ -123,14 +124,23 @@ pub fn sign(record: &CalibrationRecord, key: &SigningKey) -> SignedRecord {
 pub fn sign_alert(alert: &Alert, key: &SigningKey) -> SignedAlert {
     // to_json always yields UTF-8 (serde_json writes UTF-8 only).
     let alert_json = String::from_utf8(to_json(alert)).expect("JSON is UTF-8");
-    let signature = key.sign(&SignedAlert::signing_message(&alert_json));
+    let (public_key_hex, signature_hex) =
+        signed_by(key, &SignedAlert::signing_message(&alert_json));
     SignedAlert {
         format_version: JSON_FORMAT_VERSION,
         algorithm: SIGNATURE_ALGORITHM.into(),
-        public_key_hex: to_hex(key.verifying_key().as_bytes()),
+        public_key_hex,
         alert_json,
-        signature_hex: to_hex(&signature.to_bytes()),
+        signature_hex,
     }
+}
+
+/// The signer's public key and its signature of `message`, in hex.
+fn signed_by(key: &SigningKey, message: &[u8]) -> (String, String) {
+    (
+        to_hex(key.verifying_key().as_bytes()),
+        to_hex(&key.sign(message).to_bytes()),
+    )
 }
 
 /// How far an alert read from the wire can be trusted.
