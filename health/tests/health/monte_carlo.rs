@@ -225,7 +225,18 @@ fn relative_delays_over_real_days() {
 }
 
 /// Delays of the channel tests at random phases, by day (vibration 2 mg RMS) and by night:
-/// stuck ≤ 60 s, noise ×2 ≤ 10 min, spikes at 120/h. `TRIAX_HEALTH_MC_TRIALS` (20) per fault.
+/// stuck ≤ 60 s, noise ×2 ≤ 10 min, spikes at 120/h, each also against its computed delay
+/// (to within the test's checking, once a second of data from the fault on).
+/// With the defaults, `h = ln(10⁴·86 400) = 20.58` nats for a one-sided test on 1 s blocks:
+///
+/// - stuck: `stuck_s` (10 s) of dead blocks, the first one whole: 10 to 11 s;
+/// - noise ×2: a block's ν = 72/140·100 = 51.4 and ρ = 4 give `E[Λ] = ν/2·(¾·4 − ln 4)` =
+///   41.5 nats, past `h` in the first whole block: 1 to 2 s;
+/// - spikes at 120/h: each spike adds `ln 20` = 3.0 nats and every second takes
+///   19/3600 nats, a drift of 120/3600·3.0 − 0.0053 = 0.0946 nats/s: `h/0.0946` = 218 s (Wald,
+///   without the overshoot).
+///
+/// `TRIAX_HEALTH_MC_TRIALS` (20) per fault.
 ///
 /// `cargo test --release -p triax-health --test health -- --ignored channel_delays --nocapture`
 #[test]
@@ -233,18 +244,25 @@ fn relative_delays_over_real_days() {
 fn channel_delays_at_random_phases() {
     let trials = env_usize("TRIAX_HEALTH_MC_TRIALS", 20);
     type Check = fn(&HealthReport, usize) -> bool;
-    let cases: [(&str, Fault, Check, f64); 3] = [
+    let h = (1e4f64 * 86_400.0).ln();
+    let spike_drift = 120.0 / 3600.0 * 20f64.ln() - 19.0 / 3600.0;
+    // (name, fault, found, target, computed mean delay and the tolerance of the measured one)
+    let cases: [(&str, Fault, Check, f64, f64, f64); 3] = [
         (
             "stuck",
             Fault::Stuck { channel: 1 },
             |r, _| r.stuck[1].verdict == Verdict::Suspect,
             60.0,
+            10.5,
+            1.0,
         ),
         (
             "noise ×2",
             Fault::Noise { factor: 2.0 },
             |r, _| r.noise.iter().any(|t| t.verdict == Verdict::Suspect),
             600.0,
+            1.5,
+            1.0,
         ),
         (
             "spikes 120/h",
@@ -255,9 +273,13 @@ fn channel_delays_at_random_phases() {
             },
             |r, _| r.spikes[0].verdict == Verdict::Suspect,
             1800.0,
+            h / spike_drift,
+            // Spikes come as a Poisson stream: twenty trials' mean varies by about 15 %, and
+            // the last spike overshoots.
+            0.3 * h / spike_drift,
         ),
     ];
-    for (name, fault, check, target_s) in cases {
+    for (name, fault, check, target_s, computed_s, tolerance_s) in cases {
         let delays = parallel(trials, |i| {
             let seed = 30_000 + i as u64;
             let mut rng = SmallRng::seed_from_u64(seed);
@@ -276,12 +298,17 @@ fn channel_delays_at_random_phases() {
         found.sort_by(f64::total_cmp);
         let mean = found.iter().sum::<f64>() / found.len().max(1) as f64;
         eprintln!(
-            "{name}: {} of {trials} found; delay mean {mean:.1} s, max {:.1} s (target {target_s} s)",
+            "{name}: {} of {trials} found; delay mean {mean:.1} s (computed {computed_s:.1} s), \
+             max {:.1} s (target {target_s} s)",
             found.len(),
             found.last().copied().unwrap_or(f64::NAN)
         );
         assert_eq!(found.len(), trials, "{name}");
         assert!(found.iter().all(|&d| d <= target_s), "{name}: {found:?}");
+        assert!(
+            (mean - computed_s).abs() <= tolerance_s,
+            "{name}: {mean} vs {computed_s}"
+        );
     }
 }
 
