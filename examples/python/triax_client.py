@@ -282,6 +282,9 @@ def cmd_subscribe(args):
 
 HISTORY_PAGE = 10000
 FLAG_DUPLICATE = 0x0080
+# Live batches and heartbeats a follower holds while it reads the history or writes its output.
+LIVE_QUEUE = 4096
+BEATS_QUEUE = 64
 
 
 def history_key(building, sensor):
@@ -349,8 +352,14 @@ class Follower:
         self.new_from_ns = time.time_ns() if new_sensors_from_ns is None else new_sensors_from_ns
         # The last heartbeat number seen, per gateway.
         self.beats = {}
-        self.live = session.declare_subscriber(corrected_key(building))
-        self.beats_sub = session.declare_subscriber(f"{ROOT}/{check_id('building', building)}/heartbeat")
+        # Zenoh's receive thread must never wait for us: the history's replies come on the same
+        # link, behind the live batches, and a full queue that blocks it holds them back until
+        # the query times out. A full queue drops its oldest instead; the next batch or
+        # heartbeat shows what is missing, and the history has it.
+        self.live = session.declare_subscriber(
+            corrected_key(building), zenoh.handlers.RingChannel(LIVE_QUEUE))
+        self.beats_sub = session.declare_subscriber(
+            f"{ROOT}/{check_id('building', building)}/heartbeat", zenoh.handlers.RingChannel(BEATS_QUEUE))
         self.ready = []
         self.recovered = 0
         for sensor, mark in list(self.marks.items()):

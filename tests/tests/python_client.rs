@@ -485,6 +485,171 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         .unwrap();
 }
 
+/// Sends `signal` (`STOP`, `CONT`) to a child.
+fn signal(child: &Child, signal: &str) {
+    let sent = Command::new("kill")
+        .args([format!("-{signal}"), child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success(), "kill -{signal} failed");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
+    // A follower that stops reading for a while (a busy machine, a slow disk under --out) has
+    // a backlog of live batches waiting and gaps to read from the history. Its subscriptions
+    // must not hold Zenoh's receive thread while it reads: the history's replies come on the
+    // same link, behind that backlog.
+    let py = python_interpreter();
+    let dir = tempfile::tempdir().unwrap();
+    let store_path = dir.path().join("store");
+    let ids: Vec<String> = (0..20).map(|i| format!("ps-{i:02}")).collect();
+    {
+        let store = Store::open(&store_path).unwrap();
+        for id in &ids {
+            store
+                .put(&sample::record(id, 1))
+                .unwrap()
+                .expect("accepted");
+        }
+    }
+    let port = free_port();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let config = triax_gateway::Config::for_tests("psb", &store_path, vec![endpoint.clone()]);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let gateway = tokio::spawn(triax_gateway::run(config, async {
+        let _ = stopped.await;
+    }));
+    wait_for_listener(port).await;
+    let follow = |out: &std::path::Path| -> Reaped {
+        let args = [
+            "follow",
+            "--building",
+            "psb",
+            "--connect",
+            &endpoint,
+            "--no-multicast",
+            "--out",
+            out.to_str().unwrap(),
+        ]
+        .map(String::from);
+        let child = Command::new(&py)
+            .arg(script())
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {py}: {e}"));
+        Reaped(child)
+    };
+    let (steady_file, stalled_file) = (
+        dir.path().join("steady.jsonl"),
+        dir.path().join("stalled.jsonl"),
+    );
+    let mut steady = follow(&steady_file);
+    let mut stalled = follow(&stalled_file);
+    let mut zc = zenoh::Config::default();
+    zc.insert_json5("mode", "\"peer\"").unwrap();
+    zc.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    zc.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    let node = zenoh::open(zc).await.unwrap();
+    let b = BuildingId::new("psb").unwrap();
+    let mut publishers = Vec::new();
+    for id in &ids {
+        let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
+        publishers.push(node.declare_publisher(key).await.unwrap());
+    }
+    // By the wall clock, from after both followers started (as in the test above).
+    let t0_ns = i64::try_from(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_nanos(),
+    )
+    .unwrap()
+        + 1_000_000_000;
+    let has_all = |f: &std::path::Path| {
+        let written = followed(f);
+        ids.iter()
+            .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
+    };
+    // Stopped once it has written every sensor; continued after 40 rounds (800 batches, more
+    // than a subscription's default queue of 256) and followed for 40 more.
+    let (stalled_for, after) = (40u64, 40u64);
+    let started = tokio::time::Instant::now();
+    let mut stopped_at = None;
+    let mut seq = 0u64;
+    while stopped_at.is_none_or(|s| seq < s + stalled_for + after) {
+        assert!(seq < 600, "the stalled follower never wrote every sensor");
+        for (id, p) in ids.iter().zip(&publishers) {
+            let batch = RawBatch {
+                header: triax_protocol::batch::BatchHeader {
+                    sensor_id: SensorId::new(id.as_str()).unwrap(),
+                    sequence: seq,
+                    timestamp_ns: t0_ns + seq as i64 * 100_000_000,
+                    sample_rate_hz: 100.0,
+                },
+                temperature_c: None,
+                samples: (0..10)
+                    .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
+                    .collect(),
+            };
+            p.put(batch.encode()).await.unwrap();
+        }
+        if stopped_at.is_none() && has_all(&stalled_file) {
+            signal(&stalled.0, "STOP");
+            stopped_at = Some(seq);
+        }
+        if stopped_at == Some(seq.saturating_sub(stalled_for)) {
+            signal(&stalled.0, "CONT");
+        }
+        tokio::time::sleep_until(started + Duration::from_millis(100 * (seq + 1))).await;
+        seq += 1;
+    }
+    let rounds = seq;
+    let complete = |f: &std::path::Path| {
+        let written = followed(f);
+        ids.iter()
+            .all(|id| written.get(id).map_or(0, Vec::len) >= rounds as usize)
+    };
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while !(complete(&steady_file) && complete(&stalled_file)) {
+        for (name, child) in [("steady", &mut steady), ("stalled", &mut stalled)] {
+            if let Some(status) = child.0.try_wait().unwrap() {
+                panic!("the {name} follower exited: {status}");
+            }
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the stalled follower did not catch up (stopped at round {stopped_at:?} of {rounds})"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let (a, c) = (followed(&steady_file), followed(&stalled_file));
+    for id in &ids {
+        let seqs: Vec<u64> = a[id].iter().map(|(s, _)| *s).collect();
+        assert_eq!(
+            seqs,
+            (0..rounds).collect::<Vec<_>>(),
+            "{id}: the steady follower"
+        );
+        assert!(
+            a.get(id) == c.get(id),
+            "{id}: the stalled follower, once each, same bytes"
+        );
+    }
+    drop((steady, stalled));
+    node.close().await.unwrap();
+    stop.send(()).unwrap();
+    tokio::time::timeout(Duration::from_secs(10), gateway)
+        .await
+        .expect("gateway stops on shutdown")
+        .unwrap()
+        .unwrap();
+}
+
 /// A gateway for `building` whose one sensor (record version 1) streamed `n_batches` batches of
 /// 50 samples at 100 Hz, batch `skipped` left out (a gap after it) and one non-finite sample at
 /// (batch, sample) `nan_at`; returns the gateway, a client session and the sensor's history as
