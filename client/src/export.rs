@@ -30,14 +30,19 @@ use crate::HistoryRequest;
 /// Exit status of an export that found nothing in its range.
 pub const EXIT_EMPTY: u8 = 3;
 
+/// What every subcommand's help ends with.
+const AFTER_HELP: &str = "Zenoh: a client of the --connect endpoints unless --zenoh-mode or a \
+    --zenoh-config file says otherwise; listening on no endpoint unless --listen or the file \
+    names one.\n\nExit status: 0 written; 1 an error, named on standard error (nothing \
+    written, any earlier output left as it was); 2 bad usage; 3 nothing kept in the range (no \
+    file written).";
+
 #[derive(Debug, clap::Parser)]
 #[command(
     name = "triax-export",
     version,
     about = "Export a Triax gateway's history (corrected samples) to files",
-    after_help = "Exit status: 0 written; 1 an error, named on standard error (nothing written, \
-                  any earlier output left as it was); 2 bad usage; 3 nothing kept in the range \
-                  (no file written)."
+    after_help = AFTER_HELP
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -60,10 +65,12 @@ pub enum Format {
     /// One row per sample: time, sensor, sequence, acceleration and uncertainty per axis (m/s²),
     /// coverage factor, flags, calibration version, mode (the schema is in the file's metadata
     /// and in README.md).
+    #[command(after_help = AFTER_HELP)]
     Parquet(Export),
     /// miniSEED 2 day files in an SDS tree under --out, nine channels per calibrated sensor
     /// (axes in m/s² at location 00, their standard uncertainties at U0, the flags at Q0;
     /// README.md), and with --records a StationXML file beside them.
+    #[command(after_help = AFTER_HELP)]
     Sds(Sds),
 }
 
