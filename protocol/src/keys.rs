@@ -8,7 +8,7 @@
 //! triax/<building>/calibration/ack/<sensor>      PushAck (JSON), gateway → lab
 //! triax/<building>/calibration/registry          lab registry queryable (catch-up)
 //! triax/<building>/status                        GatewayStatus (JSON), gateway queryable
-//! triax/<building>/alert/<sensor>                Alert (JSON), alerting → operators
+//! triax/<building>/alert/<sensor>                SignedAlert (JSON), alerting → operators
 //! triax/<building>/history/<sensor>              history query → corrected batches (binary)
 //! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
 //! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
