@@ -25,7 +25,9 @@
 //!
 //! **Cost.** Per sample, one pass of about 40 floating-point operations and no allocation
 //! ([`block`]); per block (a second), a few hundred operations; per quiet stretch (a minute),
-//! a few thousand. The per-sample cost is measured in the tests (`cost_per_sample`).
+//! a few thousand: 13 ns a sample in all, measured (`cost_per_sample`, release), or 0.14 % of
+//! a core for 1 000 sensors at 100 Hz. A co-located pair costs about 150 ns a sample of each
+//! of its two sensors (63 DFT bins).
 //!
 //! Architecture invariant: pure, as `triax-calibration` is. No I/O, no async, no clock: time
 //! is the batches' own, so that every test is bytes and numbers.
