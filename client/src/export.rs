@@ -372,7 +372,8 @@ async fn nothing(s: &zenoh::Session, a: &Export, r: &HistoryRequest) -> ExportEr
     }
 }
 
-fn output_error(path: &Path) -> impl Fn(std::io::Error) -> ExportError + '_ {
+/// An error writing `path`, with its cause (an I/O or Parquet error).
+fn output_error<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> ExportError + '_ {
     move |e| ExportError::Output {
         path: path.to_path_buf(),
         cause: e.to_string(),
@@ -400,7 +401,7 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
     preflight(&session, &a, &request).await?;
     let file = tmp.reopen().map_err(output_error(&a.out))?;
     let mut writer =
-        ParquetWriter::new(std::io::BufWriter::new(file)).map_err(parquet_error(&a))?;
+        ParquetWriter::new(std::io::BufWriter::new(file)).map_err(output_error(&a.out))?;
     let mut failed: Option<ParquetExportError> = None;
     let batches = fetch(
         &session,
@@ -417,7 +418,7 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
     .await
     .map_err(|e| ExportError::Gateway(e.to_string()))?;
     if let Some(e) = failed {
-        return Err(parquet_error(&a)(e));
+        return Err(output_error(&a.out)(e));
     }
     if batches == 0 {
         let e = nothing(&session, &a, &request).await;
@@ -425,7 +426,7 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
         return Err(e);
     }
     let _ = session.close().await;
-    let rows = writer.finish().map_err(parquet_error(&a))?;
+    let rows = writer.finish().map_err(output_error(&a.out))?;
     crate::whole::commit(tmp, &a.out).map_err(output_error(&a.out))?;
     Ok(Summary {
         batches,
@@ -434,13 +435,6 @@ async fn parquet(a: Export) -> Result<Summary, ExportError> {
         notes: Vec::new(),
         elapsed: started.elapsed(),
     })
-}
-
-fn parquet_error(a: &Export) -> impl Fn(ParquetExportError) -> ExportError + '_ {
-    move |e| ExportError::Output {
-        path: a.out.clone(),
-        cause: e.to_string(),
-    }
 }
 
 /// `--station SENSOR=CODE` arguments as a map.
