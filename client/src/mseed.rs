@@ -1001,6 +1001,28 @@ mod tests {
         }
     }
 
+    /// A station code two sensors share is found while staging: the export stops before the
+    /// archive holds a byte of it.
+    #[test]
+    fn a_clash_leaves_the_archive_untouched() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("sds");
+        let t0 = 1_795_610_096_000_000_000i64;
+        let mut w = SdsWriter::new(&root, "XX", BTreeMap::new()).unwrap();
+        // Enough for whole records of the first sensor to be staged already.
+        for i in 0..10 {
+            let mut b = batch(i, t0 + i as i64 * 500_000_000, 50, 0);
+            b.header.sensor_id = SensorId::new("incl-01").unwrap();
+            w.push(&b).unwrap();
+        }
+        let mut b = batch(0, t0, 50, 0);
+        b.header.sensor_id = SensorId::new("incl-02").unwrap();
+        let e = w.push(&b).unwrap_err();
+        assert!(e.to_string().contains("INCL0"), "{e}");
+        drop(w);
+        assert!(tree(&root).is_empty(), "{:?}", tree(&root).keys());
+    }
+
     /// A day file another program wrote is refused by name, and left as it is.
     #[test]
     fn a_foreign_day_file_is_refused_and_kept() {
