@@ -339,81 +339,145 @@ fn followed(path: &std::path::Path) -> BTreeMap<String, Vec<(u64, String)>> {
     out
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn a_killed_python_follower_resumes_and_loses_nothing() {
-    let py = python_interpreter();
-    let dir = tempfile::tempdir().unwrap();
-    let store_path = dir.path().join("store");
-    let ids: Vec<String> = (0..20).map(|i| format!("pf-{i:02}")).collect();
-    {
-        let store = Store::open(&store_path).unwrap();
+/// The setting of the Python follower's tests: twenty calibrated sensors behind a gateway on
+/// loopback, a node that publishes them a round at a time, and `follow --out` processes.
+struct FollowSite {
+    py: String,
+    endpoint: String,
+    building: String,
+    ids: Vec<String>,
+    node: zenoh::Session,
+    publishers: Vec<zenoh::pubsub::Publisher<'static>>,
+    /// The first round's time; set by [`FollowSite::begin`].
+    t0_ns: i64,
+    stop: tokio::sync::oneshot::Sender<()>,
+    gateway: tokio::task::JoinHandle<Result<(), triax_gateway::GatewayError>>,
+}
+
+impl FollowSite {
+    async fn start(dir: &std::path::Path, building: &str, prefix: &str) -> FollowSite {
+        let store_path = dir.join("store");
+        let ids: Vec<String> = (0..20).map(|i| format!("{prefix}-{i:02}")).collect();
+        {
+            let store = Store::open(&store_path).unwrap();
+            for id in &ids {
+                store
+                    .put(&sample::record(id, 1))
+                    .unwrap()
+                    .expect("accepted");
+            }
+        }
+        let port = free_port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let config =
+            triax_gateway::Config::for_tests(building, &store_path, vec![endpoint.clone()]);
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let gateway = tokio::spawn(triax_gateway::run(config, async {
+            let _ = stopped.await;
+        }));
+        wait_for_listener(port).await;
+        let node = util::client(&endpoint).await;
+        let b = BuildingId::new(building).unwrap();
+        let mut publishers = Vec::new();
         for id in &ids {
-            store
-                .put(&sample::record(id, 1))
-                .unwrap()
-                .expect("accepted");
+            let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
+            publishers.push(node.declare_publisher(key).await.unwrap());
+        }
+        FollowSite {
+            py: python_interpreter(),
+            endpoint,
+            building: building.to_owned(),
+            ids,
+            node,
+            publishers,
+            t0_ns: 0,
+            stop,
+            gateway,
         }
     }
-    let port = free_port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let config = triax_gateway::Config::for_tests("pfb", &store_path, vec![endpoint.clone()]);
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let gateway = tokio::spawn(triax_gateway::run(config, async {
-        let _ = stopped.await;
-    }));
-    wait_for_listener(port).await;
-    let follow = |out: &std::path::Path| -> Reaped {
-        let args = [
-            "follow",
-            "--building",
-            "pfb",
-            "--connect",
-            &endpoint,
-            "--no-multicast",
-            "--out",
-            out.to_str().unwrap(),
-        ]
-        .map(String::from);
-        let child = Command::new(&py)
+
+    /// A `follow --out out` process.
+    fn follow(&self, out: &std::path::Path) -> Reaped {
+        let child = Command::new(&self.py)
             .arg(script())
-            .args(args)
+            .args([
+                "follow",
+                "--building",
+                &self.building,
+                "--connect",
+                &self.endpoint,
+            ])
+            .args(["--no-multicast", "--out"])
+            .arg(out)
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
             .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {py}: {e}"));
+            .unwrap_or_else(|e| panic!("cannot start {}: {e}", self.py));
         Reaped(child)
-    };
+    }
+
+    /// Stamps the rounds by the wall clock from a second after now: called once the followers
+    /// have started, since a follower follows a sensor it has never met from its own start on
+    /// (PROTOCOL.md §5.2), reading from the history whatever came before it subscribed, however
+    /// slowly it starts on a busy machine.
+    fn begin(&mut self) {
+        let now_ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap()
+            .as_nanos();
+        self.t0_ns = i64::try_from(now_ns).unwrap() + 1_000_000_000;
+    }
+
+    /// Round `seq`: one 100 ms batch of every sensor.
+    async fn put_round(&self, seq: u64) {
+        for (id, p) in self.ids.iter().zip(&self.publishers) {
+            let batch = RawBatch {
+                header: triax_protocol::batch::BatchHeader {
+                    sensor_id: SensorId::new(id.as_str()).unwrap(),
+                    sequence: seq,
+                    timestamp_ns: self.t0_ns + seq as i64 * 100_000_000,
+                    sample_rate_hz: 100.0,
+                },
+                temperature_c: None,
+                samples: (0..10)
+                    .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
+                    .collect(),
+            };
+            p.put(batch.encode()).await.unwrap();
+        }
+    }
+
+    /// Whether a follower's file holds a batch of every sensor.
+    fn has_all(&self, f: &std::path::Path) -> bool {
+        let written = followed(f);
+        self.ids
+            .iter()
+            .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
+    }
+
+    async fn close(self) {
+        self.node.close().await.unwrap();
+        self.stop.send(()).unwrap();
+        tokio::time::timeout(Duration::from_secs(10), self.gateway)
+            .await
+            .expect("gateway stops on shutdown")
+            .unwrap()
+            .unwrap();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_killed_python_follower_resumes_and_loses_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut site = FollowSite::start(dir.path(), "pfb", "pf").await;
     let (steady_file, away_file) = (
         dir.path().join("steady.jsonl"),
         dir.path().join("away.jsonl"),
     );
-    let steady = follow(&steady_file);
-    let mut away = follow(&away_file);
-    // The node: twenty sensors at ten batches a second, for 22 s.
-    let mut zc = zenoh::Config::default();
-    zc.insert_json5("mode", "\"peer\"").unwrap();
-    zc.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zc.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    let node = zenoh::open(zc).await.unwrap();
-    let b = BuildingId::new("pfb").unwrap();
-    let mut publishers = Vec::new();
-    for id in &ids {
-        let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
-        publishers.push(node.declare_publisher(key).await.unwrap());
-    }
-    // Stamped by the wall clock from after both followers started: a follower follows a
-    // sensor it has never met from its own start on (PROTOCOL.md §5.2), reading from the
-    // history whatever came before it subscribed, however slowly it starts on a busy machine.
-    let t0_ns = i64::try_from(
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .unwrap()
-            .as_nanos(),
-    )
-    .unwrap()
-        + 1_000_000_000;
+    let steady = site.follow(&steady_file);
+    let mut away = site.follow(&away_file);
+    site.begin();
+    let ids = site.ids.clone();
     // At least 22 s of rounds, and on until the killed follower has been back for a while.
     let min_rounds = 220u64;
     let started = tokio::time::Instant::now();
@@ -425,37 +489,18 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
             seq < 10 * min_rounds,
             "the away follower never wrote every sensor"
         );
-        for (id, p) in ids.iter().zip(&publishers) {
-            let batch = RawBatch {
-                header: triax_protocol::batch::BatchHeader {
-                    sensor_id: SensorId::new(id.as_str()).unwrap(),
-                    sequence: seq,
-                    timestamp_ns: t0_ns + seq as i64 * 100_000_000,
-                    sample_rate_hz: 100.0,
-                },
-                temperature_c: None,
-                samples: (0..10)
-                    .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
-                    .collect(),
-            };
-            p.put(batch.encode()).await.unwrap();
-        }
+        site.put_round(seq).await;
         let t = started.elapsed();
         // Killed once it has written every sensor at least once, so that it has somewhere to
         // resume from for each.
-        let away_has_all = || {
-            let written = followed(&away_file);
-            ids.iter()
-                .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
-        };
-        if killed_at.is_none() && t > Duration::from_secs(4) && away_has_all() {
+        if killed_at.is_none() && t > Duration::from_secs(4) && site.has_all(&away_file) {
             // SIGKILL: no chance to finish a line or save anything.
             away.0.kill().unwrap();
             away.0.wait().unwrap();
             killed_at = Some(t);
         }
         if !restarted && killed_at.is_some_and(|k| t > k + Duration::from_secs(10)) {
-            away = follow(&away_file);
+            away = site.follow(&away_file);
             restarted = true;
         }
         tokio::time::sleep_until(started + Duration::from_millis(100 * (seq + 1))).await;
@@ -494,13 +539,7 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         );
     }
     drop((steady, away));
-    node.close().await.unwrap();
-    stop.send(()).unwrap();
-    tokio::time::timeout(Duration::from_secs(10), gateway)
-        .await
-        .expect("gateway stops on shutdown")
-        .unwrap()
-        .unwrap();
+    site.close().await;
 }
 
 /// Sends `signal` (`STOP`, `CONT`) to a child.
@@ -518,81 +557,16 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
     // a backlog of live batches waiting and gaps to read from the history. Its subscriptions
     // must not hold Zenoh's receive thread while it reads: the history's replies come on the
     // same link, behind that backlog.
-    let py = python_interpreter();
     let dir = tempfile::tempdir().unwrap();
-    let store_path = dir.path().join("store");
-    let ids: Vec<String> = (0..20).map(|i| format!("ps-{i:02}")).collect();
-    {
-        let store = Store::open(&store_path).unwrap();
-        for id in &ids {
-            store
-                .put(&sample::record(id, 1))
-                .unwrap()
-                .expect("accepted");
-        }
-    }
-    let port = free_port();
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let config = triax_gateway::Config::for_tests("psb", &store_path, vec![endpoint.clone()]);
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let gateway = tokio::spawn(triax_gateway::run(config, async {
-        let _ = stopped.await;
-    }));
-    wait_for_listener(port).await;
-    let follow = |out: &std::path::Path| -> Reaped {
-        let args = [
-            "follow",
-            "--building",
-            "psb",
-            "--connect",
-            &endpoint,
-            "--no-multicast",
-            "--out",
-            out.to_str().unwrap(),
-        ]
-        .map(String::from);
-        let child = Command::new(&py)
-            .arg(script())
-            .args(args)
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {py}: {e}"));
-        Reaped(child)
-    };
+    let mut site = FollowSite::start(dir.path(), "psb", "ps").await;
     let (steady_file, stalled_file) = (
         dir.path().join("steady.jsonl"),
         dir.path().join("stalled.jsonl"),
     );
-    let mut steady = follow(&steady_file);
-    let mut stalled = follow(&stalled_file);
-    let mut zc = zenoh::Config::default();
-    zc.insert_json5("mode", "\"peer\"").unwrap();
-    zc.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zc.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    let node = zenoh::open(zc).await.unwrap();
-    let b = BuildingId::new("psb").unwrap();
-    let mut publishers = Vec::new();
-    for id in &ids {
-        let key = Key::Raw(b.clone(), SensorId::new(id.as_str()).unwrap()).to_string();
-        publishers.push(node.declare_publisher(key).await.unwrap());
-    }
-    // By the wall clock, from after both followers started (as in the test above).
-    let t0_ns = i64::try_from(
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .unwrap()
-            .as_nanos(),
-    )
-    .unwrap()
-        + 1_000_000_000;
-    let has_all = |f: &std::path::Path| {
-        let written = followed(f);
-        ids.iter()
-            .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
-    };
+    let mut steady = site.follow(&steady_file);
+    let mut stalled = site.follow(&stalled_file);
+    site.begin();
+    let ids = site.ids.clone();
     // Stopped once it has written every sensor; continued after 40 rounds (800 batches, more
     // than a subscription's default queue of 256) and followed for 40 more.
     let (stalled_for, after) = (40u64, 40u64);
@@ -601,22 +575,8 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
     let mut seq = 0u64;
     while stopped_at.is_none_or(|s| seq < s + stalled_for + after) {
         assert!(seq < 600, "the stalled follower never wrote every sensor");
-        for (id, p) in ids.iter().zip(&publishers) {
-            let batch = RawBatch {
-                header: triax_protocol::batch::BatchHeader {
-                    sensor_id: SensorId::new(id.as_str()).unwrap(),
-                    sequence: seq,
-                    timestamp_ns: t0_ns + seq as i64 * 100_000_000,
-                    sample_rate_hz: 100.0,
-                },
-                temperature_c: None,
-                samples: (0..10)
-                    .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
-                    .collect(),
-            };
-            p.put(batch.encode()).await.unwrap();
-        }
-        if stopped_at.is_none() && has_all(&stalled_file) {
+        site.put_round(seq).await;
+        if stopped_at.is_none() && site.has_all(&stalled_file) {
             signal(&stalled.0, "STOP");
             stopped_at = Some(seq);
         }
@@ -659,13 +619,7 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
         );
     }
     drop((steady, stalled));
-    node.close().await.unwrap();
-    stop.send(()).unwrap();
-    tokio::time::timeout(Duration::from_secs(10), gateway)
-        .await
-        .expect("gateway stops on shutdown")
-        .unwrap()
-        .unwrap();
+    site.close().await;
 }
 
 /// A gateway for `building` whose one sensor (record version 1) streamed `n_batches` batches of
