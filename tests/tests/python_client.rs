@@ -455,6 +455,35 @@ impl FollowSite {
             .all(|id| written.get(id).is_some_and(|v| !v.is_empty()))
     }
 
+    /// The steady follower's file holds every round of every sensor once, in order, and
+    /// `other`'s holds the same batches, byte for byte.
+    fn assert_followed_alike(
+        &self,
+        steady: &std::path::Path,
+        other: &std::path::Path,
+        rounds: u64,
+        what: &str,
+    ) {
+        let (a, c) = (followed(steady), followed(other));
+        assert_eq!(a.len(), self.ids.len());
+        for id in &self.ids {
+            let seqs = |f: &BTreeMap<String, Vec<(u64, String)>>| -> Vec<u64> {
+                f.get(id)
+                    .map_or(vec![], |v| v.iter().map(|(s, _)| *s).collect())
+            };
+            assert_eq!(
+                seqs(&a),
+                (0..rounds).collect::<Vec<_>>(),
+                "{id}: the steady follower"
+            );
+            assert_eq!(seqs(&a), seqs(&c), "{id}: the {what} follower, once each");
+            assert!(
+                a.get(id) == c.get(id),
+                "{id}: the {what} follower, same bytes"
+            );
+        }
+    }
+
     async fn close(self) {
         self.node.close().await.unwrap();
         self.stop.send(()).unwrap();
@@ -477,7 +506,6 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
     let steady = site.follow(&steady_file);
     let mut away = site.follow(&away_file);
     site.begin();
-    let ids = site.ids.clone();
     // At least 22 s of rounds, and on until the killed follower has been back for a while.
     let min_rounds = 220u64;
     let started = tokio::time::Instant::now();
@@ -507,7 +535,7 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
         seq += 1;
     }
     let rounds = seq;
-    let total = ids.len() * rounds as usize;
+    let total = site.ids.len() * rounds as usize;
     let count = |f: &std::path::Path| followed(f).values().map(Vec::len).sum::<usize>();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
     while (count(&steady_file) < total || count(&away_file) < total)
@@ -515,29 +543,8 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
     {
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    let (a, c) = (followed(&steady_file), followed(&away_file));
-    assert_eq!(a.len(), ids.len());
-    for id in &ids {
-        let seqs: Vec<u64> = a[id].iter().map(|(s, _)| *s).collect();
-        assert_eq!(
-            seqs,
-            (0..rounds).collect::<Vec<_>>(),
-            "{id}: the steady follower"
-        );
-        let (steady_seqs, away_seqs): (Vec<u64>, Vec<u64>) = (
-            a[id].iter().map(|(s, _)| *s).collect(),
-            c.get(id)
-                .map_or(vec![], |v| v.iter().map(|(s, _)| *s).collect()),
-        );
-        assert_eq!(
-            steady_seqs, away_seqs,
-            "{id}: the resumed follower, once each (killed at {killed_at:?})"
-        );
-        assert!(
-            a.get(id) == c.get(id),
-            "{id}: the resumed follower, same bytes"
-        );
-    }
+    let what = format!("resumed (killed at {killed_at:?})");
+    site.assert_followed_alike(&steady_file, &away_file, rounds, &what);
     drop((steady, away));
     site.close().await;
 }
@@ -566,7 +573,6 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
     let mut steady = site.follow(&steady_file);
     let mut stalled = site.follow(&stalled_file);
     site.begin();
-    let ids = site.ids.clone();
     // Stopped once it has written every sensor; continued after 40 rounds (800 batches, more
     // than a subscription's default queue of 256) and followed for 40 more.
     let (stalled_for, after) = (40u64, 40u64);
@@ -589,7 +595,8 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
     let rounds = seq;
     let complete = |f: &std::path::Path| {
         let written = followed(f);
-        ids.iter()
+        site.ids
+            .iter()
             .all(|id| written.get(id).map_or(0, Vec::len) >= rounds as usize)
     };
     let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
@@ -605,19 +612,7 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    let (a, c) = (followed(&steady_file), followed(&stalled_file));
-    for id in &ids {
-        let seqs: Vec<u64> = a[id].iter().map(|(s, _)| *s).collect();
-        assert_eq!(
-            seqs,
-            (0..rounds).collect::<Vec<_>>(),
-            "{id}: the steady follower"
-        );
-        assert!(
-            a.get(id) == c.get(id),
-            "{id}: the stalled follower, once each, same bytes"
-        );
-    }
+    site.assert_followed_alike(&steady_file, &stalled_file, rounds, "stalled");
     drop((steady, stalled));
     site.close().await;
 }
