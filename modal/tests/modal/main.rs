@@ -1,0 +1,4 @@
+//! Known-truth tests of the modal identification.
+
+mod identification;
+mod util;
