@@ -5,7 +5,11 @@
 //! tree "records":  <sensor id bytes> 0x00 <version: u64 big-endian>  →  record, compact JSON
 //! tree "current":  <sensor id bytes>                                 →  version: u64 big-endian
 //! tree "meta":     "schema_version"                                  →  u32 big-endian
+//! tree "suspect":  <sensor id bytes> 0x00 <version: u64 big-endian>  →  flagged_from_ns: i64 big-endian
 //! ```
+//!
+//! The suspect tree came after schema version 1 without a bump: a build that does not know it
+//! ignores it, and a store without it has no suspect records.
 //!
 //! Sensor ids are 1 to 64 bytes from `A–Z a–z 0–9 _ -`, so they never contain `0x00`. Because
 //! `0x00` sorts below every id byte and versions are big-endian, sled's byte order is the order
@@ -20,6 +24,8 @@ use triax_protocol::SensorId;
 pub(crate) const RECORDS_TREE: &str = "records";
 /// Name of the index tree: sensor id to its current version.
 pub(crate) const CURRENT_TREE: &str = "current";
+/// Name of the tree of records the field health checks found suspect.
+pub(crate) const SUSPECT_TREE: &str = "suspect";
 /// Name of the tree holding store-wide facts such as the schema version.
 pub(crate) const META_TREE: &str = "meta";
 /// Key of the schema version in the meta tree.

@@ -81,5 +81,7 @@ mod transfer;
 pub mod cli;
 
 pub use error::{CorruptEntry, Rejection, StoreError};
-pub use store::{in_force_at, Loaded, PutOutcome, Scan, SensorVersion, Store, SCHEMA_VERSION};
+pub use store::{
+    in_force_at, Loaded, PutOutcome, Scan, SensorVersion, Store, SuspectMark, SCHEMA_VERSION,
+};
 pub use transfer::{export_file_name, ExportReport, FileOutcome, ImportReport, ImportedFile};

@@ -97,6 +97,16 @@ pub struct SensorVersion {
     pub version: u64,
 }
 
+/// A record the field health checks found suspect ([`Store::mark_suspect`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SuspectMark {
+    pub sensor_id: SensorId,
+    pub version: u64,
+    /// Samples corrected with the record and stamped at or after this time carry
+    /// `calibration_suspect`, ns.
+    pub flagged_from_ns: i64,
+}
+
 /// A calibration store on disk. Cheap to share across threads (`Arc<Store>`); every method
 /// blocks on disk I/O, so async callers use `spawn_blocking`.
 pub struct Store {
@@ -104,6 +114,7 @@ pub struct Store {
     db: sled::Db,
     records: sled::Tree,
     current: sled::Tree,
+    suspect: sled::Tree,
     /// Serializes writers: a put reads the current version and then writes, and the version
     /// rules hold only if no other put for the sensor slips in between. Calibration updates are
     /// rare (per sensor, a few a year), so one lock for the whole store costs nothing, and sled
@@ -125,6 +136,12 @@ fn corrupt(tree: &'static str, key: String, problem: impl Into<String>) -> Corru
     };
     warn!(tree = entry.tree, key = %entry.key, problem = %entry.problem, "skipping corrupt entry");
     entry
+}
+
+/// A time stamp as the suspect tree keeps it; a value of another length (damage) reads as the
+/// earliest time, so that a damaged mark flags more, never less.
+fn decode_ns(v: &[u8]) -> i64 {
+    <[u8; 8]>::try_from(v).map_or(i64::MIN, i64::from_be_bytes)
 }
 
 /// Decodes one entry of the records tree and checks it is filed under its own sensor and
@@ -212,6 +229,7 @@ impl Store {
         let meta = tree(keys::META_TREE)?;
         let records = tree(keys::RECORDS_TREE)?;
         let current = tree(keys::CURRENT_TREE)?;
+        let suspect = tree(keys::SUSPECT_TREE)?;
 
         let not_a_store = |reason: String| StoreError::NotAStore {
             path: path.clone(),
@@ -258,6 +276,7 @@ impl Store {
             db,
             records,
             current,
+            suspect,
             write_lock: Mutex::new(()),
         })
     }
@@ -300,6 +319,70 @@ impl Store {
         // Unconditional for the reason given in `put`; it costs little when nothing is dirty.
         self.flush()?;
         Ok(outcomes)
+    }
+
+    /// Records that the field health checks found `version` of `sensor_id` suspect, and that its
+    /// samples stamped at or after `flagged_from_ns` carry the flag; durable when this returns.
+    /// The first mark of a record stands: marking it again returns the time already stored.
+    pub fn mark_suspect(
+        &self,
+        sensor_id: &SensorId,
+        version: u64,
+        flagged_from_ns: i64,
+    ) -> Result<i64, StoreError> {
+        let key = keys::record_key(sensor_id, version);
+        let swapped = self
+            .suspect
+            .compare_and_swap(
+                &key,
+                None as Option<&[u8]>,
+                Some(&flagged_from_ns.to_be_bytes()[..]),
+            )
+            .map_err(|e| db_error("mark suspect", e))?;
+        let stored = match swapped {
+            Ok(()) => flagged_from_ns,
+            Err(e) => e.current.as_deref().map_or(flagged_from_ns, decode_ns),
+        };
+        self.flush()?;
+        Ok(stored)
+    }
+
+    /// When `version` of `sensor_id` was found suspect (see [`Store::mark_suspect`]).
+    pub fn suspect_from(
+        &self,
+        sensor_id: &SensorId,
+        version: u64,
+    ) -> Result<Option<i64>, StoreError> {
+        Ok(self
+            .suspect
+            .get(keys::record_key(sensor_id, version))
+            .map_err(|e| db_error("read suspect", e))?
+            .map(|v| decode_ns(&v)))
+    }
+
+    /// Every record found suspect, by sensor then version.
+    /// An entry that does not decode is skipped and listed.
+    pub fn suspects(&self) -> Result<Scan<Vec<SuspectMark>>, StoreError> {
+        let mut scan = Scan::new(Vec::new());
+        for entry in self.suspect.iter() {
+            let (k, v) = entry.map_err(|e| db_error("read suspect", e))?;
+            match keys::parse_record_key(&k) {
+                Ok((sensor_id, version)) if v.len() == 8 => scan.value.push(SuspectMark {
+                    sensor_id,
+                    version,
+                    flagged_from_ns: decode_ns(&v),
+                }),
+                Ok(_) => scan.skipped.push(corrupt(
+                    keys::SUSPECT_TREE,
+                    keys::escape(&k),
+                    format!("value is {} bytes, not 8", v.len()),
+                )),
+                Err(p) => scan
+                    .skipped
+                    .push(corrupt(keys::SUSPECT_TREE, keys::escape(&k), p)),
+            }
+        }
+        Ok(scan)
     }
 
     /// Makes every write so far durable. `put`, `put_all` and `import` already do this before
@@ -564,8 +647,9 @@ impl Store {
     }
 
     /// Reads every current entry, then decodes and maps them in parallel, a chunk at a time so
-    /// that at most [`LOAD_CHUNK`] encoded records are held at once.
-    fn map_current<T: Send>(
+    /// that at most [`LOAD_CHUNK`] encoded records are held at once: a caller keeps what it
+    /// derives from each record, not the records.
+    pub fn map_current<T: Send>(
         &self,
         f: impl Fn(CalibrationRecord) -> T + Sync,
     ) -> Result<Scan<Vec<T>>, StoreError> {

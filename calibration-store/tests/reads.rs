@@ -146,3 +146,36 @@ fn newer_than_gives_a_catching_up_peer_what_it_lacks() {
     assert!(outcomes.iter().all(|o| *o == Ok(PutOutcome::Stored)));
     assert_eq!(gateway.list().unwrap().value, lab.list().unwrap().value);
 }
+
+/// A suspect mark is per record, the first mark stands, and it survives reopening the store.
+#[test]
+fn suspect_marks_are_per_record_first_wins_and_durable() {
+    let (dir, store) = new_store();
+    store.put(&record("s1", 1)).unwrap().unwrap();
+    store.put(&record("s1", 2)).unwrap().unwrap();
+    assert_eq!(store.suspect_from(&id("s1"), 1).unwrap(), None);
+    assert_eq!(store.mark_suspect(&id("s1"), 1, 5_000).unwrap(), 5_000);
+    // A later mark of the same record keeps the first time.
+    assert_eq!(store.mark_suspect(&id("s1"), 1, 9_000).unwrap(), 5_000);
+    assert_eq!(store.mark_suspect(&id("s2"), 7, -3).unwrap(), -3);
+    assert_eq!(store.suspect_from(&id("s1"), 1).unwrap(), Some(5_000));
+    assert_eq!(
+        store.suspect_from(&id("s1"), 2).unwrap(),
+        None,
+        "another version"
+    );
+    drop(store);
+    let store = triax_calibration_store::Store::open(dir.path()).unwrap();
+    let scan = store.suspects().unwrap();
+    assert!(scan.skipped.is_empty());
+    let marks: Vec<_> = scan
+        .value
+        .iter()
+        .map(|m| (m.sensor_id.clone(), m.version, m.flagged_from_ns))
+        .collect();
+    assert_eq!(
+        marks,
+        vec![(id("s1"), 1, 5_000), (id("s2"), 7, -3)],
+        "sorted by sensor, then version"
+    );
+}

@@ -98,6 +98,7 @@ fn fixture(n: usize) -> Fixture {
                 &view,
                 Some(&corrector),
                 Verdict::InOrder,
+                0,
                 &mut scratch,
                 &mut out,
             );

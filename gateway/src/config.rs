@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
+use triax_health::{HealthConfig, HealthError, LocalGravity};
 pub use triax_net::{ConfigError, ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
 use triax_protocol::{BuildingId, Mode, SensorId};
@@ -230,6 +231,8 @@ pub struct Config {
     pub history: Option<HistorySettings>,
     /// None: no metrics endpoint.
     pub metrics_listen: Option<SocketAddr>,
+    /// None: no field health checks (no `calibration_suspect`, no health reports).
+    pub health: Option<HealthSettings>,
     /// Settings of sensors not listed in `sensors`.
     pub defaults: SensorSettings,
     pub sensors: BTreeMap<SensorId, SensorSettings>,
@@ -293,6 +296,8 @@ pub struct FileConfig {
     #[serde(default)]
     pub metrics: FileMetrics,
     #[serde(default)]
+    pub health: FileHealth,
+    #[serde(default)]
     pub defaults: FileSensor,
     #[serde(default)]
     pub sensors: BTreeMap<String, FileSensor>,
@@ -328,6 +333,108 @@ pub struct FileHistory {
 pub struct FileMetrics {
     pub enabled: Option<bool>,
     pub listen: Option<String>,
+}
+
+/// `[health]`: the field calibration health checks (README, "Calibration health in the
+/// field"). Every field optional.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileHealth {
+    pub enabled: Option<bool>,
+    pub publish_interval_s: Option<f64>,
+    /// Local gravity, measured or looked up, with its standard uncertainty; or, instead, the
+    /// site's latitude and height for normal gravity. Neither: the absolute gravity test is
+    /// not judged.
+    pub gravity_mps2: Option<f64>,
+    pub gravity_uncertainty_mps2: Option<f64>,
+    pub latitude_deg: Option<f64>,
+    pub height_m: Option<f64>,
+    pub quiet_vibration_mps2: Option<f64>,
+    pub stretch_s: Option<f64>,
+    pub stability_mps2: Option<f64>,
+    pub relative_shift_mps2: Option<f64>,
+    pub stuck_s: Option<f64>,
+    pub noise_design_ratio: Option<f64>,
+    pub watch_arl_days: Option<f64>,
+    pub suspect_arl_days: Option<f64>,
+}
+
+/// The field health checks as configured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HealthSettings {
+    pub checks: HealthConfig,
+    /// Sensor time between a sensor's health reports (a changed verdict is reported at once).
+    pub publish_interval_s: f64,
+}
+
+/// Default time between a sensor's health reports, s.
+pub const DEFAULT_HEALTH_PUBLISH_INTERVAL_S: f64 = 10.0;
+
+fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError> {
+    if !h.enabled.unwrap_or(true) {
+        return Ok(None);
+    }
+    let publish_interval_s = h
+        .publish_interval_s
+        .unwrap_or(DEFAULT_HEALTH_PUBLISH_INTERVAL_S);
+    if !(publish_interval_s.is_finite() && (0.1..=86_400.0).contains(&publish_interval_s)) {
+        return Err(ConfigError::invalid(
+            "health.publish_interval_s",
+            format!("{publish_interval_s} is outside 0.1..=86400"),
+        ));
+    }
+    let local_gravity = match (
+        h.gravity_mps2,
+        h.gravity_uncertainty_mps2,
+        h.latitude_deg,
+        h.height_m,
+    ) {
+        (None, None, None, None) => None,
+        (Some(g), Some(u), None, None) => Some(
+            LocalGravity::known(g, u)
+                .map_err(|e| ConfigError::invalid("health.gravity_mps2", e.to_string()))?,
+        ),
+        (None, None, Some(lat), height) => Some(
+            LocalGravity::normal(lat, height.unwrap_or(0.0))
+                .map_err(|e| ConfigError::invalid("health.latitude_deg", e.to_string()))?,
+        ),
+        _ => {
+            return Err(ConfigError::invalid(
+                "health.gravity_mps2",
+                "give gravity_mps2 with gravity_uncertainty_mps2, or latitude_deg (and \
+                 height_m), not both and not one without the other",
+            ))
+        }
+    };
+    let mut checks = HealthConfig {
+        local_gravity,
+        ..HealthConfig::default()
+    };
+    let overrides = [
+        (&mut checks.quiet_vibration_mps2, h.quiet_vibration_mps2),
+        (&mut checks.stretch_s, h.stretch_s),
+        (&mut checks.stability_mps2, h.stability_mps2),
+        (&mut checks.relative_shift_mps2, h.relative_shift_mps2),
+        (&mut checks.stuck_s, h.stuck_s),
+        (&mut checks.noise_design_ratio, h.noise_design_ratio),
+        (&mut checks.watch_arl_days, h.watch_arl_days),
+        (&mut checks.suspect_arl_days, h.suspect_arl_days),
+    ];
+    for (field, value) in overrides {
+        if let Some(v) = value {
+            *field = v;
+        }
+    }
+    checks.validate().map_err(|e| match e {
+        HealthError::Config { field, problem } => {
+            ConfigError::invalid(format!("health.{field}"), problem)
+        }
+        other => ConfigError::invalid("health", other.to_string()),
+    })?;
+    Ok(Some(HealthSettings {
+        checks,
+        publish_interval_s,
+    }))
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -421,6 +528,7 @@ impl FileConfig {
             .store_path
             .unwrap_or_else(|| PathBuf::from("triax-store"));
         let history = history_settings(self.history, &store_path, &building)?;
+        let health = health_settings(self.health)?;
         let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
@@ -444,6 +552,7 @@ impl FileConfig {
             calibration,
             history,
             metrics_listen,
+            health,
             defaults,
             sensors,
         })
@@ -725,6 +834,57 @@ mod tests {
 
     fn parse(text: &str) -> Result<Config, ConfigError> {
         FileConfig::parse(text, Path::new("t.toml"))?.into_config()
+    }
+
+    /// `[health]`: on by default with no gravity; a measured gravity or a latitude; every
+    /// refusal names its field.
+    #[test]
+    fn health_settings_parse_and_refuse_by_field() {
+        let h = parse("").unwrap().health.expect("on by default");
+        assert_eq!(h.publish_interval_s, DEFAULT_HEALTH_PUBLISH_INTERVAL_S);
+        assert_eq!(h.checks, HealthConfig::default());
+        assert!(parse("[health]\nenabled = false").unwrap().health.is_none());
+        let h =
+            parse("[health]\ngravity_mps2 = 9.8061\ngravity_uncertainty_mps2 = 1e-5\nstuck_s = 20")
+                .unwrap()
+                .health
+                .unwrap();
+        let g = h.checks.local_gravity.unwrap();
+        assert_eq!(
+            (g.value_mps2, g.uncertainty_mps2, h.checks.stuck_s),
+            (9.8061, 1e-5, 20.0)
+        );
+        let h = parse("[health]\nlatitude_deg = 45.0")
+            .unwrap()
+            .health
+            .unwrap();
+        let g = h.checks.local_gravity.unwrap();
+        assert!((g.value_mps2 - 9.806_197_769_4).abs() < 1e-9, "{g:?}");
+        let field = |text: &str| match parse(text) {
+            Err(ConfigError::Invalid { field, .. }) => field,
+            other => panic!("{text}: {other:?}"),
+        };
+        assert_eq!(
+            field("[health]\ngravity_mps2 = 9.81"),
+            "health.gravity_mps2"
+        );
+        assert_eq!(
+            field("[health]\nlatitude_deg = 45.0\ngravity_mps2 = 9.81\ngravity_uncertainty_mps2 = 1e-4"),
+            "health.gravity_mps2"
+        );
+        assert_eq!(
+            field("[health]\nlatitude_deg = 95.0"),
+            "health.latitude_deg"
+        );
+        assert_eq!(
+            field("[health]\npublish_interval_s = 0"),
+            "health.publish_interval_s"
+        );
+        assert_eq!(field("[health]\nstuck_s = -1"), "health.stuck_s");
+        assert!(
+            parse("[health]\nstuck = 1").is_err(),
+            "unknown fields are refused"
+        );
     }
 
     #[test]

@@ -330,7 +330,8 @@ impl SensorKernel {
     /// Corrects one batch into `out` (appended; `out` is not cleared).
     ///
     /// `corrector` is the snapshot in force for the whole batch (none: uncalibrated);
-    /// `stream_flags` are the batch-level conditions found by the caller (gap, duplicate);
+    /// `stream_flags` are the conditions found by the caller: batch-level ones (gap,
+    /// duplicate) on the batch, others (`calibration_suspect`) on every sample;
     /// `scratch` is the caller's reusable working memory.
     pub fn correct_batch(
         &mut self,
@@ -381,7 +382,8 @@ impl SensorKernel {
             }
         }
 
-        let mut common = 0u16;
+        // The caller's sample conditions (`calibration_suspect`) go on every sample.
+        let mut common = stream_flags & !flags::BATCH_ONLY;
         if c.validity_at(raw.header.timestamp_ns) != Validity::Valid {
             common |= flags::CALIBRATION_EXPIRED;
         }

@@ -36,6 +36,7 @@ pub mod catchup;
 pub mod config;
 pub mod demo;
 pub mod filter;
+pub mod health;
 pub mod heartbeat;
 pub mod history;
 pub mod inbox;
@@ -59,6 +60,7 @@ use std::sync::Arc;
 
 use time::OffsetDateTime;
 use tokio::task::JoinHandle;
+use triax_calibration::corrector::Corrector;
 use triax_calibration_store::{Store, StoreError};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::signing::TrustedKeys;
@@ -243,28 +245,51 @@ pub async fn run(config: Config, shutdown: impl Future) -> Result<(), GatewayErr
 /// again only for a push or a catch-up. A new handle starts with an empty cache, and sled's
 /// directory lock, released in the background when the first handle closes, is waited for by
 /// [`Store::open`].
-async fn open_and_load(path: &Path, table: &SensorTable) -> Result<(Store, usize), StoreError> {
+async fn open_and_load(
+    path: &Path,
+    table: &Arc<SensorTable>,
+) -> Result<(Store, usize), StoreError> {
     let task_failed = |e: tokio::task::JoinError| StoreError::Io {
         action: "load records",
         source: std::io::Error::other(e.to_string()),
     };
     let open_path = path.to_path_buf();
-    let scan = tokio::task::spawn_blocking(move || Store::open(&open_path)?.load_current())
-        .await
-        .map_err(task_failed)??;
-    for skipped in &scan.skipped {
+    let t = table.clone();
+    // Each record is loaded into its corrector and health monitor, then dropped: the gateway
+    // never holds every record at once.
+    let (scan, suspects) = tokio::task::spawn_blocking(move || {
+        let store = Store::open(&open_path)?;
+        let scan = store.map_current(|record| {
+            let corrector = Corrector::from_record(&record);
+            let health = corrector
+                .as_ref()
+                .ok()
+                .and_then(|c| t.health_monitor(&record, c));
+            (record.sensor_id, record.version, corrector, health)
+        })?;
+        Ok::<_, StoreError>((scan, store.suspects()?))
+    })
+    .await
+    .map_err(task_failed)??;
+    for skipped in scan.skipped.iter().chain(&suspects.skipped) {
         tracing::error!(entry = %skipped, "unreadable store entry: sensor stays uncalibrated");
     }
     let mut loaded = 0;
-    for l in scan.value {
-        match l.corrector {
+    for (sensor_id, version, corrector, health) in scan.value {
+        match corrector {
             Ok(c) => {
-                table.install(c);
+                table.install(c, health);
                 loaded += 1;
             }
             // The store validates on put; this is a record from an older, laxer build.
-            Err(e) => tracing::error!(sensor = %l.sensor_id, version = l.version, cause = %e,
+            Err(e) => tracing::error!(sensor = %sensor_id, version, cause = %e,
                 "stored record does not load: sensor stays uncalibrated"),
+        }
+    }
+    // The newest suspect mark of each sensor: older records no longer correct anything live.
+    for m in suspects.value {
+        if let Some(e) = table.get(&m.sensor_id) {
+            e.set_suspect(m.version, m.flagged_from_ns);
         }
     }
     let open_path = path.to_path_buf();
@@ -552,6 +577,10 @@ impl Gateway {
             declared_keys_idle_ns: config.declared_keys_idle.as_nanos().min(i64::MAX as u128)
                 as i64,
             history: recorder.as_ref().map(|r| r.sink.clone()),
+            store: store.clone(),
+            health: config.health.as_ref().map(|h| health::Reporting {
+                publish_interval_ns: (h.publish_interval_s * 1e9) as i64,
+            }),
         });
         let (inboxes, shards, subscriber) =
             start_intake(&config, &session, &counters, &shared).await?;
@@ -565,6 +594,19 @@ impl Gateway {
             store: Some(store.clone()),
         };
         tasks.push(serve_status(&session, status_ctx, shutdown.clone()).await?);
+        if config.health.is_some() {
+            let serving = health::serve(
+                &session,
+                config.building.clone(),
+                table.clone(),
+                shutdown.clone(),
+            );
+            tasks.push(
+                serving
+                    .await
+                    .map_err(zenoh_err("declare the health queryable"))?,
+            );
+        }
         if let Some(sink) = &shared.history {
             let ctx = Arc::new(replay::ReplayContext {
                 building: config.building.clone(),

@@ -14,7 +14,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
 use triax_protocol::keys::RawKeyRefusal;
-use triax_protocol::messages::HistoryStatus;
+use triax_protocol::messages::{HealthVerdict, HistoryStatus};
 
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::shutdown::Shutdown;
@@ -329,6 +329,41 @@ fn render_sensors(out: &mut String, sensors: &[Arc<SensorEntry>]) {
         sensors
             .iter()
             .map(|s| (labels(s), s.calibration_version().unwrap_or(0))),
+    );
+    render_health(out, sensors);
+}
+
+/// The calibration health verdicts: per sensor, and how many sensors have each.
+fn render_health(out: &mut String, sensors: &[Arc<SensorEntry>]) {
+    let judged: Vec<_> = sensors
+        .iter()
+        .filter_map(|s| s.health_verdict().map(|v| (s, v)))
+        .collect();
+    family(
+        out,
+        "triax_sensor_health",
+        "gauge",
+        "Calibration health verdict of the latest report: 0 ok, 1 watch, 2 suspect.",
+        judged
+            .iter()
+            .map(|(s, v)| (format!("sensor=\"{}\"", s.id), *v as u64)),
+    );
+    family(
+        out,
+        "triax_gateway_health_sensors",
+        "gauge",
+        "Sensors by the verdict of their latest calibration health report.",
+        [
+            HealthVerdict::Ok,
+            HealthVerdict::Watch,
+            HealthVerdict::Suspect,
+        ]
+        .map(|verdict| {
+            (
+                format!("verdict=\"{}\"", verdict.as_str()),
+                judged.iter().filter(|(_, v)| *v == verdict).count() as u64,
+            )
+        }),
     );
 }
 

@@ -168,6 +168,7 @@ impl Updater {
             Err(e) => return refused(RefusalReason::InvalidRecord, e.to_string()),
         };
         let version = record.version;
+        let health = self.table.health_monitor(&record, &corrector);
         let _guard = self.update_lock.lock().await;
         let in_force = self.version_in_force(&record.sensor_id);
         if let Some(current) = in_force.filter(|&c| version < c) {
@@ -224,7 +225,7 @@ impl Updater {
         // was made durable just before a crash, say) is installed now.
         if !(already_stored && in_force == Some(version)) {
             let sensor = corrector.sensor_id().clone();
-            let replaced = self.table.install(corrector);
+            let replaced = self.table.install(corrector, health);
             tracing::info!(
                 building = %self.building,
                 sensor = %sensor,

@@ -166,6 +166,8 @@ struct Correctors<'a> {
     sensor: &'a SensorId,
     loaded: HashMap<u64, Option<Arc<Corrector>>>,
     latest: Option<Option<u64>>,
+    /// Per version, the time its `calibration_suspect` starts, if it was found suspect.
+    suspect: HashMap<u64, Option<i64>>,
 }
 
 impl Correctors<'_> {
@@ -188,6 +190,30 @@ impl Correctors<'_> {
         };
         self.loaded.insert(v, c.clone());
         Ok(c)
+    }
+
+    /// The flag a batch corrected with version `v` at `timestamp_ns` carries on every sample:
+    /// the live path's rule ([`crate::health::suspect_flag`]) on the store's mark.
+    fn suspect_flag(&mut self, v: u64, timestamp_ns: i64) -> Result<u16, String> {
+        if v == 0 {
+            return Ok(0);
+        }
+        let from_ns = match self.suspect.get(&v) {
+            Some(f) => *f,
+            None => {
+                let f = self
+                    .store
+                    .suspect_from(self.sensor, v)
+                    .map_err(|e| format!("calibration store: {e}"))?;
+                self.suspect.insert(v, f);
+                f
+            }
+        };
+        Ok(crate::health::suspect_flag(
+            from_ns.map(|f| (v, f)),
+            Some(v),
+            timestamp_ns,
+        ))
     }
 
     fn latest(&mut self) -> Result<u64, String> {
@@ -218,6 +244,7 @@ pub fn replay(
         sensor,
         loaded: HashMap::new(),
         latest: None,
+        suspect: HashMap::new(),
     };
     if let Calibration::Version(v) = q.calibration {
         if correctors.version(v)?.is_none() {
@@ -261,6 +288,7 @@ pub fn replay(
                 Calibration::Version(v) => v,
             };
             let corrector = correctors.version(version)?;
+            let suspect = correctors.suspect_flag(version, k.timestamp_ns)?;
             let header = BatchHeader {
                 sensor_id: sensor.clone(),
                 sequence: k.sequence,
@@ -277,6 +305,7 @@ pub fn replay(
                 &view,
                 corrector.as_deref(),
                 k.verdict,
+                suspect,
                 &mut scratch,
                 &mut out,
             );

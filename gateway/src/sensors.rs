@@ -30,17 +30,26 @@
 //! state drops it at its next sweep, which also gives back its declared Zenoh keys.
 
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::{
+    AtomicBool, AtomicI64, AtomicU64, AtomicU8, AtomicUsize, Ordering::Relaxed,
+};
 use std::sync::{Arc, Mutex, RwLock};
 
 use arc_swap::ArcSwapOption;
 use time::OffsetDateTime;
 use triax_calibration::corrector::Corrector;
+use triax_health::SensorHealth;
 use triax_protocol::keys::RawKeyRefusal;
-use triax_protocol::messages::SensorStatus;
+use triax_protocol::messages::{HealthVerdict, SensorStatus};
+use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{Mode, SensorId};
 
 use crate::config::{Config, SensorSettings};
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // Each guarded value is replaced whole, never left half-written: valid after a panic.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
 
 /// Counters of one sensor. Relaxed atomics: each is an independent tally read for reports.
 #[derive(Debug, Default)]
@@ -74,7 +83,21 @@ pub struct SensorEntry {
     pub counters: SensorCounters,
     /// Set when the table forgets the sensor: whoever holds the entry lets it go.
     evicted: AtomicBool,
+    /// The field health monitor made for the record last installed, until the sensor's worker
+    /// takes it (at its next batch corrected with that record); none when health is off.
+    health_seed: Mutex<Option<Box<SensorHealth>>>,
+    /// The record found suspect and when its flag starts (see `crate::health`): loaded from
+    /// the store at start, set by the sensor's worker when it latches.
+    suspect: Mutex<Option<(u64, i64)>>,
+    /// The latest health report, JSON as published, for the health queryable.
+    health_report: ArcSwapOption<Vec<u8>>,
+    /// Its verdict (0 ok, 1 watch, 2 suspect; [`NO_HEALTH`] before the first), for status
+    /// and metrics.
+    health_verdict: AtomicU8,
 }
+
+/// [`SensorEntry::health_verdict`] before the sensor's first health report.
+pub const NO_HEALTH: u8 = u8::MAX;
 
 impl SensorEntry {
     fn new(id: SensorId, settings: SensorSettings) -> SensorEntry {
@@ -84,6 +107,48 @@ impl SensorEntry {
             corrector: ArcSwapOption::empty(),
             counters: SensorCounters::default(),
             evicted: AtomicBool::new(false),
+            health_seed: Mutex::new(None),
+            suspect: Mutex::new(None),
+            health_report: ArcSwapOption::empty(),
+            health_verdict: AtomicU8::new(NO_HEALTH),
+        }
+    }
+
+    /// The health monitor for `version`, if the last install made one for it.
+    pub fn take_health_seed(&self, version: u64) -> Option<Box<SensorHealth>> {
+        let mut seed = lock(&self.health_seed);
+        match seed.as_ref() {
+            Some(h) if h.version() == version => seed.take(),
+            _ => None,
+        }
+    }
+
+    /// The record found suspect and the time its flag starts from.
+    pub fn suspect(&self) -> Option<(u64, i64)> {
+        *lock(&self.suspect)
+    }
+
+    pub fn set_suspect(&self, version: u64, flagged_from_ns: i64) {
+        *lock(&self.suspect) = Some((version, flagged_from_ns));
+    }
+
+    /// Keeps `json` as the sensor's latest health report.
+    pub fn set_health_report(&self, json: Vec<u8>, verdict: HealthVerdict) {
+        self.health_report.store(Some(Arc::new(json)));
+        self.health_verdict.store(verdict as u8, Relaxed);
+    }
+
+    pub fn health_report(&self) -> Option<Arc<Vec<u8>>> {
+        self.health_report.load_full()
+    }
+
+    /// The latest health report's verdict; none before the first.
+    pub fn health_verdict(&self) -> Option<HealthVerdict> {
+        match self.health_verdict.load(Relaxed) {
+            0 => Some(HealthVerdict::Ok),
+            1 => Some(HealthVerdict::Watch),
+            2 => Some(HealthVerdict::Suspect),
+            _ => None,
         }
     }
 
@@ -143,6 +208,11 @@ impl SensorEntry {
                 .as_ref()
                 .and_then(|c| c.valid_until_ns())
                 .and_then(at),
+            health: self.health_verdict(),
+            suspect_from_ns: self
+                .suspect()
+                .filter(|&(v, _)| Some(v) == version)
+                .map(|(_, t)| t),
             calibration_record: None,
         }
     }
@@ -309,12 +379,33 @@ impl SensorTable {
         n
     }
 
-    /// Puts `corrector` in force for its sensor from the next batch on; returns the version it
+    /// Puts `corrector` in force for its sensor from the next batch on, with the health
+    /// monitor made for its record ([`SensorTable::health_monitor`]); returns the version it
     /// replaced. The caller has already made the record durable.
-    pub fn install(&self, corrector: Corrector) -> Option<u64> {
+    pub fn install(&self, corrector: Corrector, health: Option<SensorHealth>) -> Option<u64> {
         let entry = self.entry(corrector.sensor_id());
+        // The seed first: a worker that sees the new corrector finds its monitor.
+        *lock(&entry.health_seed) = health.map(Box::new);
         let old = entry.corrector.swap(Some(Arc::new(corrector)));
         old.map(|c| c.version())
+    }
+
+    /// A health monitor for `record`, loaded as `corrector`; none when health checks are off
+    /// or the record cannot be judged (logged: the sensor is corrected all the same).
+    pub fn health_monitor(
+        &self,
+        record: &CalibrationRecord,
+        corrector: &Corrector,
+    ) -> Option<SensorHealth> {
+        let settings = self.config.health.as_ref()?;
+        match SensorHealth::with_corrector(record, corrector, &settings.checks) {
+            Ok(h) => Some(h),
+            Err(e) => {
+                tracing::error!(sensor = %record.sensor_id, version = record.version, cause = %e,
+                    "no health checks for this record");
+                None
+            }
+        }
     }
 
     /// Versions in force, for catch-up requests.
@@ -427,10 +518,10 @@ mod tests {
         assert!(e.corrector().is_none());
         assert_eq!(e.status().mode, Mode::None);
         let c1 = Corrector::from_record(&sample::record("s", 1)).unwrap();
-        assert_eq!(t.install(c1), None);
+        assert_eq!(t.install(c1, None), None);
         let held = e.corrector().unwrap();
         let c2 = Corrector::from_record(&sample::record("s", 2)).unwrap();
-        assert_eq!(t.install(c2), Some(1));
+        assert_eq!(t.install(c2, None), Some(1));
         assert_eq!(held.version(), 1, "a batch in flight keeps its snapshot");
         assert_eq!(e.calibration_version(), Some(2));
         assert_eq!(t.versions(), [(id, 2)]);
@@ -463,7 +554,10 @@ mod tests {
         assert!(batch(&t, "c").is_none(), "a third unknown id is refused");
         assert!(batch(&t, "a").is_some(), "known ids still pass");
         // A calibration always gets its entry: it comes signed from the lab.
-        t.install(Corrector::from_record(&sample::record("c", 1)).unwrap());
+        t.install(
+            Corrector::from_record(&sample::record("c", 1)).unwrap(),
+            None,
+        );
         assert_eq!(t.len(), 3);
         assert!(t.seen(&id("c")).is_some());
     }
@@ -471,7 +565,10 @@ mod tests {
     #[test]
     fn a_flood_of_one_batch_ids_cannot_lock_out_a_real_node() {
         let t = table(100);
-        t.install(Corrector::from_record(&sample::record("cal", 1)).unwrap());
+        t.install(
+            Corrector::from_record(&sample::record("cal", 1)).unwrap(),
+            None,
+        );
         let mut real_node_batches = 0;
         for i in 0..10_000 {
             assert!(batch(&t, &format!("flood-{i}")).is_some(), "flood id {i}");
@@ -512,7 +609,10 @@ mod tests {
         assert!(t.is_empty());
         assert_eq!(t.admission.expired.load(Relaxed), 1);
         // A calibrated sensor is never forgotten.
-        t.install(Corrector::from_record(&sample::record("z", 1)).unwrap());
+        t.install(
+            Corrector::from_record(&sample::record("z", 1)).unwrap(),
+            None,
+        );
         assert_eq!(t.expire_idle(i64::MAX), 0);
         assert_eq!(t.len(), 1);
     }

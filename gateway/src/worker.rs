@@ -14,6 +14,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, Mutex};
 
 use triax_calibration::corrector::Corrector;
+use triax_calibration_store::Store;
 use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
@@ -22,6 +23,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
+use crate::health::{self, HealthFeed};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
 use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
@@ -41,6 +43,11 @@ pub struct Shared {
     pub declared_keys_idle_ns: i64,
     /// Where corrected batches are kept; none when the history is off.
     pub history: Option<Arc<history::Sink>>,
+    /// The calibration store: the health checks mark suspect records in it (rarely: once per
+    /// record at most), never read on the sample path.
+    pub store: Arc<Store>,
+    /// None: health checks off.
+    pub health: Option<health::Reporting>,
 }
 
 /// A place in the `declared_keys_max` budget, given back when dropped.
@@ -187,6 +194,7 @@ struct SensorState {
     /// the last one.
     next_checkpoint_ns: i64,
     since_checkpoint: u32,
+    health: HealthFeed,
 }
 
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
@@ -323,7 +331,7 @@ impl Shard {
         }
         // Inserted just above when missing.
         let state = sensors.get_mut(sensor).expect("sensor state exists");
-        let corrected = state.correct(&view, scratch);
+        let corrected = state.correct(shared, &view, scratch);
         if let Err(e) = state.establish(shared) {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
         }
@@ -369,6 +377,19 @@ impl Shard {
                     shared.counters.tilt_samples.fetch_add(1, Relaxed);
                 }
                 Err(e) => tracing::warn!(sensor, cause = %e, "tilt sample not published"),
+            }
+        }
+        if let Some(json) = corrected.health {
+            // Rare (a report every `publish_interval_s` of sensor time): a plain key. A lost
+            // report is not lost knowledge: the health queryable answers with the latest.
+            let key = Key::Health(shared.building.clone(), state.entry.id.clone()).to_string();
+            if let Err(e) = shared
+                .session
+                .put(key, json)
+                .congestion_control(CongestionControl::Drop)
+                .wait()
+            {
+                tracing::warn!(sensor, cause = %e, "health report not published");
             }
         }
     }
@@ -471,6 +492,7 @@ impl Shard {
 
 impl SensorState {
     fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
+        let entry_suspect = entry.suspect();
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             keys: SensorKeys::new(shared, &entry, false)?,
@@ -480,6 +502,7 @@ impl SensorState {
             last_version: None,
             next_checkpoint_ns: i64::MIN,
             since_checkpoint: 0,
+            health: HealthFeed::new(entry_suspect),
         })
     }
 
@@ -509,7 +532,12 @@ impl SensorState {
     }
 
     /// The synchronous part: sequence, correction, counters, tilt, and what the history keeps.
-    fn correct(&mut self, view: &RawBatchView<'_>, scratch: &mut Scratch) -> Corrected {
+    fn correct(
+        &mut self,
+        shared: &Shared,
+        view: &RawBatchView<'_>,
+        scratch: &mut Scratch,
+    ) -> Corrected {
         let duration_ns = (view.len() as f64 * 1e9 / view.header.sample_rate_hz) as i64;
         let verdict =
             self.sequence
@@ -553,11 +581,13 @@ impl SensorState {
         let n = view.len();
         let mut out = Vec::with_capacity(corrected_len(view.header.sensor_id.as_str().len(), n));
         let judged = verdict.kept();
+        let suspect = self.health.flag(version, view.header.timestamp_ns);
         let outcome = correct_judged(
             &mut self.kernel,
             view,
             corrector.as_deref(),
             judged,
+            suspect,
             scratch,
             &mut out,
         );
@@ -568,7 +598,20 @@ impl SensorState {
         if outcome.mode == Mode::None {
             c.uncalibrated_samples.fetch_add(n as u64, Relaxed);
         }
-        c.last_seen_ns.store(now_ns(), Relaxed);
+        let received_ns = now_ns();
+        c.last_seen_ns.store(received_ns, Relaxed);
+        let health = shared.health.and_then(|reporting| {
+            self.health.observe(
+                &shared.building,
+                &shared.store,
+                &self.entry,
+                corrector.as_deref(),
+                view,
+                judged,
+                received_ns,
+                reporting,
+            )
+        });
 
         let mut tilt_json = None;
         if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
@@ -599,6 +642,7 @@ impl SensorState {
             verdict: judged,
             calibration_version: version.unwrap_or(0),
             checkpoint,
+            health,
         }
     }
 
@@ -631,16 +675,20 @@ struct Corrected {
     verdict: history::Verdict,
     calibration_version: u64,
     checkpoint: Option<Vec<u8>>,
+    /// A health report due, JSON.
+    health: Option<Vec<u8>>,
 }
 
 /// Corrects a batch the sequence tracking judged `verdict`: a gap or a restart first resets
-/// the frequency detector, and the verdict's batch flag goes on the batch. The one path of both
-/// the live stream and the history's replay, so that the two agree byte for byte.
+/// the frequency detector, and the verdict's batch flag goes on the batch; `suspect` (0 or
+/// `calibration_suspect`, [`crate::health::suspect_flag`]) goes on every sample. The one path
+/// of both the live stream and the history's replay, so that the two agree byte for byte.
 pub fn correct_judged(
     kernel: &mut SensorKernel,
     view: &RawBatchView<'_>,
     corrector: Option<&Corrector>,
     verdict: history::Verdict,
+    suspect: u16,
     scratch: &mut Scratch,
     out: &mut Vec<u8>,
 ) -> BatchOutcome {
@@ -656,7 +704,7 @@ pub fn correct_judged(
         history::Verdict::Duplicate => flags::DUPLICATE,
         history::Verdict::InOrder => 0,
     };
-    kernel.correct_batch(view, corrector, stream_flags, scratch, out)
+    kernel.correct_batch(view, corrector, stream_flags | suspect, scratch, out)
 }
 
 /// Now, ns since the Unix epoch.

@@ -269,6 +269,12 @@ impl SensorHealth {
         }
     }
 
+    /// Blocks judged so far: a caller that asks for a verdict only when a block was judged
+    /// compares this with what it saw last.
+    pub fn blocks(&self) -> u64 {
+        self.blocks
+    }
+
     /// The latest quiet stretch's reduction, for a caller that shows it.
     pub fn last_gravity_observation(&self) -> Option<&GravityObservation> {
         self.last_observation.as_ref()

@@ -52,14 +52,17 @@ pub mod flags {
     /// The record corrects for temperature and the batch's temperature lies outside its
     /// calibrated range, or the batch carries none.
     pub const OUTSIDE_TEMPERATURE: u16 = 1 << 8;
+    /// The sensor's calibration health checks found it `suspect` under the record in use: its
+    /// values may be off by more than their uncertainty says, until a new record is in force.
+    pub const CALIBRATION_SUSPECT: u16 = 1 << 9;
     /// Every defined bit; the others are reserved and must be zero.
-    pub const ALL: u16 = (1 << 9) - 1;
+    pub const ALL: u16 = (1 << 10) - 1;
     /// The flags that describe a batch, not its samples: set in the batch flags only.
     pub const BATCH_ONLY: u16 = SEQUENCE_GAP | DUPLICATE;
 
     /// Names of the set bits, for logs and reports.
     pub fn names(bits: u16) -> Vec<&'static str> {
-        const NAMES: [&str; 9] = [
+        const NAMES: [&str; 10] = [
             "uncalibrated",
             "calibration_expired",
             "outside_amplitude",
@@ -69,8 +72,9 @@ pub mod flags {
             "clipped",
             "duplicate",
             "outside_temperature",
+            "calibration_suspect",
         ];
-        (0..9)
+        (0..10)
             .filter(|i| bits & (1 << i) != 0)
             .map(|i| NAMES[i])
             .collect()

@@ -12,6 +12,7 @@
 //! triax/<building>/history/<sensor>              history query → corrected batches (binary)
 //! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
 //! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
+//! triax/<building>/health/<sensor>               SensorHealthReport (JSON), gateway → lab, operators
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -156,6 +157,8 @@ pub enum Key {
     Heartbeat(BuildingId),
     /// What an alerting service last judged of the building's sensors (its queryable).
     Alerting(BuildingId),
+    /// A sensor's calibration health (published, and the gateway's queryable).
+    Health(BuildingId, SensorId),
 }
 
 /// Why a key string is not a Triax key.
@@ -186,7 +189,8 @@ impl Key {
             | Key::Alert(b, _)
             | Key::History(b, _)
             | Key::Heartbeat(b)
-            | Key::Alerting(b) => b,
+            | Key::Alerting(b)
+            | Key::Health(b, _) => b,
         }
     }
 
@@ -198,7 +202,8 @@ impl Key {
             | Key::CalibrationPush(_, s)
             | Key::CalibrationAck(_, s)
             | Key::Alert(_, s)
-            | Key::History(_, s) => Some(s),
+            | Key::History(_, s)
+            | Key::Health(_, s) => Some(s),
             Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) | Key::Alerting(_) => {
                 None
             }
@@ -229,6 +234,7 @@ impl Key {
             ["history", s] => Key::History(b, sensor(s)?),
             ["heartbeat"] => Key::Heartbeat(b),
             ["alerting"] => Key::Alerting(b),
+            ["health", s] => Key::Health(b, sensor(s)?),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -248,6 +254,7 @@ impl fmt::Display for Key {
             Key::History(b, s) => write!(f, "{ROOT}/{b}/history/{s}"),
             Key::Heartbeat(b) => write!(f, "{ROOT}/{b}/heartbeat"),
             Key::Alerting(b) => write!(f, "{ROOT}/{b}/alerting"),
+            Key::Health(b, s) => write!(f, "{ROOT}/{b}/health/{s}"),
         }
     }
 }
@@ -262,6 +269,7 @@ pub enum Stream {
     CalibrationAck,
     Alert,
     History,
+    Health,
 }
 
 impl Stream {
@@ -274,6 +282,7 @@ impl Stream {
             Stream::CalibrationAck => "calibration/ack",
             Stream::Alert => "alert",
             Stream::History => "history",
+            Stream::Health => "health",
         }
     }
 }
@@ -397,6 +406,7 @@ mod tests {
             Key::History(b("hq"), s("acc-01")),
             Key::Heartbeat(b("hq")),
             Key::Alerting(b("hq")),
+            Key::Health(b("hq"), s("acc-01")),
         ];
         for k in keys {
             let text = k.to_string();

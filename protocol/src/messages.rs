@@ -178,6 +178,14 @@ pub struct SensorStatus {
         skip_serializing_if = "Option::is_none"
     )]
     pub valid_until: Option<OffsetDateTime>,
+    /// The verdict of the sensor's latest calibration health report (§3.9); absent before the
+    /// first or when the gateway's health checks are off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub health: Option<HealthVerdict>,
+    /// While the record in force is suspect: samples stamped at or after this time carry
+    /// `calibration_suspect`, ns.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub suspect_from_ns: Option<i64>,
     /// The record in force, only in the answer to a one-sensor query (`sensor=<id>`): the
     /// certificate an operator reads (lab, certificate, validity, domain).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -616,8 +624,43 @@ mod tests {
                 mode: Mode::Dynamic,
                 valid_from: Some(t()),
                 valid_until: None,
+                health: Some(HealthVerdict::Watch),
+                suspect_from_ns: None,
                 calibration_record: Some(Box::new(sample::record("acc-1", 4))),
             }],
+        });
+        round_trip(&SensorHealthReport {
+            format_version: JSON_FORMAT_VERSION,
+            building: BuildingId::new("hq").unwrap(),
+            sensor_id: s.clone(),
+            calibration_version: 3,
+            verdict: HealthVerdict::Suspect,
+            suspect_since_ns: Some(-5),
+            flagged_from_ns: Some(7),
+            reported_at: t(),
+            data_until_ns: Some(9),
+            blocks: 600,
+            quiet_stretches: 4,
+            discontinuities: 1,
+            tests: vec![HealthTest {
+                test: "stuck".into(),
+                channel: Some(2),
+                verdict: HealthVerdict::Suspect,
+                judged: true,
+                statistic: Some(12.0),
+                uncertainty: Some(1.0),
+                unit: "s".into(),
+                since_ns: Some(-5),
+                evidence_nats: 0.0,
+                observations: 600,
+            }],
+            quality: StreamQuality {
+                samples: 60_000,
+                availability: 0.99,
+                gaps: 1,
+                latency_min_ms: Some(1.5),
+                latency_max_ms: None,
+            },
         });
         round_trip(&TiltSample {
             format_version: JSON_FORMAT_VERSION,
@@ -689,4 +732,110 @@ mod tests {
         assert_eq!(v["outcome"]["reason"], "bad_signature");
         assert_eq!(v["at"], "2027-01-15T08:00:00Z");
     }
+}
+
+/// A verdict of the calibration health checks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HealthVerdict {
+    /// Nothing found (or not yet judged: see the test's `judged`).
+    Ok,
+    /// Evidence is building: the sensor deserves a look.
+    Watch,
+    /// The calibration no longer holds as stated: the sensor is due for recalibration.
+    Suspect,
+}
+
+impl HealthVerdict {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            HealthVerdict::Ok => "ok",
+            HealthVerdict::Watch => "watch",
+            HealthVerdict::Suspect => "suspect",
+        }
+    }
+}
+
+/// A sensor's calibration health under the record in force, published by its gateway on
+/// `triax/<building>/health/<sensor>` and answered by its queryable there.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorHealthReport {
+    pub format_version: u32,
+    pub building: BuildingId,
+    pub sensor_id: SensorId,
+    /// The record the checks judge.
+    pub calibration_version: u64,
+    /// The worst verdict of the tests, or `suspect` while the sensor's samples carry
+    /// `calibration_suspect` (a latched verdict outlives a gateway restart; the tests do not).
+    pub verdict: HealthVerdict,
+    /// Start of the evidence behind the earliest `suspect` test, sensor time, ns.
+    pub suspect_since_ns: Option<i64>,
+    /// Samples of this record stamped at or after this time carry `calibration_suspect`
+    /// (PROTOCOL.md §2.3), live and in replays, ns; absent while the record is not suspect.
+    pub flagged_from_ns: Option<i64>,
+    /// When the gateway made this report, by its clock.
+    #[serde(with = "time::serde::rfc3339")]
+    pub reported_at: OffsetDateTime,
+    /// Sensor time of the last sample the checks have seen, ns.
+    pub data_until_ns: Option<i64>,
+    /// Blocks judged, quiet stretches used by the gravity tests, and breaks in the stream
+    /// (gaps, node restarts, rate changes), since the checks started on this record.
+    pub blocks: u64,
+    pub quiet_stretches: u64,
+    pub discontinuities: u64,
+    /// Every test, in a fixed order.
+    pub tests: Vec<HealthTest>,
+    /// The stream's quality, as seismic networks report it.
+    pub quality: StreamQuality,
+}
+
+impl JsonMessage for SensorHealthReport {
+    const WHAT: &'static str = "sensor health report";
+    fn format_version(&self) -> u32 {
+        self.format_version
+    }
+}
+
+/// One health test's state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HealthTest {
+    /// `gravity_absolute`, `gravity_relative`, `stuck`, `noise` or `spikes`.
+    pub test: String,
+    /// Output channel 0, 1 or 2 for the per-channel tests; absent for the gravity tests.
+    pub channel: Option<u8>,
+    pub verdict: HealthVerdict,
+    /// Whether the test has had the data it needs; a test not yet judged is `ok`.
+    pub judged: bool,
+    /// The test's statistic, in `unit`; absent before the first judgement.
+    pub statistic: Option<f64>,
+    /// Its standard uncertainty (k = 1), in `unit`.
+    pub uncertainty: Option<f64>,
+    /// `m/s^2` (gravity), `s` (stuck), `ratio` (noise over the record's `output_noise`),
+    /// `1/h` (spikes).
+    pub unit: String,
+    /// Since when the verdict holds (`watch`, `suspect`), sensor time, ns.
+    pub since_ns: Option<i64>,
+    /// The sequential test's accumulated log-likelihood ratio, nats (0 when not sequential).
+    pub evidence_nats: f64,
+    /// Observations judged: blocks, or quiet stretches for the gravity tests.
+    pub observations: u64,
+}
+
+/// A stream's quality since the checks started on the record.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StreamQuality {
+    /// Samples received, and the share of the samples the stream's span should hold that
+    /// arrived (1 when none were lost; duplicates not counted).
+    pub samples: u64,
+    pub availability: f64,
+    /// Batches that came after a jump in sequence numbers.
+    pub gaps: u64,
+    /// Arrival at the gateway minus the batch's last sample time, by the gateway's clock, over
+    /// the batches since the previous report, ms: a node whose clock drifts shows a trend in
+    /// the minimum, a slow link in the maximum. Absent before the first batch.
+    pub latency_min_ms: Option<f64>,
+    pub latency_max_ms: Option<f64>,
 }

@@ -27,6 +27,8 @@
 //!   refuses; the one-sensor status it reads the calibration record from.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `campaign` (ignored by default): a million hostile messages against one gateway.
+//! - `health`: a frozen channel makes its record `suspect` and flags its samples from the
+//!   reported time, through a restart and until a new record; replays reproduce the flag.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
 //! - `replay_restart`: the history byte for byte the live stream across clean stops and kills of
@@ -44,6 +46,8 @@ mod catchup;
 mod console;
 #[path = "gateway/hardening.rs"]
 mod hardening;
+#[path = "gateway/health.rs"]
+mod health;
 #[path = "gateway/history.rs"]
 mod history;
 #[path = "gateway/history_owner.rs"]
