@@ -23,6 +23,8 @@ use triax_protocol::signing::{read_alert, AlertTrust, TrustedKeys};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
 
+use crate::alertlog::{self, AlertLog};
+
 /// Most buildings tracked; further ids heard are counted and ignored.
 pub const MAX_BUILDINGS: usize = 1000;
 /// Alerts kept, newest first.
@@ -62,6 +64,8 @@ pub struct FleetOptions {
 /// What the console holds of one alert.
 #[derive(Debug, Clone, Serialize)]
 pub struct AlertEntry {
+    /// The console's own number for it, kept across restarts by the alert log.
+    pub id: u64,
     #[serde(flatten)]
     pub alert: Alert,
     #[serde(with = "time::serde::rfc3339")]
@@ -203,6 +207,9 @@ struct State {
     alerts_total: u64,
     malformed_messages: u64,
     ignored_buildings: u64,
+    log: Option<AlertLog>,
+    /// Alerts read back from the alert log on start.
+    alerts_restored: u64,
 }
 
 /// The fleet as the console sees it. Zenoh callbacks write it; page requests read snapshots.
@@ -212,15 +219,47 @@ pub struct Fleet {
 }
 
 impl Fleet {
+    /// A fleet whose alerts are kept in memory only.
     pub fn new(options: FleetOptions) -> Fleet {
+        Fleet::with_alert_log(
+            options,
+            AlertLog::in_memory(alertlog::DEFAULT_MAX_ALERTS, alertlog::DEFAULT_RETENTION),
+        )
+    }
+
+    /// A fleet that keeps its alerts in `log`, and starts with the alerts it holds, each
+    /// verified again against this fleet's trusted keys.
+    pub fn with_alert_log(options: FleetOptions, mut log: AlertLog) -> Fleet {
         let mut state = State::default();
         for b in &options.buildings {
             state.buildings.insert(b.clone(), BuildingState::default());
         }
-        Fleet {
+        let fleet = Fleet {
             options,
             state: Mutex::new(state),
+        };
+        for p in log.take_pending() {
+            match fleet.decode_alert(&p.key, p.payload.as_bytes(), p.received_at) {
+                Ok(mut entry) => {
+                    entry.id = p.id;
+                    let mut st = fleet.lock();
+                    if fleet
+                        .building(&mut st, &entry.alert.building.clone())
+                        .is_some()
+                    {
+                        fleet.keep_alert(&mut st, entry.clone(), false);
+                        drop(st);
+                        log.restore(p, entry);
+                    }
+                }
+                Err(why) => {
+                    tracing::warn!(id = p.id, key = p.key, why, "logged alert not restored")
+                }
+            }
         }
+        log.restored();
+        fleet.lock().log = Some(log);
+        fleet
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -279,12 +318,17 @@ impl Fleet {
         }
     }
 
-    pub fn alert(&self, key: &str, payload: &[u8]) {
+    fn decode_alert(
+        &self,
+        key: &str,
+        payload: &[u8],
+        received_at: OffsetDateTime,
+    ) -> Result<AlertEntry, String> {
         let read = read_alert(payload, &self.options.trusted_alert_keys);
         let (alert, trust) = match (Key::parse(key), read) {
             (Ok(Key::Alert(b, s)), Ok((a, t))) if a.building == b && a.sensor_id == s => (a, t),
-            (_, Err(e)) => return self.malformed(key, &e.to_string()),
-            _ => return self.malformed(key, "key and alert disagree"),
+            (_, Err(e)) => return Err(e.to_string()),
+            _ => return Err("key and alert disagree".into()),
         };
         let signed_by = match &trust {
             AlertTrust::Verified { public_key_hex }
@@ -292,14 +336,36 @@ impl Fleet {
             | AlertTrust::BadSignature { public_key_hex } => Some(public_key_hex.clone()),
             AlertTrust::Unsigned => None,
         };
-        let entry = AlertEntry {
+        Ok(AlertEntry {
+            id: 0,
             alert,
-            received_at: OffsetDateTime::now_utc(),
+            received_at,
             trust: trust.name(),
             signed_by,
+        })
+    }
+
+    pub fn alert(&self, key: &str, payload: &[u8]) {
+        let mut entry = match self.decode_alert(key, payload, OffsetDateTime::now_utc()) {
+            Ok(e) => e,
+            Err(why) => return self.malformed(key, &why),
         };
         let mut s = self.lock();
-        let Some(st) = self.building(&mut s, &entry.alert.building.clone()) else {
+        if self
+            .building(&mut s, &entry.alert.building.clone())
+            .is_none()
+        {
+            return;
+        }
+        if let Some(log) = &mut s.log {
+            log.record(key, payload, &mut entry);
+        }
+        self.keep_alert(&mut s, entry, true);
+    }
+
+    /// Puts an alert of a watched building in the fleet's view.
+    fn keep_alert(&self, s: &mut State, entry: AlertEntry, new: bool) {
+        let Some(st) = self.building(s, &entry.alert.building.clone()) else {
             return;
         };
         // Bounded by the sensors that alerted, themselves bounded by the ids' alphabet only:
@@ -320,7 +386,21 @@ impl Fleet {
             .insert(entry.alert.sensor_id.clone(), entry.clone());
         s.alerts.push_front(entry);
         s.alerts.truncate(MAX_ALERTS);
-        s.alerts_total += 1;
+        if new {
+            s.alerts_total += 1;
+        } else {
+            s.alerts_restored += 1;
+        }
+    }
+
+    /// Runs `f` on the alert log.
+    pub fn with_log<T>(&self, f: impl FnOnce(&mut AlertLog) -> T) -> T {
+        let mut s = self.lock();
+        // Only missing while `with_alert_log` builds the fleet, which calls nothing here.
+        let log = s.log.get_or_insert_with(|| {
+            AlertLog::in_memory(alertlog::DEFAULT_MAX_ALERTS, alertlog::DEFAULT_RETENTION)
+        });
+        f(log)
     }
 
     /// Buildings whose status is polled one by one (the watched list), or none to poll with a
@@ -329,7 +409,7 @@ impl Fleet {
         &self.options.buildings
     }
 
-    /// Every alert kept, newest first.
+    /// The latest alerts held for the fleet view (at most [`MAX_ALERTS`]), newest first.
     pub fn alerts(&self) -> Vec<AlertEntry> {
         self.lock().alerts.iter().cloned().collect()
     }
@@ -349,6 +429,8 @@ impl Fleet {
             buildings,
             alerts: s.alerts.iter().take(ALERTS_IN_SNAPSHOT).cloned().collect(),
             alerts_total: s.alerts_total,
+            alerts_restored: s.alerts_restored,
+            alerts_open: s.log.as_ref().map_or(0, |l| l.open_count()),
             malformed_messages: s.malformed_messages,
             ignored_buildings: s.ignored_buildings,
             expiry_warning_days: self.options.expiry_warning.as_secs_f64() / 86_400.0,
@@ -647,6 +729,10 @@ pub struct Snapshot {
     /// The latest alerts, newest first.
     pub alerts: Vec<AlertEntry>,
     pub alerts_total: u64,
+    /// Alerts read back from the alert log on start (not in `alerts_total`).
+    pub alerts_restored: u64,
+    /// Alerts in the log neither acknowledged nor silenced.
+    pub alerts_open: usize,
     /// Heartbeats, alerts and status answers that did not decode or contradicted their key.
     pub malformed_messages: u64,
     /// Buildings heard of beyond [`MAX_BUILDINGS`].
@@ -807,6 +893,8 @@ mod tests {
             },
             valid_from: version.map(|_| t(-86_400)),
             valid_until: None,
+            health: None,
+            suspect_from_ns: None,
             calibration_record: None,
         }
     }

@@ -1,4 +1,6 @@
-//! The HTTP the console speaks: one request per connection, `GET` and `HEAD` only, no bodies.
+//! The HTTP the console speaks: one request per connection, `GET` and `HEAD`, and `POST` with a
+//! JSON body of at most [`MAX_BODY_BYTES`] (the routes that write the alert log take it; every
+//! other route answers 405).
 //!
 //! Hand-rolled on tokio, as the gateway's metrics endpoint is: the console answers a handful of
 //! fixed paths and one Server-Sent Events stream, which HTTP/1.1 carries as a response that
@@ -19,6 +21,8 @@ use tokio::net::TcpStream;
 
 /// Longest request head read.
 pub const MAX_REQUEST_BYTES: usize = 8 * 1024;
+/// Longest request body read (`POST` only).
+pub const MAX_BODY_BYTES: usize = 16 * 1024;
 /// Time a client gets to send its request.
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// Time a client gets to take one response write (a page that stops reading is dropped).
@@ -42,11 +46,21 @@ Connection: close\r\n";
 pub struct Request {
     /// `HEAD` asks for the headers only.
     pub head_only: bool,
+    /// `POST`: the body is in `body`.
+    pub post: bool,
     pub path: String,
     /// Query parameters in order, percent-decoded.
     pub query: Vec<(String, String)>,
     /// The `Host` header, if any.
     pub host: Option<String>,
+    /// The `Origin` header, if any (browsers send it with every `POST`).
+    pub origin: Option<String>,
+    /// The `Content-Type` header, if any.
+    pub content_type: Option<String>,
+    /// `Content-Length` (0 when absent).
+    pub content_length: usize,
+    /// The body of a `POST`.
+    pub body: Vec<u8>,
 }
 
 /// A request refused before routing: the status to answer and why.
@@ -54,6 +68,8 @@ pub struct Request {
 pub struct Refusal {
     pub status: u16,
     pub message: String,
+    /// The methods a 405 names in its `Allow` header.
+    pub allow: &'static str,
 }
 
 impl Refusal {
@@ -61,6 +77,16 @@ impl Refusal {
         Refusal {
             status,
             message: message.into(),
+            allow: "GET, HEAD",
+        }
+    }
+
+    /// A 405 for a route that takes only `allow`.
+    pub fn method(allow: &'static str, message: impl Into<String>) -> Refusal {
+        Refusal {
+            status: 405,
+            message: message.into(),
+            allow,
         }
     }
 }
@@ -100,7 +126,33 @@ pub async fn read_request_within(
         Ok(r) => r?,
     };
     let Some(end) = end else { return Ok(None) };
-    parse_head(&buf[..end.min(MAX_REQUEST_BYTES)]).map(Some)
+    let mut req = parse_head(&buf[..end.min(MAX_REQUEST_BYTES)])?;
+    if req.post {
+        let mut body = buf.get(end + 4..).unwrap_or_default().to_vec();
+        let want = req.content_length;
+        let read = async {
+            let mut chunk = [0u8; 4096];
+            while body.len() < want {
+                match stream.read(&mut chunk).await {
+                    Ok(0) | Err(_) => return false,
+                    Ok(n) => body.extend_from_slice(&chunk[..n]),
+                }
+            }
+            true
+        };
+        match tokio::time::timeout(limit, read).await {
+            Ok(true) => {}
+            _ => {
+                return Err(Refusal::new(
+                    400,
+                    format!("the body is shorter than its Content-Length ({want} bytes)"),
+                ))
+            }
+        }
+        body.truncate(want);
+        req.body = body;
+    }
+    Ok(Some(req))
 }
 
 fn find_head_end(buf: &[u8]) -> Option<usize> {
@@ -125,17 +177,24 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
             format!("unsupported version {version:?}"),
         ));
     }
-    let head_only = match method {
-        "GET" => false,
-        "HEAD" => true,
+    let (head_only, post) = match method {
+        "GET" => (false, false),
+        "HEAD" => (true, false),
+        "POST" => (false, true),
         _ => {
             return Err(Refusal::new(
                 405,
-                format!("method {method:?} not allowed: the console only reads (GET, HEAD)"),
+                format!(
+                    "method {method:?} not allowed: the console answers GET and HEAD, and POST on \
+                     its alert-log routes"
+                ),
             ))
         }
     };
     let mut host = None;
+    let mut origin = None;
+    let mut content_type = None;
+    let mut content_length = 0;
     for h in lines {
         let Some((name, value)) = h.split_once(':') else {
             return Err(Refusal::new(400, "malformed header line"));
@@ -148,10 +207,38 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
                 return Err(Refusal::new(400, "more than one Host header"));
             }
             host = Some(value.to_owned());
-        } else if (name.eq_ignore_ascii_case("content-length") && value != "0")
-            || name.eq_ignore_ascii_case("transfer-encoding")
-        {
-            return Err(Refusal::new(400, "request bodies are not accepted"));
+        } else if name.eq_ignore_ascii_case("origin") {
+            if origin.is_some() {
+                return Err(Refusal::new(400, "more than one Origin header"));
+            }
+            origin = Some(value.to_owned());
+        } else if name.eq_ignore_ascii_case("content-type") {
+            content_type = Some(value.to_owned());
+        } else if name.eq_ignore_ascii_case("content-length") {
+            if !post && value != "0" {
+                return Err(Refusal::new(
+                    400,
+                    "request bodies are accepted with POST only",
+                ));
+            }
+            let n: usize = value.parse().map_err(|_| {
+                Refusal::new(
+                    400,
+                    format!("Content-Length {value:?} is not a whole number"),
+                )
+            })?;
+            if n > MAX_BODY_BYTES {
+                return Err(Refusal::new(
+                    413,
+                    format!("request body of {n} bytes; at most {MAX_BODY_BYTES}"),
+                ));
+            }
+            content_length = n;
+        } else if name.eq_ignore_ascii_case("transfer-encoding") {
+            return Err(Refusal::new(
+                400,
+                "Transfer-Encoding is not accepted: send a Content-Length",
+            ));
         }
     }
     if !target.starts_with('/') {
@@ -170,9 +257,14 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
     }
     Ok(Request {
         head_only,
+        post,
         path: percent_decode(path)?,
         query: params,
         host,
+        origin,
+        content_type,
+        content_length,
+        body: Vec::new(),
     })
 }
 
@@ -225,6 +317,8 @@ fn reason(status: u16) -> &'static str {
         404 => "Not Found",
         405 => "Method Not Allowed",
         408 => "Request Timeout",
+        413 => "Content Too Large",
+        415 => "Unsupported Media Type",
         431 => "Request Header Fields Too Large",
         502 => "Bad Gateway",
         503 => "Service Unavailable",
@@ -241,11 +335,51 @@ pub async fn respond(
     body: &[u8],
     head_only: bool,
 ) -> std::io::Result<()> {
+    respond_allowing(stream, status, content_type, body, head_only, "GET, HEAD").await
+}
+
+async fn respond_allowing(
+    stream: &mut TcpStream,
+    status: u16,
+    content_type: &str,
+    body: &[u8],
+    head_only: bool,
+    allow: &str,
+) -> std::io::Result<()> {
+    let allow = if status == 405 {
+        format!("Allow: {allow}\r\n")
+    } else {
+        String::new()
+    };
     let head = format!(
-        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n{COMMON_HEADERS}{}\r\n",
+        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n{COMMON_HEADERS}{allow}\r\n",
         reason(status),
         body.len(),
-        if status == 405 { "Allow: GET, HEAD\r\n" } else { "" },
+    );
+    let write = async {
+        stream.write_all(head.as_bytes()).await?;
+        if !head_only {
+            stream.write_all(body).await?;
+        }
+        stream.flush().await
+    };
+    tokio::time::timeout(WRITE_TIMEOUT, write)
+        .await
+        .unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into()))
+}
+
+/// A response the browser saves as the file `name` rather than shows.
+pub async fn respond_download(
+    stream: &mut TcpStream,
+    content_type: &str,
+    name: &str,
+    body: &[u8],
+    head_only: bool,
+) -> std::io::Result<()> {
+    // Names are made of ids and numbers ([A-Za-z0-9_-.]): nothing to quote.
+    let head = format!(
+        "HTTP/1.1 200 OK\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\nContent-Disposition: attachment; filename=\"{name}\"\r\n{COMMON_HEADERS}\r\n",
+        body.len(),
     );
     let write = async {
         stream.write_all(head.as_bytes()).await?;
@@ -263,12 +397,13 @@ pub async fn respond(
 /// the console did not read all it sent.
 pub async fn respond_error(stream: &mut TcpStream, r: &Refusal) -> std::io::Result<()> {
     let body = format!("{}\n", r.message);
-    respond(
+    respond_allowing(
         stream,
         r.status,
         "text/plain; charset=utf-8",
         body.as_bytes(),
         false,
+        r.allow,
     )
     .await?;
     linger(stream).await;
@@ -342,8 +477,28 @@ mod tests {
     #[test]
     fn what_is_refused_and_why() {
         let status = |h: &[u8]| parse_head(h).unwrap_err().status;
-        assert_eq!(status(b"POST / HTTP/1.1\r\nHost: x"), 405);
         assert_eq!(status(b"DELETE / HTTP/1.1"), 405);
+        assert_eq!(status(b"PUT / HTTP/1.1"), 405);
+        assert_eq!(
+            status(b"POST /api/alerts/ack HTTP/1.1\r\nContent-Length: 16385"),
+            413
+        );
+        assert_eq!(
+            status(b"POST /api/alerts/ack HTTP/1.1\r\nContent-Length: x"),
+            400
+        );
+        assert_eq!(
+            status(b"POST / HTTP/1.1\r\nOrigin: a\r\nOrigin: b"),
+            400,
+            "two origins"
+        );
+        let post = parse_head(
+            b"POST /api/alerts/ack HTTP/1.1\r\nHost: 127.0.0.1\r\nOrigin: http://127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: 12",
+        )
+        .unwrap();
+        assert!(post.post);
+        assert_eq!(post.content_length, 12);
+        assert_eq!(post.origin.as_deref(), Some("http://127.0.0.1"));
         assert_eq!(status(b"GET / HTTP/2\r\nHost: x"), 505);
         assert_eq!(status(b"GET /"), 400);
         assert_eq!(status(b"GET  / HTTP/1.1"), 400);

@@ -20,11 +20,14 @@
 //! known of the buildings, gateways, sensors and alerts), [`live`] (the streams being watched),
 //! [`buckets`] (decimation); the page itself is in `src/assets/`.
 
+pub mod alertlog;
 pub mod buckets;
 pub mod fleet;
 pub mod http;
 pub mod live;
 pub mod server;
+pub mod spectrum;
+pub mod trend;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -67,6 +70,12 @@ pub struct ConsoleOptions {
     /// The alerting services' public keys (PROTOCOL.md §3.6): only an alert signed by one of
     /// them is shown as a verdict.
     pub trusted_alert_keys: TrustedKeys,
+    /// Where the alert log is kept ([`alertlog::FILE_NAME`] in it); None: in memory only.
+    pub state_dir: Option<std::path::PathBuf>,
+    /// Alerts the log keeps at most.
+    pub max_logged_alerts: usize,
+    /// How long the log keeps an alert.
+    pub alert_retention: Duration,
 }
 
 impl Default for ConsoleOptions {
@@ -81,6 +90,9 @@ impl Default for ConsoleOptions {
             max_history_queries: 2,
             history_timeout: Duration::from_secs(20),
             trusted_alert_keys: TrustedKeys::default(),
+            state_dir: None,
+            max_logged_alerts: alertlog::DEFAULT_MAX_ALERTS,
+            alert_retention: alertlog::DEFAULT_RETENTION,
         }
     }
 }
@@ -106,6 +118,8 @@ pub enum ConsoleError {
         action: &'static str,
         message: String,
     },
+    #[error(transparent)]
+    AlertLog(#[from] alertlog::AlertLogError),
     #[error("option `{field}`: {reason}")]
     Option { field: &'static str, reason: String },
 }
@@ -174,18 +188,33 @@ pub async fn serve(
             });
         }
     }
+    if options.max_logged_alerts == 0 {
+        return Err(ConsoleError::Option {
+            field: "max_logged_alerts",
+            reason: "must be at least 1".into(),
+        });
+    }
     if options.status_interval.is_zero() {
         return Err(ConsoleError::Option {
             field: "status_interval",
             reason: "must be positive".into(),
         });
     }
-    let fleet = Arc::new(Fleet::new(FleetOptions {
-        buildings: options.buildings.clone(),
-        status_interval: options.status_interval,
-        expiry_warning: options.expiry_warning,
-        trusted_alert_keys: options.trusted_alert_keys.clone(),
-    }));
+    let log = match &options.state_dir {
+        Some(dir) => {
+            alertlog::AlertLog::open(dir, options.max_logged_alerts, options.alert_retention)?
+        }
+        None => alertlog::AlertLog::in_memory(options.max_logged_alerts, options.alert_retention),
+    };
+    let fleet = Arc::new(Fleet::with_alert_log(
+        FleetOptions {
+            buildings: options.buildings.clone(),
+            status_interval: options.status_interval,
+            expiry_warning: options.expiry_warning,
+            trusted_alert_keys: options.trusted_alert_keys.clone(),
+        },
+        log,
+    ));
     let _watch = fleet::watch(&session, &fleet)
         .await
         .map_err(|e| ConsoleError::Zenoh {
@@ -211,6 +240,7 @@ pub async fn serve(
         streams: Arc::new(Semaphore::new(options.max_streams)),
         history_queries: Arc::new(Semaphore::new(options.max_history_queries)),
         stop: stop_rx,
+        trends: tokio::sync::Mutex::new(trend::TrendCache::default()),
         options,
     });
     tracing::info!(url = %url(addr), "console serving");

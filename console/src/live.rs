@@ -20,7 +20,7 @@ use triax_client::HistoryRequest;
 
 use crate::buckets::{Aggregator, RangeError, View};
 
-fn wall_clock_ns() -> i64 {
+pub fn wall_clock_ns() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))

@@ -56,6 +56,25 @@ struct Cli {
     /// A file holding one such key, e.g. the service's triax-alert.key.pub (repeatable).
     #[arg(long, value_name = "FILE")]
     trusted_alert_key_file: Vec<std::path::PathBuf>,
+    /// Directory of the console's own state: the alert log (alerts.jsonl), which keeps the
+    /// alerts received, their acknowledgements and the silences across restarts. Default:
+    /// $XDG_STATE_HOME/triax-console, or ~/.local/state/triax-console.
+    #[arg(
+        long,
+        value_name = "DIR",
+        env = "TRIAX_CONSOLE_STATE_DIR",
+        conflicts_with = "no_state"
+    )]
+    state_dir: Option<std::path::PathBuf>,
+    /// Keep the alert log in memory only: it starts empty and is lost on exit.
+    #[arg(long)]
+    no_state: bool,
+    /// Alerts the log keeps at most (unverified ones are dropped first).
+    #[arg(long, default_value_t = triax_console::alertlog::DEFAULT_MAX_ALERTS)]
+    max_logged_alerts: usize,
+    /// Days the log keeps an alert.
+    #[arg(long, default_value_t = 90.0)]
+    alert_retention_days: f64,
     /// Log filter (tracing env-filter syntax).
     #[arg(long, env = "TRIAX_LOG", default_value = "info")]
     log: String,
@@ -84,6 +103,25 @@ fn trusted_alert_keys(cli: &Cli) -> anyhow::Result<TrustedKeys> {
     TrustedKeys::from_hex(&hex).map_err(|(i, e)| anyhow::anyhow!("{}: {e}", texts[i].0))
 }
 
+/// `--state-dir`, or the default under the user's state directory.
+fn state_dir(cli: &Cli) -> anyhow::Result<Option<std::path::PathBuf>> {
+    if cli.no_state {
+        return Ok(None);
+    }
+    if let Some(d) = &cli.state_dir {
+        return Ok(Some(d.clone()));
+    }
+    let base = match (std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME")) {
+        (Some(x), _) if !x.is_empty() => std::path::PathBuf::from(x),
+        (_, Some(h)) if !h.is_empty() => std::path::PathBuf::from(h).join(".local/state"),
+        _ => anyhow::bail!(
+            "no --state-dir given and neither XDG_STATE_HOME nor HOME is set: give \
+             --state-dir DIR, or --no-state to keep alerts in memory only"
+        ),
+    };
+    Ok(Some(base.join("triax-console")))
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
@@ -99,6 +137,12 @@ async fn main() -> anyhow::Result<()> {
         expiry_warning: seconds("--expiry-warning-days", cli.expiry_warning_days * 86_400.0)?,
         allow_remote: cli.allow_remote,
         trusted_alert_keys: trusted_alert_keys(&cli)?,
+        state_dir: state_dir(&cli)?,
+        max_logged_alerts: cli.max_logged_alerts,
+        alert_retention: seconds(
+            "--alert-retention-days",
+            cli.alert_retention_days * 86_400.0,
+        )?,
         ..ConsoleOptions::default()
     };
     // Listening nowhere unless asked: the console only reads, so it has no reason to accept

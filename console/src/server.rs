@@ -5,12 +5,22 @@
 //! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
 //! | `/app.js`, `/app.css`, `/favicon.svg` | its script, style and icon, embedded in the binary |
 //! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
-//! | `/api/alerts` | every alert kept, newest first |
+//! | `/api/alerts[?building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
+//! | `/api/silences` | the silences kept, newest first |
+//! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body) |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
 //! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
+//! | `/api/trend?building=&sensor=&from_ns=&to_ns=` | per-minute aggregates, up to 7 days ([`crate::trend`]) |
+//! | `/api/spectrum?building=&sensor=&from_ns=&to_ns=[&segment=]` | PSD per axis with its band, up to 1 h ([`crate::spectrum`]) |
+//! | `/api/export.csv?building=&sensor=&from_ns=&to_ns=` | every sample of up to 1 h, as CSV |
 //! | `/events[?building=&sensor=&span_s=&width=]` | Server-Sent Events: `fleet` every second; with a sensor, `live` and `tilt` |
 //!
-//! Anything else is 404; an unknown or malformed parameter is 400 naming it.
+//! Anything else is 404; an unknown or malformed parameter or body field is 400 naming it.
+//! `POST` is answered on the three write routes only (405 elsewhere, and 405 to a `GET` there),
+//! and only with a JSON body (`Content-Type: application/json`, 415 otherwise) and an `Origin`,
+//! if sent, that is the console's own (`http://` and the request's `Host`; 403 otherwise): a
+//! page elsewhere can neither send such a request without a CORS preflight, which the console
+//! never grants, nor pass the origin check.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,9 +28,10 @@ use std::time::Duration;
 use tokio::net::TcpStream;
 use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
 use triax_client::HistoryRequest;
-use triax_protocol::messages::GatewayStatus;
+use triax_protocol::messages::{AlertLevel, GatewayStatus};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
+use crate::alertlog::{AlertQuery, LevelFilter, StateFilter};
 use crate::buckets::{Aggregator, View, MAX_BUCKETS};
 use crate::fleet::{Fleet, GatewayState};
 use crate::http::{self, Refusal, Request};
@@ -53,6 +64,7 @@ pub struct Context {
     pub streams: Arc<Semaphore>,
     pub history_queries: Arc<Semaphore>,
     pub stop: watch::Receiver<bool>,
+    pub trends: tokio::sync::Mutex<crate::trend::TrendCache>,
 }
 
 /// How long a connection over the limit gets to send its request before its 503.
@@ -92,8 +104,32 @@ pub async fn handle(ctx: Arc<Context>, mut stream: TcpStream, _permit: OwnedSema
     }
 }
 
+/// The routes that write the alert log, the only ones that take `POST`.
+const WRITE_ROUTES: [&str; 3] = ["/api/alerts/ack", "/api/alerts/silence", "/api/alerts/lift"];
+
 async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Result<(), Refusal> {
     let p = Params(&req.query);
+    if WRITE_ROUTES.contains(&req.path.as_str()) {
+        if !req.post {
+            return Err(Refusal::method(
+                "POST",
+                format!("{} takes POST only, with a JSON body", req.path),
+            ));
+        }
+        p.only(&[])?;
+        let body = write(ctx, req)?;
+        let _ = http::respond(stream, 200, "application/json", &json(&body), false).await;
+        return Ok(());
+    }
+    if req.post {
+        return Err(Refusal::new(
+            405,
+            format!(
+                "method \"POST\" not allowed on {:?}: it only reads (GET, HEAD)",
+                req.path
+            ),
+        ));
+    }
     let head_only = req.head_only;
     async fn ok(
         stream: &mut TcpStream,
@@ -140,8 +176,28 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await
         }
         "/api/alerts" => {
+            p.only(&[
+                "building", "sensor", "kind", "level", "state", "from_ns", "to_ns", "limit",
+            ])?;
+            let q = alert_query(&p)?;
+            ok(
+                stream,
+                JSON,
+                json(&ctx.fleet.with_log(|l| l.query(&q))),
+                head_only,
+            )
+            .await
+        }
+        "/api/silences" => {
             p.only(&[])?;
-            ok(stream, JSON, json(&ctx.fleet.alerts()), head_only).await
+            let now = time::OffsetDateTime::now_utc();
+            ok(
+                stream,
+                JSON,
+                json(&ctx.fleet.with_log(|l| l.silences(now))),
+                head_only,
+            )
+            .await
         }
         "/api/sensor" => {
             p.only(&["building", "sensor"])?;
@@ -160,6 +216,29 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             ])?;
             let body = history(ctx, &p).await?;
             ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/trend" => {
+            p.only(&["building", "sensor", "from_ns", "to_ns"])?;
+            let body = trend(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/spectrum" => {
+            p.only(&["building", "sensor", "from_ns", "to_ns", "segment"])?;
+            let body = spectrum(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/export.csv" => {
+            p.only(&["building", "sensor", "from_ns", "to_ns"])?;
+            let (name, body) = export_csv(ctx, &p).await?;
+            let _ = http::respond_download(
+                stream,
+                "text/csv; charset=utf-8",
+                &name,
+                body.as_bytes(),
+                head_only,
+            )
+            .await;
+            Ok(())
         }
         "/events" => {
             p.only(&["building", "sensor", "span_s", "width"])?;
@@ -186,6 +265,232 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             Ok(())
         }
         _ => Err(Refusal::new(404, format!("no such page: {:?}", req.path))),
+    }
+}
+
+/// Most alerts one `/api/alerts` answer lists.
+pub const MAX_ALERTS_LISTED: i64 = 1000;
+
+fn alert_query(p: &Params<'_>) -> Result<AlertQuery, Refusal> {
+    let bad = |name: &str, v: &str, what: &str| {
+        Refusal::new(400, format!("parameter {name:?}: {v:?} is not {what}"))
+    };
+    let mut q = AlertQuery {
+        limit: usize::try_from(p.int("limit", Some(200), 1..=MAX_ALERTS_LISTED)?).unwrap_or(200),
+        ..AlertQuery::default()
+    };
+    if p.get("building").is_some() {
+        q.building = Some(p.building()?);
+    }
+    if p.get("sensor").is_some() {
+        q.sensor = Some(p.sensor()?);
+    }
+    if let Some(k) = p.get("kind") {
+        q.kind = Some(
+            serde_json::from_value(serde_json::Value::String(k.into())).map_err(|_| {
+                bad(
+                    "kind",
+                    k,
+                    "peak_acceleration, rms_acceleration, dominant_frequency, tilt_change or stale",
+                )
+            })?,
+        );
+    }
+    if let Some(l) = p.get("level") {
+        q.level = Some(match l {
+            "exceeded" => LevelFilter::Verified(AlertLevel::Exceeded),
+            "possible" => LevelFilter::Verified(AlertLevel::Possible),
+            "stale" => LevelFilter::Verified(AlertLevel::Stale),
+            "unverified" => LevelFilter::Unverified,
+            _ => return Err(bad("level", l, "exceeded, possible, stale or unverified")),
+        });
+    }
+    if let Some(st) = p.get("state") {
+        q.state = match st {
+            "all" => StateFilter::All,
+            "open" => StateFilter::Open,
+            "acknowledged" => StateFilter::Acknowledged,
+            "silenced" => StateFilter::Silenced,
+            _ => return Err(bad("state", st, "all, open, acknowledged or silenced")),
+        };
+    }
+    if p.get("from_ns").is_some() {
+        q.from_ns = Some(p.int("from_ns", None, 0..=i64::MAX)?);
+    }
+    if p.get("to_ns").is_some() {
+        q.to_ns = Some(p.int("to_ns", None, 0..=i64::MAX)?);
+    }
+    Ok(q)
+}
+
+/// Checks a write's origin and body and applies it to the alert log.
+fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
+    if let Some(origin) = &req.origin {
+        let own = req.host.as_deref().map(|h| format!("http://{h}"));
+        if own
+            .as_deref()
+            .is_none_or(|o| !o.eq_ignore_ascii_case(origin))
+        {
+            return Err(Refusal::new(
+                403,
+                format!(
+                    "Origin {origin:?} is not this console's ({}): writes are taken from the \
+                     console's own page only",
+                    own.unwrap_or_else(|| "no Host given".into())
+                ),
+            ));
+        }
+    }
+    let json_type = req.content_type.as_deref().is_some_and(|t| {
+        t.split(';')
+            .next()
+            .is_some_and(|m| m.trim().eq_ignore_ascii_case("application/json"))
+    });
+    if !json_type {
+        return Err(Refusal::new(
+            415,
+            format!(
+                "Content-Type {:?}: the body must be application/json",
+                req.content_type.as_deref().unwrap_or("(none)")
+            ),
+        ));
+    }
+    let body: serde_json::Value = serde_json::from_slice(&req.body)
+        .map_err(|e| Refusal::new(400, format!("the body is not JSON: {e}")))?;
+    let Some(obj) = body.as_object() else {
+        return Err(Refusal::new(400, "the body must be a JSON object"));
+    };
+    let b = Body(obj);
+    let now = time::OffsetDateTime::now_utc();
+    let field = |e: crate::alertlog::FieldError| Refusal::new(400, e.to_string());
+    match req.path.as_str() {
+        "/api/alerts/ack" => {
+            b.only(&["ids", "by", "note"])?;
+            let ids = b.ids("ids")?;
+            let (by, note) = (b.text("by", true)?, b.text("note", false)?);
+            let done = ctx
+                .fleet
+                .with_log(|l| l.acknowledge(&ids, &by, &note, now))
+                .map_err(field)?;
+            let already: Vec<u64> = ids.iter().copied().filter(|i| !done.contains(i)).collect();
+            Ok(serde_json::json!({ "acknowledged": done, "already_acknowledged": already }))
+        }
+        "/api/alerts/silence" => {
+            b.only(&["building", "sensor", "kind", "duration_s", "by", "reason"])?;
+            let building = BuildingId::new(b.text("building", true)?)
+                .map_err(|e| Refusal::new(400, format!("field \"building\": {e}")))?;
+            let sensor = match b.text("sensor", false)? {
+                s if s.is_empty() => None,
+                s => Some(
+                    SensorId::new(s)
+                        .map_err(|e| Refusal::new(400, format!("field \"sensor\": {e}")))?,
+                ),
+            };
+            let kind = match b.text("kind", false)? {
+                k if k.is_empty() => None,
+                k => Some(
+                    serde_json::from_value(serde_json::Value::String(k.clone())).map_err(|_| {
+                        Refusal::new(
+                            400,
+                            format!(
+                                "field \"kind\": {k:?} is not peak_acceleration, rms_acceleration, \
+                                 dominant_frequency, tilt_change or stale"
+                            ),
+                        )
+                    })?,
+                ),
+            };
+            let duration_s = b.number("duration_s")?;
+            let duration = Duration::try_from_secs_f64(duration_s).map_err(|_| {
+                Refusal::new(
+                    400,
+                    format!("field \"duration_s\": {duration_s} is not a duration"),
+                )
+            })?;
+            let (by, reason) = (b.text("by", true)?, b.text("reason", false)?);
+            let s = ctx
+                .fleet
+                .with_log(|l| l.silence(building, sensor, kind, duration, &by, &reason, now))
+                .map_err(field)?;
+            Ok(serde_json::to_value(s).unwrap_or_default())
+        }
+        _ => {
+            b.only(&["id", "by"])?;
+            let id = b.ids("id")?;
+            let [id] = id[..] else {
+                return Err(Refusal::new(400, "field \"id\": one silence id"));
+            };
+            let by = b.text("by", true)?;
+            let s = ctx
+                .fleet
+                .with_log(|l| l.lift(id, &by, now))
+                .map_err(field)?;
+            Ok(serde_json::to_value(s).unwrap_or_default())
+        }
+    }
+}
+
+/// The fields of a write's JSON body.
+struct Body<'a>(&'a serde_json::Map<String, serde_json::Value>);
+
+impl Body<'_> {
+    fn only(&self, known: &[&str]) -> Result<(), Refusal> {
+        match self.0.keys().find(|k| !known.contains(&k.as_str())) {
+            None => Ok(()),
+            Some(k) => Err(Refusal::new(
+                400,
+                format!("unknown field {k:?} (known here: {})", known.join(", ")),
+            )),
+        }
+    }
+
+    /// A string field; absent or null reads as empty unless `required`.
+    fn text(&self, name: &str, required: bool) -> Result<String, Refusal> {
+        match self.0.get(name) {
+            Some(serde_json::Value::String(s)) => Ok(s.clone()),
+            None | Some(serde_json::Value::Null) if !required => Ok(String::new()),
+            None | Some(serde_json::Value::Null) => {
+                Err(Refusal::new(400, format!("field {name:?} is required")))
+            }
+            Some(v) => Err(Refusal::new(
+                400,
+                format!("field {name:?}: {v} is not a string"),
+            )),
+        }
+    }
+
+    fn number(&self, name: &str) -> Result<f64, Refusal> {
+        match self.0.get(name) {
+            Some(v) => v
+                .as_f64()
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .ok_or_else(|| {
+                    Refusal::new(400, format!("field {name:?}: {v} is not a positive number"))
+                }),
+            None => Err(Refusal::new(400, format!("field {name:?} is required"))),
+        }
+    }
+
+    /// A whole number or an array of them.
+    fn ids(&self, name: &str) -> Result<Vec<u64>, Refusal> {
+        let bad = |v: &serde_json::Value| {
+            Refusal::new(
+                400,
+                format!("field {name:?}: {v} is not an alert id or a list of them"),
+            )
+        };
+        match self.0.get(name) {
+            None => Err(Refusal::new(400, format!("field {name:?} is required"))),
+            Some(v @ serde_json::Value::Array(items))
+                if items.len() <= MAX_ALERTS_LISTED as usize =>
+            {
+                items
+                    .iter()
+                    .map(|i| i.as_u64().ok_or_else(|| bad(v)))
+                    .collect()
+            }
+            Some(v) => v.as_u64().map(|i| vec![i]).ok_or_else(|| bad(v)),
+        }
     }
 }
 
@@ -381,6 +686,178 @@ async fn history(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Ref
         Ok(n) => serde_json::json!({ "source": "history", "batches_read": n, "view": view }),
         Err(e) => serde_json::json!({ "source": "history", "error": e.to_string(), "view": view }),
     })
+}
+
+/// `from_ns` and `to_ns` of a request, checked: a positive range of at most `max_ns`.
+fn range(p: &Params<'_>, max_ns: i64) -> Result<(i64, i64), Refusal> {
+    let from_ns = p.int("from_ns", None, 0..=i64::MAX)?;
+    let to_ns = p.int("to_ns", None, 0..=i64::MAX)?;
+    if to_ns <= from_ns || to_ns - from_ns > max_ns {
+        return Err(Refusal::new(
+            400,
+            format!(
+                "parameters \"from_ns\", \"to_ns\": the range must be positive and at most {} s",
+                max_ns / 1_000_000_000
+            ),
+        ));
+    }
+    Ok((from_ns, to_ns))
+}
+
+/// Reads a sensor's history over `[from_ns, to_ns)` (with [`HISTORY_LEAD_NS`] before it),
+/// within the limit of history views at once. The error says why the read failed or came back
+/// empty for want of a gateway.
+async fn read_history(
+    ctx: &Context,
+    b: &BuildingId,
+    s: &SensorId,
+    from_ns: i64,
+    to_ns: i64,
+    each: &mut (dyn FnMut(&triax_protocol::batch::CorrectedBatch) + Send),
+) -> Result<Result<usize, String>, Refusal> {
+    let Ok(_permit) = ctx.history_queries.try_acquire() else {
+        return Err(Refusal::new(
+            503,
+            format!(
+                "{} history queries are running; try again in a moment",
+                ctx.options.max_history_queries
+            ),
+        ));
+    };
+    let mut request = HistoryRequest::sensor(b, s);
+    request.from_ns = Some(from_ns.saturating_sub(HISTORY_LEAD_NS));
+    request.to_ns = Some(to_ns);
+    let fetched = triax_client::history::fetch(
+        &ctx.session,
+        &request,
+        ctx.options.history_timeout,
+        &mut |r| each(&r.batch),
+    )
+    .await;
+    Ok(match fetched {
+        Ok(0) if ctx.fleet.gateway_state(b) != GatewayState::Up => Err(format!(
+            "no answer: the gateway of building {b} is not heard"
+        )),
+        Ok(n) => Ok(n),
+        Err(e) => Err(e.to_string()),
+    })
+}
+
+/// Per-minute aggregates over up to seven days: the minutes cached, the others read.
+async fn trend(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, crate::trend::MAX_TREND_SPAN_NS)?;
+    let (mut minutes, missing) = ctx.trends.lock().await.lookup(&b, &s, from_ns, to_ns);
+    let mut read = 0;
+    let mut error = None;
+    // Minutes still filling are not kept, so that a trend read again completes them.
+    let whole_before = crate::live::wall_clock_ns();
+    for (from, to) in missing {
+        let mut agg = crate::trend::TrendAggregator::new(from, to);
+        match read_history(ctx, &b, &s, from, to, &mut |batch| agg.push(batch)).await? {
+            Ok(n) => read += n,
+            Err(e) => error = Some(e),
+        }
+        let got = agg.finish(whole_before);
+        ctx.trends.lock().await.store(&b, &s, &got);
+        minutes.extend(got);
+        if error.is_some() {
+            break;
+        }
+    }
+    minutes.sort_by_key(|m| m.start_ns);
+    Ok(serde_json::json!({
+        "source": "trend",
+        "from_ns": from_ns,
+        "to_ns": to_ns,
+        "minute_ns": crate::trend::MINUTE_NS,
+        "batches_read": read,
+        "error": error,
+        "minutes": minutes,
+    }))
+}
+
+async fn spectrum(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let segment = match p.get("segment") {
+        None => None,
+        Some(_) => Some(p.int(
+            "segment",
+            None,
+            crate::spectrum::MIN_SEGMENT as i64..=crate::spectrum::MAX_SEGMENT as i64,
+        )? as usize),
+    };
+    let mut c = crate::spectrum::Collector::new(from_ns, to_ns);
+    let read = read_history(ctx, &b, &s, from_ns, to_ns, &mut |batch| c.push(batch)).await?;
+    let answer = match (c.finish(segment), read) {
+        (Ok(sp), Ok(n)) => serde_json::json!({ "batches_read": n, "spectrum": sp }),
+        (Err(crate::spectrum::SpectrumError::Segment(n)), _) => {
+            return Err(Refusal::new(
+                400,
+                format!(
+                    "parameter \"segment\": {}",
+                    crate::spectrum::SpectrumError::Segment(n)
+                ),
+            ))
+        }
+        (Ok(sp), Err(e)) => serde_json::json!({ "error": e, "spectrum": sp }),
+        (Err(e), Ok(n)) => serde_json::json!({ "batches_read": n, "error": e.to_string() }),
+        (Err(_), Err(e)) => serde_json::json!({ "error": e }),
+    };
+    Ok(answer)
+}
+
+fn mode_name(m: triax_protocol::batch::Mode) -> &'static str {
+    use triax_protocol::batch::Mode;
+    match m {
+        Mode::None => "none",
+        Mode::Static => "static",
+        Mode::Dynamic => "dynamic",
+        Mode::Split => "split",
+    }
+}
+
+/// Every sample of up to an hour, one line each, and a file name for it.
+async fn export_csv(ctx: &Context, p: &Params<'_>) -> Result<(String, String), Refusal> {
+    use std::fmt::Write;
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let mut out = String::from(
+        "time_utc,t_ns,sequence,ax_mps2,ay_mps2,az_mps2,ux_mps2,uy_mps2,uz_mps2,k,flags,calibration_version,mode\n",
+    );
+    let fmt = time::format_description::well_known::Rfc3339;
+    let read = read_history(ctx, &b, &s, from_ns, to_ns, &mut |batch| {
+        let h = &batch.header;
+        let period_ns = 1e9 / h.sample_rate_hz;
+        for (i, x) in batch.samples.iter().enumerate() {
+            let t = h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64);
+            if t < from_ns || t >= to_ns {
+                continue;
+            }
+            let utc = time::OffsetDateTime::from_unix_timestamp_nanos(i128::from(t))
+                .ok()
+                .and_then(|d| d.format(&fmt).ok())
+                .unwrap_or_default();
+            let [ax, ay, az] = x.accel_mps2;
+            let [ux, uy, uz] = x.uncertainty_mps2;
+            // Writing to a String cannot fail.
+            let _ = writeln!(
+                out,
+                "{utc},{t},{},{ax},{ay},{az},{ux},{uy},{uz},{},{},{},{}",
+                h.sequence,
+                batch.info.coverage_factor,
+                x.flags | batch.batch_flags,
+                batch.info.calibration_version,
+                mode_name(batch.info.mode),
+            );
+        }
+    })
+    .await?;
+    if let Err(e) = read {
+        return Err(Refusal::new(502, format!("history of {b}/{s}: {e}")));
+    }
+    Ok((format!("{b}_{s}_{from_ns}_{to_ns}.csv"), out))
 }
 
 /// The event stream of one page: the fleet every second and, for a sensor view, its live frames

@@ -89,6 +89,7 @@ fn a_named_page_address_and_no_zenoh_listener() {
             "--listen",
             "localhost:0",
             "--no-multicast-scouting",
+            "--no-state",
             "--log",
             "warn",
         ])

@@ -89,7 +89,7 @@
     const [path, query] = h.slice(1).split('?');
     const params = new URLSearchParams(query || '');
     const parts = path.split('/').filter(Boolean);
-    if (parts[0] === 'alerts') return { view: 'alerts' };
+    if (parts[0] === 'alerts') return { view: 'alerts', params };
     if (parts[0] === 'sensor' && parts.length === 3) {
       // A link is typed, pasted and edited by people: say what is wrong with it rather than
       // throw, and never keep showing the previous view as if it were the one asked for.
@@ -165,9 +165,9 @@
 
   function onFleet() {
     $('clock').textContent = fmtTime(Date.parse(fleet.now));
-    $('alert-count').textContent = fleet.alerts_total ? `(${fleet.alerts_total})` : '';
+    $('alert-count').textContent = fleet.alerts_open ? `(${fleet.alerts_open} open)` : '';
     if (route.view === 'fleet') renderFleet();
-    else if (route.view === 'alerts') renderAlerts();
+    else if (route.view === 'alerts') refreshAlerts();
     else if (route.view === 'sensor') renderSensorHeader();
   }
 
@@ -247,33 +247,182 @@
   // service's clock for an alert that names none (stale, or an older service).
   const alertAtNs = (a) => (a.window_start_ns != null && a.window_end_ns != null)
     ? Math.round((a.window_start_ns + a.window_end_ns) / 2) : msToNs(Date.parse(a.at));
+  // Arriving from an alert, the sensor view shades the window it judged and draws its threshold.
+  const alertLinkExtra = (a) => `&alert=${a.id}`;
   const windowSpan = (a) => Math.min(3600, Math.max(30, Math.ceil((a.window_s || 10) * 3)));
 
   // ---- Alerts view ------------------------------------------------------------------------
+  // The alert log (/api/alerts), filtered by the URL's query. The table is built once per
+  // route; refreshes update rows in place by alert id, so a row under the cursor, an open
+  // statement or a ticked box stays as it is while alerts arrive.
+  const KINDS = ['peak_acceleration', 'rms_acceleration', 'dominant_frequency', 'tilt_change', 'stale'];
+  const LEVELS = ['exceeded', 'possible', 'stale', 'unverified'];
+  const STATES = ['all', 'open', 'acknowledged', 'silenced'];
+  const SINCE = [['', 'any time'], ['3600', 'last 1 h'], ['86400', 'last 24 h'], ['604800', 'last 7 d'], ['2592000', 'last 30 d']];
+  let alertsSeen = null;     // fleet counters the alert table was last fetched at
+  let alertsFetching = false;
+  const operator = () => { const i = $('operator'); return i ? i.value.trim() : ''; };
+
+  function alertFilter() {
+    const f = {};
+    for (const k of ['building', 'sensor', 'kind', 'level', 'state', 'since_s']) { const v = route.params.get(k); if (v) f[k] = v; }
+    return f;
+  }
+
   function renderAlerts() {
-    const view = $('view');
-    if (!fleet) return;
-    const rows = fleet.alerts.map((a) => {
-      const k = a.coverage_factor;
-      const u = a.standard_uncertainty;
-      return el('tr', { class: 'alert', 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
-        el('td', {}, fmtTime(Date.parse(a.at))),
-        el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) }, `${a.building} / ${a.sensor_id}`)),
-        el('td', {}, verdict(a), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
-        el('td', {}, a.kind.replace(/_/g, ' ')),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${fmtUnit(a.unit)}`),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${fmtUnit(a.unit)}`),
-        el('td', { class: 'num' }, a.level === 'stale' ? '—' : `[${fmtNum(a.value - k * u)}, ${fmtNum(a.value + k * u)}]`),
-        el('td', { class: 'num' }, `${fmtNum(a.window_s, 3)} s`),
-        el('td', { class: 'num' }, `${(100 * a.flagged_fraction).toFixed(0)} %`),
-        el('td', { class: 'statement' }, a.statement));
-    });
-    view.replaceChildren(el('section', { class: 'card', id: 'alerts' },
+    const f = alertFilter();
+    const sel = (id, values, current, label) => el('label', {}, label, ' ', el('select', { id, onchange: changeFilter },
+      values.map(([v, t]) => el('option', { value: v, selected: v === (current || '') ? 'selected' : null }, t))));
+    const buildings = fleet ? fleet.buildings.map((b) => b.building) : [];
+    if (f.building && !buildings.includes(f.building)) buildings.push(f.building);
+    const sensorInput = el('input', { id: 'f-sensor', type: 'text', size: 10, value: f.sensor || '', placeholder: 'any' });
+    sensorInput.addEventListener('change', changeFilter);
+    const who = el('input', { id: 'operator', type: 'text', size: 12, placeholder: 'your name', value: localStorage.getItem('triax.operator') || '' });
+    who.addEventListener('change', () => localStorage.setItem('triax.operator', who.value.trim()));
+    const silenceFor = el('select', { id: 'silence-for' }, [[3600, '1 h'], [14400, '4 h'], [86400, '24 h'], [604800, '7 d']].map(([v, t]) => el('option', { value: v }, t)));
+    $('view').replaceChildren(el('section', { class: 'card', id: 'alerts' },
       el('h2', {}, 'Alerts'),
-      el('p', { class: 'meta' }, `Guard band: exceeded when value − k·u is above the threshold, possible when the interval [value − k·u, value + k·u] contains it. ${fleet.alerts_total} received since the console started; the latest ${fleet.alerts.length} shown.`),
-      el('table', {},
-        el('thead', {}, el('tr', {}, ['At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement'].map((t) => el('th', {}, t)))),
-        el('tbody', {}, rows))));
+      el('p', { class: 'meta' }, 'Guard band: exceeded when value − k·u is above the threshold, possible when the interval [value − k·u, value + k·u] contains it. Acknowledging or silencing an alert records who and when; it never changes its verdict or the sensor\'s state.'),
+      el('div', { class: 'controls', id: 'alert-filters' },
+        sel('f-building', [['', 'any'], ...buildings.map((b) => [b, b])], f.building, 'building'),
+        el('label', {}, 'sensor ', sensorInput),
+        sel('f-kind', [['', 'any'], ...KINDS.map((k) => [k, k.replace(/_/g, ' ')])], f.kind, 'kind'),
+        sel('f-level', [['', 'any'], ...LEVELS.map((k) => [k, k])], f.level, 'level'),
+        sel('f-state', STATES.map((k) => [k === 'all' ? '' : k, k]), f.state, 'state'),
+        sel('f-since', SINCE, f.since_s, 'time')),
+      el('div', { class: 'controls' },
+        el('label', {}, 'operator ', who),
+        el('button', { id: 'ack-selected', onclick: () => acknowledge(checkedIds()) }, 'Acknowledge selected'),
+        el('span', { class: 'meta' }, 'silence for ', silenceFor)),
+      el('div', { id: 'alerts-status', class: 'meta' }, 'reading the alert log…'),
+      el('table', { id: 'alert-table' },
+        el('thead', {}, el('tr', {}, ['', 'At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement', 'Handled'].map((t) => el('th', {}, t)))),
+        el('tbody', { id: 'alert-rows' }))),
+    el('section', { class: 'card', id: 'silences' }, el('h3', {}, 'Silences'), el('div', { id: 'silence-list' })));
+    alertsSeen = null;
+    refreshAlerts();
+  }
+
+  function changeFilter() {
+    const q = new URLSearchParams();
+    const put = (k, v) => { if (v) q.set(k, v); };
+    put('building', $('f-building').value); put('sensor', $('f-sensor').value.trim());
+    put('kind', $('f-kind').value); put('level', $('f-level').value);
+    put('state', $('f-state').value); put('since_s', $('f-since').value);
+    location.hash = '#/alerts' + (q.toString() ? '?' + q : '');
+  }
+
+  const checkedIds = () => [...document.querySelectorAll('#alert-rows input.pick:checked')].map((c) => Number(c.closest('tr').dataset.id));
+
+  async function refreshAlerts() {
+    if (!route || route.view !== 'alerts' || alertsFetching) return;
+    const seen = fleet ? `${fleet.alerts_total}:${fleet.alerts_open}` : '';
+    if (alertsSeen === seen) return;
+    alertsFetching = true;
+    const f = alertFilter();
+    const q = new URLSearchParams();
+    for (const k of ['building', 'sensor', 'kind', 'level', 'state']) if (f[k]) q.set(k, f[k]);
+    if (f.since_s && /^\d+$/.test(f.since_s)) q.set('from_ns', msToNs(Date.now() - Number(f.since_s) * 1000));
+    const myRoute = route;
+    const [body, silences] = await Promise.all([getJson('/api/alerts?' + q), getJson('/api/silences')]);
+    alertsFetching = false;
+    if (route !== myRoute) return;
+    alertsSeen = seen;
+    const status = $('alerts-status');
+    if (body.error) { status.textContent = body.error; status.className = 'warning'; return; }
+    status.className = 'meta';
+    status.textContent = `${body.matched} alert${body.matched === 1 ? '' : 's'} match` + (body.matched > body.alerts.length ? ` (the newest ${body.alerts.length} shown)` : '') +
+      `; the log keeps ${body.kept} (at most ${body.max_alerts}, ${body.retention_days} days)` + (body.file ? ` in ${body.file}` : ', in memory only') + `; ${body.open} open.`;
+    updateAlertRows(body.alerts);
+    if (!silences.error) renderSilences(silences);
+  }
+
+  function statementCell(text) {
+    const first = String(text).split('\n')[0];
+    const short = first.length > 90 ? first.slice(0, 89) + '…' : first;
+    return el('td', { class: 'statement' }, el('details', {}, el('summary', {}, short), el('div', { class: 'full' }, text)));
+  }
+
+  function handledCell(a) {
+    const td = el('td', { class: 'handled' });
+    if (a.ack) td.append(badge('acknowledged', 'acknowledged', a.ack.note || null), ` by ${a.ack.by}, ${fmtTime(Date.parse(a.ack.at))}`);
+    else td.append(el('button', { class: 'ack', onclick: () => acknowledge([a.id]) }, 'Acknowledge'));
+    if (a.silenced_by !== null && a.silenced_by !== undefined) td.append(' ', badge('silenced', `silenced (#${a.silenced_by})`));
+    td.append(' ', el('button', { class: 'silence', title: `silence ${a.building} / ${a.sensor_id}, ${a.kind.replace(/_/g, ' ')}`, onclick: () => silence(a) }, 'Silence'));
+    return td;
+  }
+
+  function alertRow(a) {
+    const k = a.coverage_factor, u = a.standard_uncertainty;
+    return el('tr', { class: 'alert', 'data-id': a.id, 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
+      el('td', {}, el('input', { type: 'checkbox', class: 'pick', 'aria-label': `select alert ${a.id}` })),
+      el('td', {}, fmtTime(Date.parse(a.at))),
+      el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) + alertLinkExtra(a) }, `${a.building} / ${a.sensor_id}`)),
+      el('td', {}, verdict(a), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
+      el('td', {}, a.kind.replace(/_/g, ' ')),
+      el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${fmtUnit(a.unit)}`),
+      el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.threshold)} ${fmtUnit(a.unit)}`),
+      el('td', { class: 'num' }, a.level === 'stale' ? '—' : `[${fmtNum(a.value - k * u)}, ${fmtNum(a.value + k * u)}]`),
+      el('td', { class: 'num' }, `${fmtNum(a.window_s, 3)} s`),
+      el('td', { class: 'num' }, `${(100 * a.flagged_fraction).toFixed(0)} %`),
+      statementCell(a.statement),
+      handledCell(a));
+  }
+
+  const handledKey = (a) => `${a.ack ? a.ack.at : ''}|${a.silenced_by ?? ''}`;
+
+  function updateAlertRows(alerts) {
+    const body = $('alert-rows');
+    if (!body) return;
+    const rows = new Map([...body.children].map((tr) => [tr.dataset.id, tr]));
+    const wanted = new Set(alerts.map((a) => String(a.id)));
+    for (const [id, tr] of rows) if (!wanted.has(id)) tr.remove();
+    let at = 0;
+    for (const a of alerts) {
+      let tr = rows.get(String(a.id));
+      if (!tr) tr = alertRow(a);
+      else if (tr.dataset.handled !== handledKey(a)) tr.querySelector('td.handled').replaceWith(handledCell(a));
+      tr.dataset.handled = handledKey(a);
+      if (body.children[at] !== tr) body.insertBefore(tr, body.children[at] || null);
+      at++;
+    }
+    if (!alerts.length && !body.children.length) $('alerts-status').textContent += ' None to show.';
+  }
+
+  function renderSilences(list) {
+    const box = $('silence-list');
+    if (!box) return;
+    if (!list.length) { box.replaceChildren(el('p', { class: 'meta' }, 'None.')); return; }
+    box.replaceChildren(el('table', {}, el('tbody', {}, list.map((s) => el('tr', { class: 'silence', 'data-id': s.id, 'data-active': s.active ? 'true' : 'false' },
+      el('td', {}, `#${s.id}`),
+      el('td', {}, `${s.building} / ${s.sensor ?? 'every sensor'}, ${s.kind ? s.kind.replace(/_/g, ' ') : 'every kind'}`),
+      el('td', {}, `${fmtTime(Date.parse(s.from))} – ${fmtTime(Date.parse(s.until))}`),
+      el('td', {}, `by ${s.by}`, s.reason ? ` (${s.reason})` : ''),
+      el('td', {}, s.lifted ? `lifted by ${s.lifted.by}, ${fmtTime(Date.parse(s.lifted.at))}` : s.active ? el('button', { class: 'lift', onclick: () => post('/api/alerts/lift', { id: s.id, by: operator() }) }, 'Lift') : 'ended'))))));
+  }
+
+  // A write to the alert log; what the console answered is shown, a refusal included.
+  async function post(path, body) {
+    const status = $('alerts-status');
+    if (!operator()) { status.textContent = 'Type your name under "operator" first: acknowledgements and silences record who.'; status.className = 'warning'; $('operator').focus(); return null; }
+    let resp, text;
+    try {
+      resp = await fetch(path, { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) });
+      text = await resp.text();
+    } catch (e) { status.textContent = `console unreachable (${e.message || e})`; status.className = 'warning'; return null; }
+    if (!resp.ok) { status.textContent = `console refused (${resp.status}): ${text.trim()}`; status.className = 'warning'; return null; }
+    alertsSeen = null;
+    refreshAlerts();
+    return JSON.parse(text);
+  }
+
+  function acknowledge(ids) {
+    if (!ids.length) { $('alerts-status').textContent = 'No alert selected.'; return; }
+    post('/api/alerts/ack', { ids, by: operator() });
+  }
+
+  function silence(a) {
+    post('/api/alerts/silence', { building: a.building, sensor: a.sensor_id, kind: a.kind, duration_s: Number($('silence-for').value), by: operator() });
   }
 
   // ---- Sensor view ------------------------------------------------------------------------
