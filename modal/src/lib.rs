@@ -9,6 +9,7 @@ pub mod model;
 pub mod sim;
 pub mod ssi;
 pub mod stabilisation;
+pub mod track;
 pub mod uncertainty;
 pub mod window;
 

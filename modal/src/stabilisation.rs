@@ -8,7 +8,7 @@
 //! relative) and the shape's MAC is at least `mac_min` (0.98). Stable poles with a damping
 //! ratio in the plausible range (0.1 % to 10 % by default: real buildings are in 0.5–5 %, and a
 //! pole outside is noise or a harmonic) are then clustered across orders by frequency and
-//! shape; a cluster found at a share `min_cluster_share` (40 %) of the orders or more is a
+//! shape; a cluster found at a share `min_cluster_share` (25 %) of the orders or more is a
 //! mode. Its representative is the cluster's pole nearest the cluster's median frequency, at
 //! its own order: the uncertainty is computed for that pole at that order.
 
@@ -67,7 +67,7 @@ impl Default for SelectionCriteria {
             damping_ratio_max: 0.10,
             cluster_frequency_tolerance: 0.01,
             cluster_mac_min: 0.95,
-            min_cluster_share: 0.4,
+            min_cluster_share: 0.25,
         }
     }
 }

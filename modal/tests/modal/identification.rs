@@ -1,56 +1,105 @@
-//! SSI-COV on simulated windows against the frame's exact modes.
+//! SSI-COV on simulated windows of the five-storey building against the frame's exact modes.
 
-use std::time::Instant;
+use triax_modal::sim::{punch_gaps, SimBuilding};
+use triax_modal::{identify, ChannelId, Direction, ModalError, SsiConfig};
 
-use triax_modal::sim::SimBuilding;
-use triax_modal::{identify, SsiConfig};
+use crate::util::{find, summary};
 
-use crate::util::find;
+/// A configuration light enough for unoptimised test builds: four references (the roof's and
+/// the third floor's two directions) and orders up to 36.
+pub(crate) fn light_config() -> SsiConfig {
+    let reference = |sensor: &str, direction| ChannelId {
+        sensor_id: sensor.into(),
+        direction,
+    };
+    SsiConfig {
+        references: vec![
+            reference("s5", Direction::X),
+            reference("s5", Direction::Y),
+            reference("s3", Direction::X),
+            reference("s3", Direction::Y),
+        ],
+        max_order: 36,
+        ..SsiConfig::default()
+    }
+}
 
 #[test]
-#[ignore]
-fn explore() {
-    let building = SimBuilding::five_storey(1);
-    let minutes: f64 = std::env::var("MINUTES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(30.0);
-    let t = Instant::now();
-    let window = building.simulate(20.0, 60.0 * minutes, 0, 7);
-    println!("simulated in {:?}", t.elapsed());
-    let rms: f64 = (window.sensors[4]
-        .acceleration_mps2
-        .iter()
-        .map(|a| a[0] * a[0] + a[1] * a[1])
-        .sum::<f64>()
-        / window.len() as f64)
-        .sqrt();
-    println!("roof rms {rms} m/s²");
-    let t = Instant::now();
-    let id = identify(&building.model, &window, &SsiConfig::default()).unwrap();
-    println!("identified in {:?}, i = {}", t.elapsed(), id.block_rows);
-    for m in &id.modes {
-        println!(
-            "f {:.4} ± {:.4}  ζ {:.4} ± {:.4} dir {:?} order {} stable {}",
-            m.frequency_hz.value,
-            m.frequency_hz.standard_uncertainty,
-            m.damping_ratio.value,
-            m.damping_ratio.standard_uncertainty,
-            m.direction,
-            m.order,
-            m.stable_orders
-        );
+fn first_three_modes_of_each_direction_are_recovered() {
+    let building = SimBuilding::five_storey(11);
+    let temperature_c = building.frame.reference_temperature_c;
+    let window = building.simulate(temperature_c, 1800.0, 0, 3);
+    let identification = identify(&building.model, &window, &light_config()).unwrap();
+    println!("{}", summary(&building, &identification, temperature_c));
+    for direction in [Direction::X, Direction::Y] {
+        for truth in building
+            .frame
+            .direction_modes(direction, temperature_c)
+            .iter()
+            .take(3)
+        {
+            let (mode, mac) = find(&building, &identification, truth)
+                .unwrap_or_else(|| panic!("{direction:?} mode {} not found", truth.number));
+            let error = (mode.frequency_hz.value - truth.frequency_hz).abs() / truth.frequency_hz;
+            assert!(
+                error <= 0.005,
+                "{direction:?} {}: frequency error {error}",
+                truth.number
+            );
+            // The shape's error is what its stated uncertainty says: 1 − MAC is about the sum of
+            // the components' variances over the shape's squared norm.
+            let expected = crate::util::expected_mac_loss(mode);
+            assert!(mac >= 0.95, "{direction:?} {}: MAC {mac}", truth.number);
+            assert!(
+                1.0 - mac <= 5.0 * expected,
+                "{direction:?} {}: MAC {mac}, 1 − MAC expected {expected}",
+                truth.number
+            );
+            assert_eq!(mode.direction, direction);
+            assert!(mode.frequency_hz.standard_uncertainty > 0.0);
+            assert!(
+                (mode.frequency_hz.coverage_factor - 2.201).abs() < 1e-3,
+                "t(11, 95 %)"
+            );
+            let damping_error = (mode.damping_ratio.value - truth.damping_ratio).abs();
+            assert!(
+                damping_error < 0.006,
+                "{direction:?} {}: damping {}",
+                truth.number,
+                mode.damping_ratio.value
+            );
+        }
     }
-    println!("unquantified {:?}", id.unquantified);
-    for truth in building.frame.modes(20.0) {
-        let found = find(&building, &id, &truth);
-        println!(
-            "truth {:?} {} f {:.4} ζ {:.3} -> {:?}",
-            truth.direction,
-            truth.number,
-            truth.frequency_hz,
-            truth.damping_ratio,
-            found.map(|(m, mac)| (m.frequency_hz.value, m.damping_ratio.value, mac))
-        );
+}
+
+#[test]
+fn gaps_are_left_out_and_too_many_refuse_the_window() {
+    let building = SimBuilding::five_storey(12);
+    let temperature_c = building.frame.reference_temperature_c;
+    let mut window = building.simulate(temperature_c, 1200.0, 0, 4);
+    // 5 % of every sensor's samples flagged, in 2-second runs, their values wild.
+    punch_gaps(&mut window, 0.05, 200, 9);
+    let identification = identify(&building.model, &window, &light_config()).unwrap();
+    assert!(identification
+        .valid_fraction
+        .iter()
+        .all(|&v| v < 0.97 && v > 0.8));
+    for direction in [Direction::X, Direction::Y] {
+        let truth = &building.frame.direction_modes(direction, temperature_c)[0];
+        let (mode, mac) = find(&building, &identification, truth).expect("fundamental found");
+        let error = (mode.frequency_hz.value - truth.frequency_hz).abs() / truth.frequency_hz;
+        assert!(error <= 0.005, "{direction:?}: frequency error {error}");
+        assert!(mac >= 0.95, "{direction:?}: MAC {mac}");
+    }
+    punch_gaps(&mut window, 0.3, 200, 10);
+    match identify(&building.model, &window, &light_config()) {
+        Err(ModalError::TooMuchMissing {
+            valid_fraction,
+            required,
+            ..
+        }) => {
+            assert!(valid_fraction < required)
+        }
+        other => panic!("expected a refusal, got {:?}", other.map(|i| i.modes.len())),
     }
 }
