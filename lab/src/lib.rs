@@ -8,7 +8,8 @@
 //! Recalibration: [`keypair`] (the lab's Ed25519 key files), [`registry`] (every record issued
 //! and the buildings each sensor is assigned to), [`push`] (signed records to the buildings'
 //! gateways over Zenoh, acknowledgements back), [`serve`] (the registry answering gateways'
-//! catch-up queries), [`net`] (the Zenoh options they share).
+//! catch-up queries), [`net`] (the Zenoh options they share), [`due`] (the sensors the
+//! buildings' field health checks found suspect).
 //!
 //! Architecture invariant: nothing here writes a file except [`registry`], which owns the
 //! registry directory; the other commands return what should be written, so a failing input
@@ -16,6 +17,7 @@
 
 pub mod commands;
 pub mod dcc;
+pub mod due;
 pub mod input;
 pub mod keypair;
 pub mod net;

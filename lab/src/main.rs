@@ -30,12 +30,14 @@ use triax_lab::commands::{
     default_certificate_id, dynamic_summary, parse_set, run_apply, run_dynamic, run_fit,
     run_radius, run_simulate, run_static, run_tables, static_summary, tables_summary, FitOptions,
 };
+use triax_lab::due;
 use triax_lab::keypair;
 use triax_lab::net::zenoh_config;
 use triax_lab::push::{push_all, render, Push};
 use triax_lab::record::RecordMeta;
 use triax_lab::registry::{Recorded, Registry};
 use triax_net::ZenohArgs;
+use triax_protocol::messages::HealthVerdict;
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{from_json, BuildingId, SensorId};
 
@@ -278,6 +280,25 @@ enum Command {
         /// Print every assignment.
         #[arg(long, conflicts_with_all = ["sensor", "buildings"])]
         show: bool,
+    },
+    /// Lists the sensors due for recalibration: those whose record in force the buildings'
+    /// gateways found `suspect` in the field (PROTOCOL.md §3.9), with the evidence; `--watch`
+    /// adds those under watch. Exit status 0 when none is due, 3 when at least one is.
+    Due {
+        /// Building to ask (repeat for several; none: every building that answers).
+        #[arg(long = "building", value_name = "B")]
+        buildings: Vec<String>,
+        /// Also list sensors whose verdict is `watch`.
+        #[arg(long)]
+        watch: bool,
+        /// Print the gateways' reports as a JSON array instead of the table.
+        #[arg(long)]
+        json: bool,
+        /// Seconds to wait for the gateways' answers.
+        #[arg(long, default_value_t = 5.0)]
+        timeout_s: f64,
+        #[command(flatten)]
+        zenoh: ZenohArgs,
     },
     /// Inspects, backs up or restores the lab's registry of issued records.
     Store {
@@ -632,6 +653,52 @@ fn main() -> anyhow::Result<()> {
             )? {
                 // The table above says what failed; the exit status says that something did.
                 std::process::exit(1);
+            }
+        }
+        Command::Due {
+            buildings,
+            watch,
+            json,
+            timeout_s,
+            zenoh,
+        } => {
+            init_logging("warn")?;
+            if !(timeout_s.is_finite() && timeout_s > 0.0) {
+                anyhow::bail!("--timeout-s must be a positive number of seconds");
+            }
+            let buildings = building_ids(&buildings)?;
+            let least = if watch {
+                HealthVerdict::Watch
+            } else {
+                HealthVerdict::Suspect
+            };
+            let config = zenoh_config(&zenoh)?;
+            let (reports, problems) = runtime()?.block_on(async {
+                let session = zenoh::open(config)
+                    .await
+                    .map_err(|e| anyhow::anyhow!("opening the zenoh session: {e}"))?;
+                let found = due::gather(
+                    &session,
+                    &buildings,
+                    least,
+                    Duration::from_secs_f64(timeout_s),
+                )
+                .await;
+                if let Err(e) = session.close().await {
+                    tracing::warn!(cause = %e, "zenoh session did not close cleanly");
+                }
+                anyhow::Ok(found?)
+            })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&reports)?);
+                for p in &problems {
+                    eprintln!("problem: {}", p.problem);
+                }
+            } else {
+                print!("{}", due::render(&reports, &problems));
+            }
+            if due::due_count(&reports) > 0 {
+                std::process::exit(3);
             }
         }
         Command::Serve {

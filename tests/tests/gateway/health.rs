@@ -287,6 +287,21 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
         (Some(HealthVerdict::Ok), None)
     );
 
+    // The lab's `due`: across buildings, the suspect sensor with its evidence.
+    let (due, problems) = triax_lab::due::gather(
+        &session,
+        &[],
+        HealthVerdict::Watch,
+        std::time::Duration::from_secs(5),
+    )
+    .await
+    .unwrap();
+    assert!(problems.is_empty(), "{problems:?}");
+    assert_eq!(due.len(), 1);
+    assert_eq!(triax_lab::due::due_count(&due), 1);
+    let table = triax_lab::due::render(&due, &problems);
+    assert!(table.contains(STUCK) && table.contains("stuck[1]"), "{table}");
+
     // A restart: the latch holds with fresh tests, on healthy data too.
     gateway.stop().await;
     let gateway = start(cfg.clone()).await;
