@@ -187,6 +187,8 @@ pub fn operator_text(
 /// What `/api/alerts` selects; every field optional.
 #[derive(Debug, Clone, Default)]
 pub struct AlertQuery {
+    /// One alert by its id.
+    pub id: Option<u64>,
     pub building: Option<BuildingId>,
     pub sensor: Option<SensorId>,
     pub kind: Option<AlertKind>,
@@ -649,7 +651,8 @@ impl AlertLog {
             open += usize::from(is_open);
             let a = &l.entry.alert;
             let at_ns = i64::try_from(a.at.unix_timestamp_nanos()).unwrap_or(i64::MAX);
-            let keep = q.building.as_ref().is_none_or(|b| *b == a.building)
+            let keep = q.id.is_none_or(|id| id == l.entry.id)
+                && q.building.as_ref().is_none_or(|b| *b == a.building)
                 && q.sensor.as_ref().is_none_or(|s| *s == a.sensor_id)
                 && q.kind.is_none_or(|k| k == a.kind)
                 && match q.level {

@@ -5,7 +5,7 @@
 //! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
 //! | `/app.js`, `/app.css`, `/favicon.svg` | its script, style and icon, embedded in the binary |
 //! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
-//! | `/api/alerts[?building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
+//! | `/api/alerts[?id=&building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
 //! | `/api/silences` | the silences kept, newest first |
 //! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body) |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
@@ -177,7 +177,7 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
         }
         "/api/alerts" => {
             p.only(&[
-                "building", "sensor", "kind", "level", "state", "from_ns", "to_ns", "limit",
+                "id", "building", "sensor", "kind", "level", "state", "from_ns", "to_ns", "limit",
             ])?;
             let q = alert_query(&p)?;
             ok(
@@ -279,6 +279,9 @@ fn alert_query(p: &Params<'_>) -> Result<AlertQuery, Refusal> {
         limit: usize::try_from(p.int("limit", Some(200), 1..=MAX_ALERTS_LISTED)?).unwrap_or(200),
         ..AlertQuery::default()
     };
+    if p.get("id").is_some() {
+        q.id = Some(p.int("id", None, 1..=i64::MAX)? as u64);
+    }
     if p.get("building").is_some() {
         q.building = Some(p.building()?);
     }

@@ -360,3 +360,276 @@ async fn alert_table_in_a_browser() {
     drop(browser);
     console.stop().await;
 }
+
+/// The id of the newest alert of `sensor`, once the console has it.
+async fn newest_alert(console: &Console, sensor: &str, since_ns: i64) -> u64 {
+    let v = console
+        .wait_json(
+            "the alert",
+            &format!("/api/alerts?sensor={sensor}&from_ns={since_ns}&limit=1"),
+            |v| v["matched"].as_u64() > Some(0),
+        )
+        .await;
+    v["alerts"][0]["id"].as_u64().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn trend_spectrum_and_csv_over_http() {
+    let site = Site::start(2 * 3600).await;
+    let console = Console::start(&site, None).await;
+    let now = now_ns();
+    let q = |path: &str, from: i64, to: i64| {
+        format!("{path}?building=hq&sensor=acc-01&from_ns={from}&to_ns={to}")
+    };
+    // Spectrum of ten minutes: the sway at 2.5 Hz on x, a band around the estimate.
+    let sp = console
+        .json(&q(
+            "/api/spectrum",
+            now - 700_000_000_000,
+            now - 100_000_000_000,
+        ))
+        .await;
+    let s = &sp["spectrum"];
+    let res = s["resolution_hz"].as_f64().unwrap();
+    assert!(
+        (s["axes"][0]["peak_hz"].as_f64().unwrap() - SWAY_HZ).abs() <= res,
+        "{}",
+        s["axes"][0]["peak_hz"]
+    );
+    assert_eq!(s["degrees_of_freedom"], 2 * s["segments"].as_u64().unwrap());
+    assert!(s["segments"].as_u64().unwrap() >= 8);
+    let k = (SWAY_HZ / res).round() as usize;
+    let (lo, psd, hi) = (
+        s["axes"][0]["lo"][k].as_f64().unwrap(),
+        s["axes"][0]["psd"][k].as_f64().unwrap(),
+        s["axes"][0]["hi"][k].as_f64().unwrap(),
+    );
+    assert!(lo < psd && psd < hi, "{lo} {psd} {hi}");
+    let (status, body) = console
+        .get(
+            &(q(
+                "/api/spectrum",
+                now - 700_000_000_000,
+                now - 100_000_000_000,
+            ) + "&segment=1000"),
+        )
+        .await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("\"segment\""), "{body}");
+    let (status, body) = console
+        .get(&q("/api/spectrum", now - 7_200_000_000_000, now))
+        .await;
+    assert_eq!(status, 400, "more than an hour: {body}");
+
+    // Trend of the last 90 minutes: per-minute peak, RMS and dominant frequency; the second
+    // time from the cache, without reading the history again.
+    let from = now - 5_400_000_000_000;
+    let t = console.json(&q("/api/trend", from, now)).await;
+    let minutes = t["minutes"].as_array().unwrap();
+    assert!(minutes.len() >= 88, "{}", minutes.len());
+    let m = &minutes[10];
+    assert_eq!(m["samples"], 6000);
+    assert!(
+        (m["peak_mps2"][0].as_f64().unwrap() - SWAY_MPS2).abs() < 0.005,
+        "{m}"
+    );
+    assert!(
+        (m["rms_mps2"][0].as_f64().unwrap() - SWAY_MPS2 / 2f64.sqrt()).abs() < 0.003,
+        "{m}"
+    );
+    assert!(
+        (m["dominant_hz"].as_f64().unwrap() - SWAY_HZ).abs() < 0.05,
+        "{m}"
+    );
+    assert!(
+        (m["mean_mps2"][2].as_f64().unwrap() - 9.81).abs() < 0.01,
+        "{m}"
+    );
+    assert!(t["batches_read"].as_u64().unwrap() > 10_000);
+    let again = console
+        .json(&q("/api/trend", from, now - 120_000_000_000))
+        .await;
+    assert_eq!(
+        again["batches_read"], 0,
+        "whole minutes come from the cache"
+    );
+    let (status, _) = console
+        .get(&q("/api/trend", now - 8 * 86_400_000_000_000, now))
+        .await;
+    assert_eq!(status, 400, "more than seven days");
+
+    // CSV: every sample of ten seconds, with its uncertainty, k, flags and version.
+    let (from, to) = (now - 60_000_000_000, now - 50_000_000_000);
+    let (status, csv) = console.get(&q("/api/export.csv", from, to)).await;
+    assert_eq!(status, 200);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        lines[0],
+        "time_utc,t_ns,sequence,ax_mps2,ay_mps2,az_mps2,ux_mps2,uy_mps2,uz_mps2,k,flags,calibration_version,mode"
+    );
+    assert_eq!(lines.len(), 1 + 1000, "ten seconds at 100 Hz");
+    let first: Vec<&str> = lines[1].split(',').collect();
+    assert!(first[1].parse::<i64>().unwrap() >= from);
+    assert_eq!(&first[9..], ["2", first[10], "4", "dynamic"]);
+    let (status, _) = console
+        .get(&q("/api/export.csv", now - 7_200_000_000_000, now))
+        .await;
+    assert_eq!(status, 400, "more than an hour of samples");
+    console.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn time_spectra_building_and_export_in_a_browser() {
+    let site = Site::start(2 * 3600).await;
+    let console = Console::start(&site, None).await;
+    until_alerts_arrive(&site, &console).await;
+    let now = now_ns();
+    let window = (now - 300_000_000_000, now - 290_000_000_000);
+    site.alert("acc-02", "possible", "acc-02 too", window, true)
+        .await;
+    site.alert("acc-01", "exceeded", "judged ten seconds", window, true)
+        .await;
+    let id = newest_alert(&console, "acc-01", now).await;
+    newest_alert(&console, "acc-02", now).await;
+    let browser = Browser::start(false);
+    let url = console.url();
+
+    // The last 15 minutes, arriving from the alert: its window shaded, its threshold drawn.
+    browser.go(&format!("{url}#/sensor/hq/acc-01?last=900&alert={id}"));
+    browser
+        .wait("the history of the last 15 min", "const p = document.getElementById('plot'); return p.dataset.source === 'history' && Number(p.dataset.buckets) > 100")
+        .await;
+    browser
+        .wait("the alert's window and threshold", "const c = document.getElementById('canvas-x'); return c.dataset.shade && c.dataset.threshold")
+        .await;
+    assert_eq!(
+        browser.js("return document.querySelector('button.last.active').dataset.last"),
+        "900"
+    );
+    // Hover: value ± k·u, flags, calibration version.
+    let readout = browser.js("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); c.dispatchEvent(new MouseEvent('mousemove', { clientX: r.left + r.width / 2, clientY: r.top + 50, bubbles: true })); const b = document.getElementById('readout'); return b.hidden ? null : b.innerText");
+    let readout = readout.as_str().expect("a readout").to_owned();
+    assert!(
+        readout.contains(" ± ") && readout.contains("m/s²"),
+        "{readout}"
+    );
+    assert!(readout.contains("calibration v4, k = 2"), "{readout}");
+    assert!(readout.contains("flags"), "{readout}");
+    browser.screenshot("sensor-hover-and-alert");
+    // Drag to zoom: a fifth of the plot becomes the view.
+    let drag = |from: f64, to: f64, shift: bool| {
+        format!("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); const m = c._map; const x = (f) => r.left + m.left + f * m.pw; const ev = (t, f) => c.dispatchEvent(new MouseEvent(t, {{ clientX: x(f), clientY: r.top + 60, shiftKey: {shift}, bubbles: true }})); ev('mousedown', {from}); ev('mousemove', {to}); ev('mouseup', {to}); return location.hash")
+    };
+    let hash = browser.js(&drag(0.4, 0.6, false));
+    let hash = hash.as_str().unwrap().to_owned();
+    let span_of = |h: &str| {
+        let p = |k: &str| -> i64 {
+            h.split(['?', '&'])
+                .find_map(|kv| kv.strip_prefix(k))
+                .unwrap()
+                .parse()
+                .unwrap()
+        };
+        (p("from="), p("to="))
+    };
+    let (f1, t1) = span_of(&hash);
+    assert!(((t1 - f1) as f64 / 1e9 - 180.0).abs() < 5.0, "{hash}");
+    assert!(hash.contains(&format!("alert={id}")), "{hash}");
+    browser
+        .wait("the zoomed view", &format!("const c = document.getElementById('canvas-x'); return c._map && Math.abs(c._map.x0 - {}) < 1", f1 / 1_000_000))
+        .await;
+    // Shift-drag pans: dragging right to left moves the view later by the dragged time.
+    let hash = browser.js(&drag(0.6, 0.4, true));
+    let (f2, t2) = span_of(hash.as_str().unwrap());
+    assert!(((f2 - f1) as f64 / 1e9 - 36.0).abs() < 2.0, "{f1} {f2}");
+    assert_eq!(t2 - f2, t1 - f1);
+    browser
+        .wait("the panned view", &format!("const c = document.getElementById('canvas-x'); return c._map && Math.abs(c._map.x0 - {}) < 1", f2 / 1_000_000))
+        .await;
+
+    // Spectrum of the span shown.
+    browser.js("document.getElementById('btn-spectrum').click(); return 1");
+    let peaks = browser
+        .wait("the spectrum", "const p = document.getElementById('spectrum-peaks'); return p && document.getElementById('canvas-psd').dataset.drawn && p.textContent")
+        .await;
+    let x_peak: f64 = peaks.as_str().unwrap()[2..]
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((x_peak - SWAY_HZ).abs() < 0.05, "{peaks}");
+    let line = browser.js("return document.getElementById('spectrum-line').textContent");
+    assert!(
+        line.as_str().unwrap().contains("degrees of freedom"),
+        "{line}"
+    );
+    browser.js("document.getElementById('spectrum').scrollIntoView(); return 1");
+    browser.screenshot("sensor-spectrum");
+    browser.js("window.scrollTo(0, 0); return 1");
+
+    // Export: the plot as PNG and SVG, the samples as CSV.
+    browser.js("document.getElementById('btn-png').click(); return 1");
+    browser
+        .wait("a PNG", "const a = document.getElementById('export-link'); return a && a.dataset.type === 'image/png' && Number(a.dataset.bytes) > 5000 && a.getAttribute('download').endsWith('.png')")
+        .await;
+    browser.js("document.getElementById('btn-svg').click(); return 1");
+    browser
+        .wait("an SVG", "const a = document.getElementById('export-link'); return a && a.dataset.type === 'image/svg+xml' && Number(a.dataset.bytes) > 5000")
+        .await;
+    browser.js("document.getElementById('btn-csv').click(); return 1");
+    let csv = browser
+        .wait("a CSV link", "const a = document.getElementById('export-link'); return a && a.dataset.type === 'text/csv' && a.href")
+        .await;
+    assert!(
+        csv.as_str()
+            .unwrap()
+            .contains("/api/export.csv?building=hq&sensor=acc-01&from_ns="),
+        "{csv}"
+    );
+
+    // The last 24 hours: a trend of per-minute aggregates (the site keeps two hours).
+    browser.js("document.querySelector('button.last[data-last=\"86400\"]').click(); return 1");
+    browser
+        .wait("the trend", "const p = document.getElementById('plot'); return p.dataset.source === 'trend' && Number(p.dataset.minutes) > 100 && !document.getElementById('freq-plot').hidden")
+        .await;
+    browser.screenshot("sensor-trend-24h");
+
+    // The building view from the alert: every sensor on one time axis, the window shaded on
+    // each and the threshold on the alert's sensor.
+    browser.go(&format!("{url}#/alerts"));
+    let href = browser
+        .wait("the building link", &format!("const a = document.querySelector('#alert-rows tr[data-id=\"{id}\"] a.to-building'); return a && a.getAttribute('href')"))
+        .await;
+    browser.go(&format!("{url}{}", href.as_str().unwrap()));
+    browser
+        .wait("three sensors drawn", "const b = document.getElementById('building-plots'); return b && b.dataset.loaded === '3' && document.querySelectorAll('#building-plots canvas[data-drawn]').length === 3")
+        .await;
+    browser
+        .wait("the alert on the building view", "return document.getElementById('bcanvas-acc-01').dataset.threshold && [...document.querySelectorAll('#building-plots canvas')].every((c) => c.dataset.shade)")
+        .await;
+    let aligned = browser.js("const m = [...document.querySelectorAll('#building-plots canvas')].map((c) => [c._map.x0, c._map.x1].join()); return new Set(m).size");
+    assert_eq!(aligned, 1, "one time axis");
+    assert_eq!(
+        browser.js("return document.getElementById('bcanvas-acc-02').dataset.threshold || null"),
+        Value::Null
+    );
+    browser.screenshot("building-view");
+    browser.assert_no_errors("time, spectra, building and export");
+
+    // Dark mode follows prefers-color-scheme.
+    browser.cdp(
+        "Emulation.setEmulatedMedia",
+        json!({"features": [{"name": "prefers-color-scheme", "value": "dark"}]}),
+    );
+    browser.go(&format!("{url}#/sensor/hq/acc-01?last=900"));
+    browser
+        .wait("the dark plot", "const p = document.getElementById('plot'); return p && Number(p.dataset.buckets) > 100")
+        .await;
+    let bg = browser.js("return [getComputedStyle(document.body).backgroundColor, getComputedStyle(document.documentElement).getPropertyValue('--plot-bg').trim()]");
+    assert_eq!(bg, json!(["rgb(17, 22, 28)", "#151b22"]), "{bg}");
+    browser.screenshot("sensor-dark");
+    browser.assert_no_errors("dark mode");
+    drop(browser);
+    console.stop().await;
+}

@@ -81,6 +81,9 @@
   let tilt = [];             // tilt samples of the sensor view
   let historyView = null;    // history data of the sensor view
   let detail = null;         // /api/sensor answer
+  let trendView = null;      // /api/trend answer of the sensor view
+  let spectrumView = null;   // /api/spectrum answer
+  let alertInfo = null;      // the alert a link came from
   let drawPending = false;
 
   function parseRoute() {
@@ -90,6 +93,14 @@
     const params = new URLSearchParams(query || '');
     const parts = path.split('/').filter(Boolean);
     if (parts[0] === 'alerts') return { view: 'alerts', params };
+    if (parts[0] === 'building' && parts.length === 2) {
+      const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null };
+      const at = params.get('at');
+      if (at !== null && /^\d{1,19}$/.test(at)) { r.at = Number(at); r.span = Math.min(HISTORY_MAX_SPAN_S, Math.max(1, Number(params.get('span')) || 60)); }
+      const w = windowParams(params, r);
+      r.window = w || [Date.now() - 600000, Date.now()];
+      return r;
+    }
     if (parts[0] === 'sensor' && parts.length === 3) {
       // A link is typed, pasted and edited by people: say what is wrong with it rather than
       // throw, and never keep showing the previous view as if it were the one asked for.
@@ -105,9 +116,33 @@
         else if (ms - 0.75 * r.span * 1000 > Date.now()) r.error = `at=${at} (${fmtTime(ms)}) is in the future`;
         else r.at = Number(at);
       }
+      r.alert = /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null;
+      r.window = r.error ? null : windowParams(params, r);
+      if (r.window && r.at === null) r.at = msToNs(r.window[1] - 0.25 * (r.window[1] - r.window[0]));
       return r;
     }
     return { view: 'fleet' };
+  }
+
+  // The window a link names: `from`/`to` (ns), `last` (seconds up to now), or `at`/`span`;
+  // null for live. Up to 7 days; beyond an hour the view is a trend of per-minute aggregates.
+  const TREND_MAX_S = 7 * 86400;
+  function windowParams(params, r) {
+    const from = params.get('from'), to = params.get('to'), last = params.get('last'), at = params.get('at');
+    if (from !== null || to !== null) {
+      if (!/^\d{1,19}$/.test(from || '') || !/^\d{1,19}$/.test(to || '') || Number(to) <= Number(from) || (Number(to) - Number(from)) / 1e9 > TREND_MAX_S) {
+        r.error = `from=${from} and to=${to} are not a range of up to 7 days in nanoseconds since 1970-01-01 UTC`;
+        return null;
+      }
+      return [Number(from) / 1e6, Math.min(Number(to) / 1e6, Date.now())];
+    }
+    if (last !== null) {
+      if (!/^\d{1,6}$/.test(last) || Number(last) < 1 || Number(last) > TREND_MAX_S) { r.error = `last=${last} is not a whole number of seconds from 1 to ${TREND_MAX_S}`; return null; }
+      r.last = Number(last);
+      return [Date.now() - Number(last) * 1000, Date.now()];
+    }
+    if (at !== null && r.at !== null && r.at !== undefined) { r.atGiven = true; return windowOf(r.at, r.span); }
+    return null;
   }
 
   // ---- Live connection --------------------------------------------------------------------
@@ -357,7 +392,8 @@
     return el('tr', { class: 'alert', 'data-id': a.id, 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
       el('td', {}, el('input', { type: 'checkbox', class: 'pick', 'aria-label': `select alert ${a.id}` })),
       el('td', {}, fmtTime(Date.parse(a.at))),
-      el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) + alertLinkExtra(a) }, `${a.building} / ${a.sensor_id}`)),
+      el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) + alertLinkExtra(a) }, `${a.building} / ${a.sensor_id}`),
+        ' ', el('a', { class: 'to-building', href: `#/building/${encodeURIComponent(a.building)}?at=${alertAtNs(a)}&span=${windowSpan(a)}&alert=${a.id}`, title: 'every sensor of the building at that time' }, '(building)')),
       el('td', {}, verdict(a), a.late ? badge('late', 'late', 'raised from data recovered from the history') : null),
       el('td', {}, a.kind.replace(/_/g, ' ')),
       el('td', { class: 'num' }, a.level === 'stale' ? '—' : `${fmtNum(a.value)} ± ${fmtNum(k * u, 2)} ${fmtUnit(a.unit)}`),
@@ -433,7 +469,8 @@
   function renderSensor() {
     const r = route;
     live = null; tilt = []; historyView = null; detail = null;
-    const isLive = r.at === null;
+    trendView = null; spectrumView = null; alertInfo = null;
+    const isLive = !r.window;
     const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
     // The span asked for is listed even if it is not one of the usual ones.
     const spans = [...new Set([...SPANS_S, spanS])].sort((a, b) => a - b).filter((s) => !isLive || s <= LIVE_MAX_SPAN_S);
@@ -455,11 +492,21 @@
       el('label', {}, 'at (UTC) ', atInput),
       el('button', { id: 'btn-go', onclick: lookBack }, 'Look back'),
       el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward, up to now', disabled: isLive || atMs >= latestAtMs(spanS) - 1000 ? 'disabled' : null }, '▶'),
-      el('label', {}, 'span ', spanSel));
+      el('label', {}, 'span ', spanSel),
+      el('span', { class: 'meta' }, 'last'),
+      [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : ''); } }, t)),
+      el('button', { id: 'btn-spectrum', onclick: loadSpectrum, title: 'power spectral density per axis of the span shown' }, 'Spectrum'),
+      el('button', { id: 'btn-csv', onclick: exportCsv, title: 'every sample of the span shown (up to 1 h), as CSV' }, 'CSV'),
+      el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
+      el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG'),
+      el('a', { id: 'btn-building', href: `#/building/${encodeURIComponent(r.building)}` + (r.window ? `?from=${msToNs(r.window[0])}&to=${msToNs(r.window[1])}` : '') + (r.alert ? `${r.window ? '&' : '?'}alert=${r.alert}` : '') }, 'building view'));
     const plots = el('div', { id: 'plot', 'data-source': r.error ? 'none' : isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
       AXES.map((ax) => el('div', { class: 'plot' }, el('canvas', { id: `canvas-${ax}`, width: 1000, height: 170 }), el('span', { class: 'title', id: `title-${ax}` }, `a${ax}`))),
       el('div', { class: 'plot', id: 'tilt-plot', hidden: 'hidden' }, el('canvas', { id: 'canvas-tilt', width: 1000, height: 170 }), el('span', { class: 'title' }, 'tilt: roll (blue), pitch (green), degrees, ±k·u shaded')),
-      el('div', { class: 'legend', id: 'legend' }));
+      el('div', { class: 'plot', id: 'freq-plot', hidden: 'hidden' }, el('canvas', { id: 'canvas-freq', width: 1000, height: 170 }), el('span', { class: 'title' }, 'dominant frequency per minute (Hz), from zero crossings')),
+      el('div', { class: 'legend', id: 'legend' }),
+      el('div', { id: 'readout', hidden: 'hidden' }),
+      el('div', { id: 'selection', hidden: 'hidden' }));
     $('view').replaceChildren(el('section', { class: 'card', id: 'sensor', 'data-building': r.building, 'data-sensor': r.sensor },
       el('h2', {}, el('a', { href: '#/' }, r.building), ' / ', r.sensor),
       el('div', { id: 'sensor-header', class: 'meta' }),
@@ -467,15 +514,233 @@
       r.error ? el('div', { id: 'status-line', class: 'warning', 'data-error': 'link' }, `This link cannot be shown: ${r.error}.`)
         : el('div', { id: 'status-line', class: 'meta' }, isLive ? 'waiting for the live stream…' : 'reading the history…'),
       plots),
+    el('section', { class: 'card', id: 'spectrum', hidden: 'hidden' }, el('h3', {}, 'Spectrum'), el('div', { id: 'spectrum-line', class: 'meta' }),
+      el('div', { class: 'plot' }, el('canvas', { id: 'canvas-psd', width: 1000, height: 260 }), el('span', { class: 'title' }, 'PSD per axis, (m/s²)²/Hz, log–log; 95 % band (χ², 2·segments degrees of freedom) shaded'))),
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
     loadDetail();
     if (r.error) { connect(''); return; }
     const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
+    for (const c of document.querySelectorAll('#plot canvas')) attachPointer(c, () => scheduleDraw());
+    if (r.alert) loadAlert(r.alert);
     if (isLive) connect(q.toString());
-    else { connect(''); loadHistory(r.at, spanS); }
+    else { connect(''); loadWindow(r.window); }
   }
+
+  const sensorBase = () => `#/sensor/${encodeURIComponent(route.building)}/${encodeURIComponent(route.sensor)}`;
+
+  // The alert a link came from: its window is shaded and its threshold drawn.
+  async function loadAlert(id) {
+    const myRoute = route;
+    const body = await getJson(`/api/alerts?id=${id}`);
+    if (route !== myRoute || body.error || !body.alerts.length) return;
+    alertInfo = body.alerts[0];
+    scheduleDraw();
+  }
+
+  // A window of up to an hour is read from the history and decimated per pixel column; a
+  // longer one is a trend of per-minute aggregates.
+  function loadWindow(win) {
+    if ((win[1] - win[0]) / 1000 <= HISTORY_MAX_SPAN_S) loadHistoryWindow(win[0], win[1]);
+    else loadTrend(win[0], win[1]);
+  }
+
+  async function loadTrend(fromMs, toMs) {
+    const q = new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
+    const myRoute = route;
+    $('status-line').textContent = 'reading per-minute aggregates…';
+    const body = await getJson('/api/trend?' + q);
+    if (route !== myRoute) return;
+    trendView = { ...body, fromMs, toMs };
+    $('plot').dataset.source = 'trend';
+    $('plot').dataset.minutes = body.minutes ? body.minutes.length : 0;
+    $('status-line').textContent = body.error && !body.minutes ? `trend: ${body.error}` :
+      `trend: ${body.minutes.length} minutes (peak and RMS about each minute's mean)` + (body.batches_read ? `, ${body.batches_read} batches read from the history` : ', all from the console\'s cache') + (body.error ? `; ${body.error}` : '');
+    scheduleDraw();
+  }
+
+  // The span the view shows now, [fromMs, toMs].
+  function currentWindow() {
+    if (route.window) return route.window;
+    if (live) { const to = nsToMs(live.end_ns); return [to - nsToMs(live.span_ns), to]; }
+    return [Date.now() - route.span * 1000, Date.now()];
+  }
+
+  function navigateWindow(fromMs, toMs) {
+    const now = Date.now();
+    if (toMs > now) { fromMs -= toMs - now; toMs = now; }
+    location.hash = sensorOrBuildingBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + (route.view === 'building' && route.axis !== 'x' ? `&axis=${route.axis}` : '');
+  }
+  const sensorOrBuildingBase = () => route.view === 'building' ? `#/building/${encodeURIComponent(route.building)}` : sensorBase();
+
+  // Drag to zoom, Shift-drag to pan, hover for the values under the cursor.
+  function attachPointer(canvas, redraw) {
+    let drag = null;
+    const sel = () => $('selection');
+    const pos = (e) => { const m = canvas._map; const r = canvas.getBoundingClientRect(); return m ? { x: e.clientX - r.left, t: m.x0 + (e.clientX - r.left - m.left) / m.pw * (m.x1 - m.x0), m, r } : null; };
+    canvas.addEventListener('mousedown', (e) => { const p = pos(e); if (p) { drag = { x: p.x, t: p.t, pan: e.shiftKey }; e.preventDefault(); } });
+    canvas.addEventListener('mousemove', (e) => {
+      const p = pos(e);
+      if (!p) return;
+      if (drag && !drag.pan) {
+        const s = sel(); const a = Math.min(drag.x, p.x), b = Math.max(drag.x, p.x);
+        s.hidden = false; s.style.left = `${p.r.left + window.scrollX + a}px`; s.style.width = `${b - a}px`;
+        s.style.top = `${p.r.top + window.scrollY}px`; s.style.height = `${p.r.height}px`;
+      }
+      readout(canvas, p, e);
+    });
+    canvas.addEventListener('mouseleave', () => { const r = $('readout'); if (r) r.hidden = true; });
+    canvas.addEventListener('mouseup', (e) => {
+      const p = pos(e);
+      const d = drag; drag = null;
+      if (sel()) sel().hidden = true;
+      if (!d || !p) return;
+      if (d.pan) {
+        const dt = d.t - p.t;
+        if (Math.abs(p.x - d.x) >= 3) navigateWindow(p.m.x0 + dt, p.m.x1 + dt);
+      } else if (Math.abs(p.x - d.x) >= 5) {
+        const a = Math.min(d.t, p.t), b = Math.max(d.t, p.t);
+        navigateWindow(a, Math.max(b, a + 1000));
+      }
+    });
+  }
+
+  // The values of the bucket under the cursor: value (or its range) ± k·u per series, flags,
+  // calibration version and k.
+  function readout(canvas, p, e) {
+    const box = $('readout');
+    const m = p.m;
+    if (!box || !m.series) return;
+    const lines = [fmtTime(p.t) + (m.bucketMs ? ` (${m.bucketMs >= 1000 ? (m.bucketMs / 1000).toFixed(1) + ' s' : m.bucketMs.toFixed(0) + ' ms'} per point)` : '')];
+    let flags = 0;
+    for (const s of m.series) {
+      let best = null;
+      for (const q of s.points) if (!best || Math.abs(q.t - p.t) < Math.abs(best.t - p.t)) best = q;
+      if (!best || best.min === null) continue;
+      flags |= best.flags || 0;
+      const ku = best.hi !== null && best.hi !== undefined && Number.isFinite(best.hi) ? best.hi - best.max : null;
+      const v = best.min === best.max ? fmtNum(best.min, 5) : `${fmtNum(best.min, 5)} … ${fmtNum(best.max, 5)}`;
+      lines.push(`${s.name || ''}: ${v}${ku !== null ? ` ± ${fmtNum(ku, 2)}` : ''} ${m.unit || ''}`);
+    }
+    if (m.correction) lines.push(`calibration v${m.correction.calibration_version}, k = ${fmtK(m.correction.coverage_factor)}`);
+    lines.push(flags ? `flags: ${flagNames(flags).join(', ')}` : 'no flags');
+    box.replaceChildren(...lines.map((l) => el('div', {}, l)));
+    box.hidden = false;
+    box.style.left = `${e.clientX + window.scrollX + 14}px`;
+    box.style.top = `${e.clientY + window.scrollY + 10}px`;
+  }
+
+  async function loadSpectrum() {
+    const [fromMs, toMs] = currentWindow();
+    const box = $('spectrum');
+    box.hidden = false;
+    const line = $('spectrum-line');
+    if ((toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S) { line.textContent = 'A spectrum is computed over at most 1 h: zoom in first.'; return; }
+    line.textContent = `computing the spectrum of ${fmtTime(fromMs)} – ${fmtTime(toMs)}…`;
+    const myRoute = route;
+    const body = await getJson('/api/spectrum?' + new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) }));
+    if (route !== myRoute) return;
+    spectrumView = body.spectrum || null;
+    if (!spectrumView) { line.textContent = `spectrum: ${body.error}`; return; }
+    const sp = spectrumView;
+    line.replaceChildren(`${fmtTime(fromMs)} – ${fmtTime(toMs)}: ${sp.segments} segments of ${sp.segment_samples} samples (Hann, half overlap), ${fmtNum(sp.resolution_hz, 3)} Hz resolution, ${sp.degrees_of_freedom} degrees of freedom. Peaks: `,
+      el('span', { id: 'spectrum-peaks' }, AXES.map((a, i) => `${a} ${sp.axes[i].peak_hz === null ? '—' : fmtNum(sp.axes[i].peak_hz, 3) + ' Hz'}`).join(', ')),
+      body.error ? ` (${body.error})` : '');
+    drawSpectrum();
+  }
+
+  function drawSpectrum() {
+    const sp = spectrumView;
+    const canvas = $('canvas-psd');
+    if (!sp || !canvas) return;
+    const c = colors();
+    const dpr = window.devicePixelRatio || 1;
+    const w = Math.max(50, canvas.clientWidth), h = canvas.clientHeight || 260;
+    canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr);
+    const g = canvas.getContext('2d');
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    g.fillStyle = c.bg; g.fillRect(0, 0, w, h);
+    const left = 62, right = 8, top = 20, bottom = 20, pw = w - left - right, ph = h - top - bottom;
+    const f = sp.frequencies_hz;
+    const f0 = f[1], f1 = f[f.length - 1];
+    let lo = Infinity, hi = -Infinity;
+    for (const a of sp.axes) for (let k = 1; k < f.length; k++) { if (a.lo[k] > 0) lo = Math.min(lo, a.lo[k]); if (a.hi[k] > 0) hi = Math.max(hi, a.hi[k]); }
+    if (!Number.isFinite(lo)) { lo = 1e-12; hi = 1; }
+    const L = Math.log10, X = (x) => left + (L(x) - L(f0)) / (L(f1) - L(f0)) * pw, Y = (v) => top + (L(hi) - L(Math.max(v, lo))) / (L(hi) - L(lo)) * ph;
+    g.font = '11px system-ui, sans-serif'; g.fillStyle = c.muted; g.strokeStyle = c.grid;
+    for (let d = Math.ceil(L(lo)); d <= L(hi); d++) { const y = Y(10 ** d); g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke(); g.fillText(`1e${d}`, 4, y + 4); }
+    for (let d = Math.ceil(L(f0)); d <= L(f1); d++) for (const m of [1, 2, 5]) { const x = 10 ** d * m; if (x < f0 || x > f1) continue; const px = X(x); g.beginPath(); g.moveTo(px, top); g.lineTo(px, top + ph); g.stroke(); g.fillText(`${x} Hz`, px + 2, h - 6); }
+    sp.axes.forEach((a, i) => {
+      g.fillStyle = AXIS_COLORS[i] + '2a'; g.beginPath();
+      for (let k = 1; k < f.length; k++) (k === 1 ? g.moveTo(X(f[k]), Y(a.hi[k])) : g.lineTo(X(f[k]), Y(a.hi[k])));
+      for (let k = f.length - 1; k >= 1; k--) g.lineTo(X(f[k]), Y(a.lo[k]));
+      g.closePath(); g.fill();
+      g.strokeStyle = AXIS_COLORS[i]; g.lineWidth = 1.2; g.beginPath();
+      for (let k = 1; k < f.length; k++) (k === 1 ? g.moveTo(X(f[k]), Y(a.psd[k])) : g.lineTo(X(f[k]), Y(a.psd[k])));
+      g.stroke();
+    });
+    g.strokeStyle = c.frame; g.strokeRect(left, top, pw, ph);
+    canvas.dataset.drawn = String(f.length);
+  }
+
+  // ---- Export ------------------------------------------------------------------------------
+  function exportCsv() {
+    const [fromMs, toMs] = currentWindow();
+    const line = $('status-line');
+    if ((toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S) { line.textContent = 'CSV export covers at most 1 h of samples: zoom in first.'; return; }
+    download(`/api/export.csv?` + new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) }), null);
+  }
+
+  // Saves `href` (or `blob`) under `name` through a link kept on the page (#export-link), which
+  // also says what was last exported.
+  function download(href, name, blob) {
+    let a = $('export-link');
+    if (!a) { a = el('a', { id: 'export-link', hidden: 'hidden' }); document.body.append(a); }
+    if (a.dataset.url) URL.revokeObjectURL(a.dataset.url);
+    if (blob) { href = URL.createObjectURL(blob); a.dataset.url = href; a.dataset.bytes = String(blob.size); a.dataset.type = blob.type; } else { delete a.dataset.url; a.dataset.bytes = ''; a.dataset.type = 'text/csv'; }
+    a.href = href;
+    if (name) a.setAttribute('download', name); else a.removeAttribute('download');
+    a.click();
+  }
+
+  const exportName = (ext) => { const [f, t] = currentWindow(); return `${route.building}_${route.sensor || 'building'}_${fmtInput(f).replace(/[: ]/g, '-')}_${Math.round((t - f) / 1000)}s.${ext}`; };
+
+  function exportImage(kind) {
+    const canvases = [...document.querySelectorAll('#plot canvas, #building-plots canvas')].filter((c) => c.offsetParent !== null && c.dataset.plotTop !== undefined);
+    if (!canvases.length) { $('status-line').textContent = 'Nothing drawn yet to export.'; return; }
+    if (kind === 'png') {
+      const out = document.createElement('canvas');
+      out.width = Math.max(...canvases.map((c) => c.width)); out.height = canvases.reduce((s, c) => s + c.height, 0);
+      const g = out.getContext('2d');
+      let y = 0;
+      for (const c of canvases) { g.drawImage(c, 0, y); y += c.height; }
+      out.toBlob((b) => download(null, exportName('png'), b), 'image/png');
+    } else {
+      const parts = [];
+      let y = 0;
+      const W = Math.max(...canvases.map((c) => c.clientWidth));
+      for (const c of canvases) {
+        const m = c._map;
+        if (!m) continue;
+        const hh = c.clientHeight;
+        parts.push(`<g transform="translate(0,${y})"><rect x="${m.left}" y="${m.top}" width="${m.pw}" height="${m.ph}" fill="none" stroke="#999"/><text x="4" y="14" font-size="12" font-family="sans-serif">${svgText(c.closest('.plot').querySelector('.title').textContent)}</text>`);
+        for (const s of m.series) {
+          const X = (t) => (m.left + (t - m.x0) / (m.x1 - m.x0) * m.pw).toFixed(1), Y = (v) => (m.top + (m.hi - v) / (m.hi - m.lo) * m.ph).toFixed(1);
+          const band = s.points.filter((q) => q.lo !== null && q.hi !== null && Number.isFinite(q.lo));
+          if (band.length) parts.push(`<path fill="${s.color}" fill-opacity="0.2" d="M${band.map((q) => `${X(q.t)},${Y(q.hi)}`).join('L')}L${band.slice().reverse().map((q) => `${X(q.t)},${Y(q.lo)}`).join('L')}Z"/>`);
+          let d = '';
+          for (const q of s.points) { if (q.min === null) continue; d += `${d && !q.gap ? 'L' : 'M'}${X(q.t)},${Y(q.min)}L${X(q.t)},${Y(q.max)}`; }
+          parts.push(`<path fill="none" stroke="${s.color}" stroke-width="1" d="${d}"/>`);
+        }
+        parts.push('</g>');
+        y += hh;
+      }
+      const svg = `<svg xmlns="http://www.w3.org/2000/svg" width="${W}" height="${y}" viewBox="0 0 ${W} ${y}"><rect width="100%" height="100%" fill="#fff"/>${parts.join('')}</svg>`;
+      download(null, exportName('svg'), new Blob([svg], { type: 'image/svg+xml' }));
+    }
+  }
+  const svgText = (t) => String(t).replace(/&/g, '&amp;').replace(/</g, '&lt;').replace(/>/g, '&gt;');
 
   function navigate(change) {
     const r = { ...route, ...change };
@@ -487,6 +752,7 @@
 
   function step(dir) {
     const r = route;
+    if (r.window && !r.atGiven) { const len = r.window[1] - r.window[0]; navigateWindow(r.window[0] + dir * len, r.window[1] + dir * len); return; }
     const atMs = r.at === null ? Date.now() : r.at / 1e6;
     navigate({ at: msToNs(Math.min(atMs + dir * r.span * 1000, latestAtMs(r.span))) });
   }
@@ -496,14 +762,14 @@
     return [atMs - 0.75 * spanS * 1000, atMs + 0.25 * spanS * 1000];
   }
 
-  async function loadHistory(atNs, spanS) {
-    const [fromMs, toMs] = windowOf(atNs, spanS);
+  async function loadHistoryWindow(fromMs, toMs) {
     const q = new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), width: String(plotWidth()) });
     const myRoute = route;
     const body = await getJson('/api/history?' + q);
     if (route !== myRoute) return;
     historyView = { ...body, fromMs, toMs };
     const v = body.view;
+    if (!v) { $('status-line').textContent = `history: ${body.error}`; return; }
     const line = $('status-line');
     if (body.error) line.textContent = `history: ${body.error}`;
     else line.textContent = `history: ${body.batches_read} batches read, ${v.batches} in view` + (v.calibration_versions.length > 1 ? `, calibration versions ${v.calibration_versions.join(', ')} (recalibrated in this range)` : '');
@@ -576,7 +842,7 @@
   }
 
   function onLive(frame) {
-    if (!route || route.view !== 'sensor' || route.at !== null || frame.sensor_id !== route.sensor || frame.building !== route.building) return;
+    if (!route || route.view !== 'sensor' || route.window || frame.sensor_id !== route.sensor || frame.building !== route.building) return;
     const v = frame.view;
     if (!live || live.bucket_ns !== v.bucket_ns) live = { bucket_ns: v.bucket_ns, buckets: new Map(), gaps: new Map(), frames: 0 };
     for (const b of v.buckets) live.buckets.set(b[0], b);
@@ -617,7 +883,8 @@
   function drawSensor() {
     if (!route || route.view !== 'sensor') return;
     let buckets, gaps, x0, x1, correction, marker = null;
-    if (route.at === null) {
+    if (route.window && (route.window[1] - route.window[0]) / 1000 > HISTORY_MAX_SPAN_S) { drawTrend(); return; }
+    if (!route.window) {
       if (!live) return;
       buckets = [...live.buckets.values()].sort((a, b) => a[0] - b[0]);
       gaps = [...live.gaps.values()];
@@ -628,23 +895,25 @@
       if (!historyView || !historyView.view) return;
       buckets = historyView.view.buckets; gaps = historyView.view.gaps;
       x0 = historyView.fromMs; x1 = historyView.toMs; correction = historyView.view.correction;
-      marker = route.at / 1e6;
+      marker = route.atGiven ? route.at / 1e6 : null;
       $('plot').dataset.buckets = buckets.length;
       $('plot').dataset.gaps = gaps.length;
     }
-    const bucketMs = (route.at === null ? live.bucket_ns : historyView.view.bucket_ns) / 1e6;
+    const bucketMs = (!route.window ? live.bucket_ns : historyView.view.bucket_ns) / 1e6;
+    const overlay = alertOverlay();
     const uncal = correction && correction.mode === 'none';
     let present = 0;
     for (const b of buckets) present |= b[2];
     AXES.forEach((ax, i) => {
       $(`title-${ax}`).textContent = uncal ? `${ax}: raw output, NOT m/s² (uncalibrated)` : `a${ax} (m/s²) with ±k·u`;
       drawSeries($(`canvas-${ax}`), {
-        x0, x1, marker, gaps, present,
-        series: [{ color: AXIS_COLORS[i], points: buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }],
+        x0, x1, marker, gaps, present, correction, bucketMs, unit: uncal ? '(raw)' : 'm/s²', ...overlay,
+        series: [{ name: `a${ax}`, color: AXIS_COLORS[i], points: buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }],
       });
     });
     const tp = $('tilt-plot');
-    if (tilt.length && route.at === null) {
+    $('freq-plot').hidden = true;
+    if (tilt.length && !route.window) {
       tp.hidden = false;
       drawSeries($('canvas-tilt'), {
         x0, x1, marker: null, gaps: [], present: 0,
@@ -683,7 +952,8 @@
     if (canvas.width !== Math.round(w * dpr)) { canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr); }
     const g = canvas.getContext('2d');
     g.setTransform(dpr, 0, 0, dpr, 0, 0);
-    g.clearRect(0, 0, w, h);
+    const c = colors();
+    g.fillStyle = c.bg; g.fillRect(0, 0, w, h);
     const left = 62, right = 8, top = 20, lanes = FLAGS.filter((_, i) => o.present & (1 << i)).length, bottom = 18 + lanes * 4;
     const pw = w - left - right, ph = h - top - bottom;
     let lo = Infinity, hi = -Infinity;
@@ -691,12 +961,21 @@
       if (p.t < o.x0 || p.t > o.x1) continue;
       for (const v of [p.min, p.max, p.lo, p.hi]) if (v !== null && Number.isFinite(v)) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
     }
+    // The threshold of the alert a link came from, about the mean of the values shown: the
+    // alert judges motion above the baseline, which the mean stands for here.
+    let thr = null;
+    if (o.threshold !== undefined && o.threshold !== null && Number.isFinite(lo)) {
+      let sum = 0, n = 0;
+      for (const s of o.series) for (const p of s.points) if (p.min !== null && p.t >= o.x0 && p.t <= o.x1) { sum += (p.min + p.max) / 2; n++; }
+      if (n) { const mean = sum / n; thr = [mean - o.threshold, mean + o.threshold]; lo = Math.min(lo, thr[0]); hi = Math.max(hi, thr[1]); }
+    }
     if (!Number.isFinite(lo)) { lo = -1; hi = 1; }
     if (hi - lo < 1e-6) { lo -= 1e-3; hi += 1e-3; }
     const pad = (hi - lo) * 0.06; lo -= pad; hi += pad;
     const X = (t) => left + (t - o.x0) / (o.x1 - o.x0) * pw;
     const Y = (v) => top + (hi - v) / (hi - lo) * ph;
-    g.font = '11px system-ui, sans-serif'; g.fillStyle = '#5f6b76'; g.strokeStyle = '#eef0f3'; g.lineWidth = 1;
+    canvas._map = { left, top, pw, ph, x0: o.x0, x1: o.x1, lo, hi, series: o.series, correction: o.correction, bucketMs: o.bucketMs, unit: o.unit };
+    g.font = '11px system-ui, sans-serif'; g.fillStyle = c.muted; g.strokeStyle = c.grid; g.lineWidth = 1;
     // A label is 11 px tall, centred on its line: one that would rise above the plot area is
     // left out rather than drawn half under the title.
     const ticks = niceTicks(lo, hi, 4).filter((t) => Y(t.v) - 6 >= top);
@@ -714,6 +993,11 @@
       const lw = g.measureText(label).width;
       g.fillText(label, Math.max(2, Math.min(x - lw / 2, w - lw - 2)), h - 4 - lanes * 4);
     }
+    if (o.shade) {
+      const a = Math.max(left, X(o.shade[0])), b = Math.min(left + pw, Math.max(X(o.shade[1]), a + 2));
+      if (b > a) { g.fillStyle = c.shade; g.fillRect(a, top, b - a, ph); }
+      canvas.dataset.shade = `${a.toFixed(0)}-${b.toFixed(0)}`;
+    } else delete canvas.dataset.shade;
     g.fillStyle = 'rgba(180,35,24,.15)';
     for (const gap of o.gaps) {
       const a = X(nsToMs(gap.start_ns)), b = Math.max(X(nsToMs(gap.end_ns)), a + 2);
@@ -759,16 +1043,145 @@
       for (const s of o.series) for (const p of s.points) if (p.flags & (1 << bit)) g.fillRect(X(p.t) - 1, y, 3, 3);
       lane++;
     });
-    if (o.marker !== null) {
+    if (thr) {
+      g.strokeStyle = '#d92d20'; g.setLineDash([6, 4]); g.lineWidth = 1.2;
+      for (const v of thr) { g.beginPath(); g.moveTo(left, Y(v)); g.lineTo(left + pw, Y(v)); g.stroke(); }
+      g.setLineDash([]); g.fillStyle = '#d92d20'; g.fillText(`threshold ±${fmtNum(o.threshold, 3)} about the mean`, left + 4, Y(thr[1]) - 3);
+      canvas.dataset.threshold = thr.map((v) => v.toPrecision(4)).join(' ');
+    } else delete canvas.dataset.threshold;
+    if (o.marker !== null && o.marker !== undefined) {
       g.strokeStyle = '#b42318'; g.setLineDash([4, 3]); g.beginPath(); g.moveTo(X(o.marker), top); g.lineTo(X(o.marker), top + ph); g.stroke(); g.setLineDash([]);
     }
-    g.strokeStyle = '#d9dee3'; g.strokeRect(left, top, pw, ph);
+    g.strokeStyle = c.frame; g.strokeRect(left, top, pw, ph);
+  }
+
+  // Canvas colours from the page's (light or dark) scheme.
+  function colors() {
+    const cs = getComputedStyle(document.documentElement);
+    const v = (n, d) => (cs.getPropertyValue(n) || d).trim() || d;
+    return { bg: v('--plot-bg', '#fff'), muted: v('--muted', '#5f6b76'), grid: v('--grid', '#eef0f3'), frame: v('--line', '#d9dee3'), shade: v('--shade', 'rgba(217,45,32,.12)') };
+  }
+
+  // The alert's window and threshold, for plots of the values it judged.
+  function alertOverlay() {
+    const a = alertInfo;
+    if (!a) return {};
+    const o = {};
+    if (a.window_start_ns != null && a.window_end_ns != null) o.shade = [nsToMs(a.window_start_ns), nsToMs(a.window_end_ns)];
+    if (a.kind === 'peak_acceleration' || a.kind === 'rms_acceleration') o.threshold = a.threshold;
+    return o;
+  }
+
+  // Beyond an hour: per axis the per-minute peak (about the minute's mean) and RMS, and the
+  // dominant frequency.
+  function drawTrend() {
+    if (!trendView || !trendView.minutes) return;
+    const { fromMs: x0, toMs: x1 } = trendView;
+    const mins = trendView.minutes;
+    const half = trendView.minute_ns / 2e6;
+    const overlay = alertOverlay();
+    let present = 0;
+    for (const m of mins) if (m.flagged) present |= 1 << 3;
+    AXES.forEach((ax, i) => {
+      $(`title-${ax}`).textContent = `a${ax}: per-minute peak |a − mean| (dark) and RMS (light), m/s²`;
+      drawSeries($(`canvas-${ax}`), {
+        x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', shade: overlay.shade,
+        series: [
+          { name: `peak a${ax}`, color: AXIS_COLORS[i], points: mins.map((m) => ({ t: nsToMs(m.start_ns) + half, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) },
+          { name: `RMS a${ax}`, color: AXIS_COLORS[i] + '88', points: mins.map((m) => ({ t: nsToMs(m.start_ns) + half, min: m.rms_mps2[i], max: m.rms_mps2[i], lo: null, hi: null, flags: 0, gap: false })) },
+        ],
+      });
+    });
+    $('tilt-plot').hidden = true;
+    $('freq-plot').hidden = false;
+    drawSeries($('canvas-freq'), {
+      x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'Hz',
+      series: [{ name: 'dominant', color: '#6941c6', points: mins.filter((m) => m.dominant_hz !== null).map((m) => ({ t: nsToMs(m.start_ns) + half, min: m.dominant_hz, max: m.dominant_hz, lo: null, hi: null, flags: 0, gap: false })) }],
+    });
+    $('legend').replaceChildren(el('span', {}, `${mins.length} minutes; ${mins.reduce((s, m) => s + m.flagged, 0)} flagged samples`));
+    $('plot').dataset.buckets = mins.length;
+    void present;
+  }
+
+  // ---- Building view: several sensors, time-aligned ----------------------------------------
+  let buildingData = null;   // per sensor, its /api/history or /api/trend answer
+  function renderBuildingView() {
+    const r = route;
+    alertInfo = null; buildingData = new Map();
+    if (!source || source.url.includes('sensor=')) connect('');
+    const [fromMs, toMs] = r.window;
+    const spanS = (toMs - fromMs) / 1000;
+    const sensors = buildingSensors();
+    const axisSel = el('select', { id: 'b-axis', onchange: (e) => { location.hash = `#/building/${encodeURIComponent(r.building)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}&axis=${e.target.value}` + (r.alert ? `&alert=${r.alert}` : ''); } },
+      AXES.map((a) => el('option', { value: a, selected: a === r.axis ? 'selected' : null }, `a${a}`)));
+    $('view').replaceChildren(el('section', { class: 'card', id: 'building-view', 'data-building': r.building },
+      el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / building ', r.building),
+      el('div', { class: 'controls' },
+        el('label', {}, 'axis ', axisSel),
+        [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: 'last', 'data-last': n, onclick: () => { location.hash = `#/building/${encodeURIComponent(r.building)}?last=${n}&axis=${r.axis}` + (r.alert ? `&alert=${r.alert}` : ''); } }, `last ${t}`)),
+        el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
+        el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG')),
+      r.error ? el('div', { id: 'status-line', class: 'warning' }, `This link cannot be shown: ${r.error}.`) :
+        el('div', { id: 'status-line', class: 'meta' }, `${fmtTime(fromMs)} – ${fmtTime(toMs)} (${fmtSpan(Math.round(spanS))}), ${sensors.length} sensors, the same time axis; drag to zoom, Shift-drag to pan.`),
+      el('div', { id: 'building-plots', 'data-loaded': 0 }, sensors.map((s) => el('div', { class: 'plot', 'data-sensor': s },
+        el('canvas', { id: `bcanvas-${s}`, width: 1000, height: 130 }),
+        el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') }, s), ` a${r.axis}`)))),
+      el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })));
+    if (r.error) return;
+    for (const c of document.querySelectorAll('#building-plots canvas')) attachPointer(c, drawBuilding);
+    if (r.alert) getJson(`/api/alerts?id=${r.alert}`).then((b) => { if (route === r && b.alerts && b.alerts.length) { alertInfo = b.alerts[0]; drawBuilding(); } });
+    loadBuilding(r, sensors, fromMs, toMs);
+  }
+
+  // The building's sensors as the fleet view knows them (the gateway's status and alerts).
+  function buildingSensors() {
+    const b = fleet && fleet.buildings.find((x) => x.building === route.building);
+    return b ? b.sensors.map((s) => s.sensor_id) : [];
+  }
+
+  // One sensor after the other: the console reads two history views at once at most.
+  async function loadBuilding(r, sensors, fromMs, toMs) {
+    const trend = (toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S;
+    for (const s of sensors) {
+      const q = new URLSearchParams({ building: r.building, sensor: s, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
+      if (!trend) q.set('width', String(plotWidth()));
+      const body = await getJson((trend ? '/api/trend?' : '/api/history?') + q);
+      if (route !== r) return;
+      buildingData.set(s, body);
+      $('building-plots').dataset.loaded = buildingData.size;
+      drawBuilding();
+    }
+  }
+
+  function drawBuilding() {
+    if (!route || route.view !== 'building' || !buildingData) return;
+    const [x0, x1] = route.window;
+    const i = AXES.indexOf(route.axis);
+    const overlay = alertOverlay();
+    for (const [s, body] of buildingData) {
+      const canvas = $(`bcanvas-${s}`);
+      if (!canvas) continue;
+      // The alert's threshold belongs to its own sensor; its window is shaded on every one.
+      const mine = alertInfo && alertInfo.sensor_id === s ? overlay : { shade: overlay.shade };
+      if (body.minutes) {
+        drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined,
+          series: [{ name: `peak a${route.axis}`, color: AXIS_COLORS[i], points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) }] });
+      } else if (body.view) {
+        const v = body.view, bucketMs = v.bucket_ns / 1e6;
+        let present = 0;
+        for (const b of v.buckets) present |= b[2];
+        drawSeries(canvas, { x0, x1, marker: null, gaps: v.gaps, present, correction: v.correction, bucketMs, unit: 'm/s²', ...mine,
+          series: [{ name: `a${route.axis}`, color: AXIS_COLORS[i], points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }] });
+      }
+      canvas.dataset.drawn = '1';
+    }
   }
 
   // ---- Routing ----------------------------------------------------------------------------
   function render() {
     route = parseRoute();
     if (route.view === 'sensor') { renderSensor(); return; }
+    if (route.view === 'building') { renderBuildingView(); return; }
     if (!source || source.url.includes('sensor=')) connect('');
     if (route.view === 'alerts') renderAlerts(); else renderFleet();
   }
@@ -778,7 +1191,7 @@
   window.addEventListener('error', (e) => pageError(e.message));
   window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
-  window.addEventListener('resize', () => scheduleDraw());
-  setInterval(() => { if (route && route.view === 'sensor' && route.at === null) scheduleDraw(); }, 1000);
+  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); });
+  setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   render();
 })();

@@ -489,6 +489,15 @@ impl Browser {
         )
     }
 
+    /// A Chrome DevTools command through chromedriver.
+    pub fn cdp(&self, cmd: &str, params: Value) -> Value {
+        self.cmd(
+            "POST",
+            "goog/cdp/execute",
+            Some(json!({ "cmd": cmd, "params": params })),
+        )
+    }
+
     /// Polls `script` until it returns something truthy; fails naming `what` after [`TIMEOUT`].
     pub async fn wait(&self, what: &str, script: &str) -> Value {
         let deadline = tokio::time::Instant::now() + TIMEOUT;
