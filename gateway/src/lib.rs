@@ -780,14 +780,23 @@ impl Gateway {
         }
         // The workers have handed over their last batches: keep them.
         if let Some(mut recorder) = self.recorder.take() {
+            let sink = recorder.sink.clone();
             tokio::task::spawn_blocking(move || recorder.stop())
                 .await
                 .map_err(|e| GatewayError::Task(e.to_string()))?;
+            let c = &sink.counters;
+            tracing::info!(
+                offered = c.offered.load(Relaxed),
+                not_kept = c.dropped.load(Relaxed),
+                written = sink.history.counters.written_batches.load(Relaxed),
+                "history closed"
+            );
         }
         if let Err(e) = self.session.close().await {
             tracing::warn!(cause = %e, "zenoh session did not close cleanly");
         }
         let store = self.store.clone();
+        let counters = self.counters.clone();
         drop(self);
         // Every put is flushed when it returns; the flush here makes that explicit before the
         // last handle closes sled. Blocking I/O, so off the runtime threads.
@@ -801,7 +810,13 @@ impl Gateway {
         if let Err(e) = flushed {
             tracing::error!(cause = %e, "calibration store did not flush on shutdown");
         }
-        tracing::info!("stopped");
+        let c = &counters;
+        tracing::info!(
+            received = c.received_batches.load(Relaxed),
+            published = c.published_batches.load(Relaxed),
+            dropped = c.dropped.load(Relaxed),
+            "stopped"
+        );
         Ok(())
     }
 }

@@ -79,6 +79,8 @@ fn gateway_process() {
         .await
         .unwrap();
     };
+    // The parent keeps the log and shows it when the run lost a batch it should not have.
+    triax_gateway::init_logging("info").unwrap();
     runtime
         .block_on(triax_gateway::run(cfg, stdin_closed))
         .unwrap();
@@ -163,36 +165,40 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
             .unwrap();
         publishers.push((id, p));
     }
-    let start_child = || async {
-        let child = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--ignored",
-                "--exact",
-                "replay_restart::gateway_process",
-                "--nocapture",
-            ])
-            .env(CHILD_ENV[0], BUILDING)
-            .env(CHILD_ENV[1], &store)
-            .env(CHILD_ENV[2], &endpoint)
-            .env(CHILD_ENV[3], SPLIT)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        wait_until_async("the gateway process to answer", || async {
-            let replies = session
-                .get(format!("triax/{BUILDING}/status"))
-                .timeout(Duration::from_millis(500))
-                .await
+    let log_of = |run: usize| dir.path().join(format!("gateway-{run}.log"));
+    let start_child = |run: usize| {
+        let log = std::fs::File::create(log_of(run)).unwrap();
+        async {
+            let child = Command::new(std::env::current_exe().unwrap())
+                .args([
+                    "--ignored",
+                    "--exact",
+                    "replay_restart::gateway_process",
+                    "--nocapture",
+                ])
+                .env(CHILD_ENV[0], BUILDING)
+                .env(CHILD_ENV[1], &store)
+                .env(CHILD_ENV[2], &endpoint)
+                .env(CHILD_ENV[3], SPLIT)
+                .stdin(Stdio::piped())
+                .stdout(Stdio::null())
+                .stderr(log)
+                .spawn()
                 .unwrap();
-            replies.recv_async().await.is_ok_and(|r| r.result().is_ok())
-        })
-        .await;
-        for (_, p) in &publishers {
-            wait_matching(p).await;
+            wait_until_async("the gateway process to answer", || async {
+                let replies = session
+                    .get(format!("triax/{BUILDING}/status"))
+                    .timeout(Duration::from_millis(500))
+                    .await
+                    .unwrap();
+                replies.recv_async().await.is_ok_and(|r| r.result().is_ok())
+            })
+            .await;
+            for (_, p) in &publishers {
+                wait_matching(p).await;
+            }
+            child
         }
-        child
     };
     let send = |seq: u64| {
         let publishers = &publishers;
@@ -222,7 +228,7 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
         .enumerate()
     {
         run.store(i, std::sync::atomic::Ordering::Relaxed);
-        let mut child: Child = start_child().await;
+        let mut child: Child = start_child(i).await;
         let mut tick = tokio::time::interval(Duration::from_millis(5));
         for _ in 0..PHASE_BATCHES {
             tick.tick().await;
@@ -262,7 +268,7 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
         seq += DOWN_BATCHES;
     }
     run.store(stops.len(), std::sync::atomic::Ordering::Relaxed);
-    let mut last = start_child().await;
+    let mut last = start_child(stops.len()).await;
     let mut tick = tokio::time::interval(Duration::from_millis(5));
     for _ in 0..PHASE_BATCHES {
         tick.tick().await;
@@ -314,14 +320,24 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
                 }
                 let Some(k) = kept.get(&seq) else {
                     // Only a kill loses batches, and only those of its last moments.
+                    let log = || {
+                        let text = std::fs::read_to_string(log_of(*run)).unwrap_or_default();
+                        let lines: Vec<&str> = text.lines().collect();
+                        lines[lines.len().saturating_sub(30)..].join("\n")
+                    };
                     let Some(&(stop, confirmed, killed_at)) = stops.get(*run) else {
-                        panic!("{id} #{seq} of the last run is not kept");
+                        panic!(
+                            "{id} #{seq} of the last run is not kept; its log:\n{}",
+                            log()
+                        );
                     };
                     assert!(
                         stop == Stop::Kill
                             && seq > confirmed
                             && killed_at.duration_since(*at) < RULE,
-                        "{id} #{seq} of run {run} is not kept"
+                        "{id} #{seq} of run {run} ({stop:?}, last confirmed #{confirmed}) is not \
+                         kept; its log:\n{}",
+                        log()
                     );
                     lost_to_kills += usize::from(from_ns.is_none());
                     continue;
