@@ -13,6 +13,7 @@
 //! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
 //! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
 //! triax/<building>/health/<sensor>               SensorHealthReport (JSON), gateway → lab, operators
+//! triax/<building>/buffer/<sensor>               node's buffer query → raw batches (binary), gateway → node
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -159,6 +160,8 @@ pub enum Key {
     Alerting(BuildingId),
     /// A sensor's calibration health (published, and the gateway's queryable).
     Health(BuildingId, SensorId),
+    /// A sensor node's buffer of the raw batches it sent (its queryable, for backfill).
+    Buffer(BuildingId, SensorId),
 }
 
 /// Why a key string is not a Triax key.
@@ -190,7 +193,8 @@ impl Key {
             | Key::History(b, _)
             | Key::Heartbeat(b)
             | Key::Alerting(b)
-            | Key::Health(b, _) => b,
+            | Key::Health(b, _)
+            | Key::Buffer(b, _) => b,
         }
     }
 
@@ -203,7 +207,8 @@ impl Key {
             | Key::CalibrationAck(_, s)
             | Key::Alert(_, s)
             | Key::History(_, s)
-            | Key::Health(_, s) => Some(s),
+            | Key::Health(_, s)
+            | Key::Buffer(_, s) => Some(s),
             Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) | Key::Alerting(_) => {
                 None
             }
@@ -235,6 +240,7 @@ impl Key {
             ["heartbeat"] => Key::Heartbeat(b),
             ["alerting"] => Key::Alerting(b),
             ["health", s] => Key::Health(b, sensor(s)?),
+            ["buffer", s] => Key::Buffer(b, sensor(s)?),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -255,6 +261,7 @@ impl fmt::Display for Key {
             Key::Heartbeat(b) => write!(f, "{ROOT}/{b}/heartbeat"),
             Key::Alerting(b) => write!(f, "{ROOT}/{b}/alerting"),
             Key::Health(b, s) => write!(f, "{ROOT}/{b}/health/{s}"),
+            Key::Buffer(b, s) => write!(f, "{ROOT}/{b}/buffer/{s}"),
         }
     }
 }
@@ -270,6 +277,7 @@ pub enum Stream {
     Alert,
     History,
     Health,
+    Buffer,
 }
 
 impl Stream {
@@ -283,6 +291,7 @@ impl Stream {
             Stream::Alert => "alert",
             Stream::History => "history",
             Stream::Health => "health",
+            Stream::Buffer => "buffer",
         }
     }
 }
@@ -407,6 +416,7 @@ mod tests {
             Key::Heartbeat(b("hq")),
             Key::Alerting(b("hq")),
             Key::Health(b("hq"), s("acc-01")),
+            Key::Buffer(b("hq"), s("acc-01")),
         ];
         for k in keys {
             let text = k.to_string();
