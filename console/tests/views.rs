@@ -375,7 +375,7 @@ async fn newest_alert(console: &Console, sensor: &str, since_ns: i64) -> u64 {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn trend_spectrum_and_csv_over_http() {
-    let site = Site::start(2 * 3600).await;
+    let site = Site::start(75 * 60).await;
     let console = Console::start(&site, None).await;
     let now = now_ns();
     let q = |path: &str, from: i64, to: i64| {
@@ -421,12 +421,13 @@ async fn trend_spectrum_and_csv_over_http() {
         .await;
     assert_eq!(status, 400, "more than an hour: {body}");
 
-    // Trend of the last 90 minutes: per-minute peak, RMS and dominant frequency; the second
+    // Trend of the last 70 minutes: per-minute peak, RMS and dominant frequency; the second
     // time from the cache, without reading the history again.
-    let from = now - 5_400_000_000_000;
+    let from = now - 4_200_000_000_000;
     let t = console.json(&q("/api/trend", from, now)).await;
+    assert_eq!(t["error"], Value::Null, "{}", t["error"]);
     let minutes = t["minutes"].as_array().unwrap();
-    assert!(minutes.len() >= 88, "{}", minutes.len());
+    assert!(minutes.len() >= 68, "{}", minutes.len());
     let m = &minutes[10];
     assert_eq!(m["samples"], 6000);
     assert!(
@@ -445,7 +446,11 @@ async fn trend_spectrum_and_csv_over_http() {
         (m["mean_mps2"][2].as_f64().unwrap() - 9.81).abs() < 0.01,
         "{m}"
     );
-    assert!(t["batches_read"].as_u64().unwrap() > 10_000);
+    assert!(
+        t["batches_read"].as_u64().unwrap() > 8_000,
+        "{}",
+        t["batches_read"]
+    );
     let again = console
         .json(&q("/api/trend", from, now - 120_000_000_000))
         .await;
@@ -480,7 +485,7 @@ async fn trend_spectrum_and_csv_over_http() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn time_spectra_building_and_export_in_a_browser() {
-    let site = Site::start(2 * 3600).await;
+    let site = Site::start(75 * 60).await;
     let console = Console::start(&site, None).await;
     until_alerts_arrive(&site, &console).await;
     let now = now_ns();
@@ -588,10 +593,10 @@ async fn time_spectra_building_and_export_in_a_browser() {
         "{csv}"
     );
 
-    // The last 24 hours: a trend of per-minute aggregates (the site keeps two hours).
+    // The last 24 hours: a trend of per-minute aggregates (the site keeps 75 minutes).
     browser.js("document.querySelector('button.last[data-last=\"86400\"]').click(); return 1");
     browser
-        .wait("the trend", "const p = document.getElementById('plot'); return p.dataset.source === 'trend' && Number(p.dataset.minutes) > 100 && !document.getElementById('freq-plot').hidden")
+        .wait("the trend", "const p = document.getElementById('plot'); return p.dataset.source === 'trend' && Number(p.dataset.minutes) > 70 && !document.getElementById('freq-plot').hidden")
         .await;
     browser.screenshot("sensor-trend-24h");
 

@@ -331,7 +331,7 @@
         el('span', { class: 'meta' }, 'silence for ', silenceFor)),
       el('div', { id: 'alerts-status', class: 'meta' }, 'reading the alert log…'),
       el('table', { id: 'alert-table' },
-        el('thead', {}, el('tr', {}, ['', 'At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement', 'Handled'].map((t) => el('th', {}, t)))),
+        el('thead', {}, el('tr', {}, ['At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement', 'Handled', 'Select'].map((t) => el('th', {}, t)))),
         el('tbody', { id: 'alert-rows' }))),
     el('section', { class: 'card', id: 'silences' }, el('h3', {}, 'Silences'), el('div', { id: 'silence-list' })));
     alertsSeen = null;
@@ -375,7 +375,7 @@
   function statementCell(text) {
     const first = String(text).split('\n')[0];
     const short = first.length > 90 ? first.slice(0, 89) + '…' : first;
-    return el('td', { class: 'statement' }, el('details', {}, el('summary', {}, short), el('div', { class: 'full' }, text)));
+    return el('td', { class: 'statement-cell' }, el('details', {}, el('summary', {}, short), el('div', { class: 'statement full' }, text)));
   }
 
   function handledCell(a) {
@@ -390,7 +390,6 @@
   function alertRow(a) {
     const k = a.coverage_factor, u = a.standard_uncertainty;
     return el('tr', { class: 'alert', 'data-id': a.id, 'data-building': a.building, 'data-sensor': a.sensor_id, 'data-level': verified(a) ? a.level : 'unverified', 'data-trust': a.trust },
-      el('td', {}, el('input', { type: 'checkbox', class: 'pick', 'aria-label': `select alert ${a.id}` })),
       el('td', {}, fmtTime(Date.parse(a.at))),
       el('td', {}, el('a', { href: sensorHref(a.building, a.sensor_id, alertAtNs(a), windowSpan(a)) + alertLinkExtra(a) }, `${a.building} / ${a.sensor_id}`),
         ' ', el('a', { class: 'to-building', href: `#/building/${encodeURIComponent(a.building)}?at=${alertAtNs(a)}&span=${windowSpan(a)}&alert=${a.id}`, title: 'every sensor of the building at that time' }, '(building)')),
@@ -402,7 +401,9 @@
       el('td', { class: 'num' }, `${fmtNum(a.window_s, 3)} s`),
       el('td', { class: 'num' }, `${(100 * a.flagged_fraction).toFixed(0)} %`),
       statementCell(a.statement),
-      handledCell(a));
+      handledCell(a),
+      // Last, so that the columns before keep their places for whoever reads them by index.
+      el('td', {}, el('input', { type: 'checkbox', class: 'pick', 'aria-label': `select alert ${a.id}` })));
   }
 
   const handledKey = (a) => `${a.ack ? a.ack.at : ''}|${a.silenced_by ?? ''}`;

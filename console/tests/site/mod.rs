@@ -232,6 +232,9 @@ impl Console {
             buildings: vec![BuildingId::new("hq").unwrap()],
             trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
             state_dir,
+            // Tests run side by side, unoptimised, on small machines: a history page may take
+            // longer than an operator would wait.
+            history_timeout: TIMEOUT,
             ..ConsoleOptions::default()
         };
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
