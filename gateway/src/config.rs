@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
+use triax_health::colocated::PairConfig;
 use triax_health::{HealthConfig, HealthError, LocalGravity};
 pub use triax_net::{ConfigError, ZenohArgs, ZenohMode, ZenohSettings};
 use triax_protocol::signing::{public_key_from_hex, LabPublicKey};
@@ -357,6 +358,34 @@ pub struct FileHealth {
     pub noise_design_ratio: Option<f64>,
     pub watch_arl_days: Option<f64>,
     pub suspect_arl_days: Option<f64>,
+    /// Latency bound beyond which a node's clock is reported at `watch`, ms.
+    pub clock_watch_ms: Option<f64>,
+    /// Pairs of co-located sensors (`[[health.colocated]]`).
+    pub colocated: Option<Vec<FileColocated>>,
+}
+
+/// `[[health.colocated]]`: two sensors on the same part of the structure.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileColocated {
+    pub a: String,
+    pub b: String,
+    /// B's axes in A's frame, rows: `a_A = mounting · a_B`; default the identity.
+    pub mounting: Option<[[f64; 3]; 3]>,
+    pub band_hz: Option<[f64; 2]>,
+    pub segment_s: Option<f64>,
+    pub estimate_s: Option<f64>,
+    pub baseline_s: Option<f64>,
+    pub shift: Option<f64>,
+    pub min_coherence: Option<f64>,
+}
+
+/// A declared co-located pair.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ColocatedSettings {
+    pub a: SensorId,
+    pub b: SensorId,
+    pub pair: PairConfig,
 }
 
 /// The field health checks as configured.
@@ -365,6 +394,62 @@ pub struct HealthSettings {
     pub checks: HealthConfig,
     /// Sensor time between a sensor's health reports (a changed verdict is reported at once).
     pub publish_interval_s: f64,
+    /// `|latency|` (arrival minus the last sample's time stamp) beyond which the `clock` test
+    /// says `watch`, ms; none: the clock is not judged (data replayed or simulated faster than
+    /// real time is never on time).
+    pub clock_watch_ms: Option<f64>,
+    pub colocated: Vec<ColocatedSettings>,
+}
+
+/// Default [`HealthSettings::clock_watch_ms`].
+pub const DEFAULT_CLOCK_WATCH_MS: f64 = 1000.0;
+
+fn colocated_settings(
+    pairs: Vec<FileColocated>,
+    arl: (f64, f64),
+) -> Result<Vec<ColocatedSettings>, ConfigError> {
+    let mut out: Vec<ColocatedSettings> = Vec::with_capacity(pairs.len());
+    for (i, p) in pairs.into_iter().enumerate() {
+        let field = |f: &str| format!("health.colocated[{i}].{f}");
+        let a = SensorId::new(p.a.as_str())
+            .map_err(|e| ConfigError::invalid(field("a"), e.to_string()))?;
+        let b = SensorId::new(p.b.as_str())
+            .map_err(|e| ConfigError::invalid(field("b"), e.to_string()))?;
+        if a == b {
+            return Err(ConfigError::invalid(
+                field("b"),
+                format!("{b} is also a: a pair is two sensors"),
+            ));
+        }
+        if out
+            .iter()
+            .any(|q| (q.a == a && q.b == b) || (q.a == b && q.b == a))
+        {
+            return Err(ConfigError::invalid(
+                field("b"),
+                format!("the pair {a}, {b} is declared twice"),
+            ));
+        }
+        let d = PairConfig::default();
+        let pair = PairConfig {
+            mounting: p.mounting.unwrap_or(d.mounting),
+            band_hz: p.band_hz.unwrap_or(d.band_hz),
+            segment_s: p.segment_s.unwrap_or(d.segment_s),
+            estimate_s: p.estimate_s.unwrap_or(d.estimate_s),
+            baseline_s: p.baseline_s.unwrap_or(d.baseline_s),
+            shift: p.shift.unwrap_or(d.shift),
+            min_coherence: p.min_coherence.unwrap_or(d.min_coherence),
+            watch_arl_days: arl.0,
+            suspect_arl_days: arl.1,
+            ..d
+        };
+        pair.validate().map_err(|e| match e {
+            HealthError::Config { field: f, problem } => ConfigError::invalid(field(f), problem),
+            other => ConfigError::invalid(field("a"), other.to_string()),
+        })?;
+        out.push(ColocatedSettings { a, b, pair });
+    }
+    Ok(out)
 }
 
 /// Default time between a sensor's health reports, s.
@@ -431,9 +516,25 @@ fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError>
         }
         other => ConfigError::invalid("health", other.to_string()),
     })?;
+    let clock_watch_ms = match h.clock_watch_ms.unwrap_or(DEFAULT_CLOCK_WATCH_MS) {
+        0.0 => None,
+        ms if ms.is_finite() && ms > 0.0 => Some(ms),
+        ms => {
+            return Err(ConfigError::invalid(
+                "health.clock_watch_ms",
+                format!("{ms} is not a positive number of milliseconds (0: off)"),
+            ))
+        }
+    };
+    let colocated = colocated_settings(
+        h.colocated.unwrap_or_default(),
+        (checks.watch_arl_days, checks.suspect_arl_days),
+    )?;
     Ok(Some(HealthSettings {
         checks,
         publish_interval_s,
+        clock_watch_ms,
+        colocated,
     }))
 }
 
@@ -884,6 +985,41 @@ mod tests {
         assert!(
             parse("[health]\nstuck = 1").is_err(),
             "unknown fields are refused"
+        );
+        let pair = "[[health.colocated]]\na = \"x1\"\nb = \"x2\"\n";
+        let h = parse(&format!("{pair}estimate_s = 300"))
+            .unwrap()
+            .health
+            .unwrap();
+        assert_eq!(h.colocated.len(), 1);
+        assert_eq!(h.colocated[0].pair.estimate_s, 300.0);
+        assert_eq!(h.colocated[0].pair.mounting, PairConfig::default().mounting);
+        assert_eq!(
+            field("[[health.colocated]]\na = \"x1\"\nb = \"x1\""),
+            "health.colocated[0].b"
+        );
+        assert_eq!(
+            field(&format!("{pair}mounting = [[1,0,0],[0,1,0],[0,0,2]]")),
+            "health.colocated[0].mounting"
+        );
+        assert_eq!(
+            field(&format!(
+                "{pair}[[health.colocated]]\na = \"x2\"\nb = \"x1\""
+            )),
+            "health.colocated[1].b"
+        );
+        assert_eq!(
+            field("[health]\nclock_watch_ms = -1"),
+            "health.clock_watch_ms"
+        );
+        let h = parse("[health]\nclock_watch_ms = 0")
+            .unwrap()
+            .health
+            .unwrap();
+        assert_eq!(h.clock_watch_ms, None);
+        assert_eq!(
+            parse("").unwrap().health.unwrap().clock_watch_ms,
+            Some(DEFAULT_CLOCK_WATCH_MS)
         );
     }
 

@@ -18,15 +18,21 @@
 //! a push) and handed to the sensor's worker through its entry: the gateway keeps correctors,
 //! never records, in memory.
 
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
 use time::OffsetDateTime;
+
 use triax_calibration::corrector::Corrector;
 use triax_calibration_store::Store;
+use triax_health::colocated::{ColocatedPair, PairConfig};
 use triax_health::report::{HealthReport, TestReport};
 use triax_health::{SensorHealth, Verdict};
 use triax_protocol::batch::flags;
 use triax_protocol::messages::{HealthTest, HealthVerdict, SensorHealthReport, StreamQuality};
-use triax_protocol::{to_json, BuildingId, RawBatchView, JSON_FORMAT_VERSION};
+use triax_protocol::record::CalibrationRecord;
+use triax_protocol::{to_json, BuildingId, RawBatchView, SensorId, JSON_FORMAT_VERSION};
 
+use crate::config::ColocatedSettings;
 use crate::history::Verdict as SequenceVerdict;
 use crate::sensors::SensorEntry;
 
@@ -34,6 +40,8 @@ use crate::sensors::SensorEntry;
 #[derive(Debug, Clone, Copy)]
 pub struct Reporting {
     pub publish_interval_ns: i64,
+    /// [`crate::config::HealthSettings::clock_watch_ms`].
+    pub clock_watch_ms: Option<f64>,
 }
 
 /// One sensor's health, as its worker keeps it.
@@ -92,6 +100,7 @@ impl HealthFeed {
         sequence: SequenceVerdict,
         received_ns: i64,
         reporting: Reporting,
+        pairs: &[Arc<PairSlot>],
     ) -> Option<Vec<u8>> {
         let version = corrector?.version();
         if self.monitor.as_ref().is_none_or(|m| m.version() != version) {
@@ -125,21 +134,31 @@ impl HealthFeed {
             return None;
         }
         let report = monitor.report();
-        if report.verdict == Verdict::Suspect && self.latch.is_none_or(|(v, _)| v != version) {
+        let pair_tests: Vec<PairTests> = pairs
+            .iter()
+            .filter_map(|p| p.tests_for(&entry.id, version))
+            .collect();
+        let clock = self.quality.clock_test(reporting.clock_watch_ms);
+        let tested = pair_tests
+            .iter()
+            .flat_map(|p| p.absolute.iter().chain(&p.relative))
+            .map(|t| t.verdict)
+            .fold(report.verdict, Verdict::max);
+        if tested == Verdict::Suspect && self.latch.is_none_or(|(v, _)| v != version) {
             self.latch = Some((version, latch(store, entry, version, end_ns)));
         }
         let latched = self.latch.filter(|&(v, _)| v == version).map(|(_, t)| t);
         let verdict = if latched.is_some() {
             HealthVerdict::Suspect
         } else {
-            wire(report.verdict)
+            wire(tested).max(clock.verdict)
         };
         if !(due || self.reported != Some(verdict)) {
             return None;
         }
         self.reported = Some(verdict);
         self.next_report_ns = end_ns.saturating_add(reporting.publish_interval_ns);
-        let message = message(
+        let mut message = message(
             building,
             entry,
             version,
@@ -148,6 +167,19 @@ impl HealthFeed {
             &report,
             &self.quality,
         );
+        message.tests.push(clock);
+        for p in &pair_tests {
+            for (name, tests) in [
+                ("colocated_absolute", &p.absolute),
+                ("colocated_relative", &p.relative),
+            ] {
+                for (axis, t) in tests.iter().enumerate() {
+                    let mut t = test(name, Some(axis), t);
+                    t.peer = Some(p.peer.clone());
+                    message.tests.push(t);
+                }
+            }
+        }
         self.quality.latency_min_ms = None;
         self.quality.latency_max_ms = None;
         let json = to_json(&message);
@@ -213,6 +245,35 @@ impl Quality {
     }
 }
 
+impl Quality {
+    /// The `clock` test: the smallest latency since the last report, the best estimate of the
+    /// node's clock offset from the gateway's plus the link's least delay. Never `suspect`: a
+    /// clock off does not make the calibration wrong, only the time stamps.
+    fn clock_test(&self, watch_ms: Option<f64>) -> HealthTest {
+        let off = match (self.latency_min_ms, watch_ms) {
+            (Some(l), Some(w)) => l.abs() > w,
+            _ => false,
+        };
+        HealthTest {
+            test: "clock".to_owned(),
+            channel: None,
+            peer: None,
+            verdict: if off {
+                HealthVerdict::Watch
+            } else {
+                HealthVerdict::Ok
+            },
+            judged: self.latency_min_ms.is_some() && watch_ms.is_some(),
+            statistic: self.latency_min_ms,
+            uncertainty: None,
+            unit: "ms".to_owned(),
+            since_ns: None,
+            evidence_nats: 0.0,
+            observations: 0,
+        }
+    }
+}
+
 fn wire(v: Verdict) -> HealthVerdict {
     match v {
         Verdict::Ok => HealthVerdict::Ok,
@@ -230,6 +291,7 @@ fn unit_of(test: &str) -> &'static str {
         "gravity_absolute" | "gravity_relative" => "m/s^2",
         "stuck" => "s",
         "noise" => "ratio",
+        "colocated_absolute" | "colocated_relative" => "1",
         _ => "1/h",
     }
 }
@@ -238,6 +300,7 @@ fn test(name: &'static str, channel: Option<usize>, t: &TestReport) -> HealthTes
     HealthTest {
         test: name.to_owned(),
         channel: channel.map(|c| c as u8),
+        peer: None,
         verdict: wire(t.verdict),
         judged: t.judged,
         statistic: finite(t.statistic),
@@ -377,4 +440,197 @@ pub async fn serve(
             }
         }
     }))
+}
+
+/// What a record brings to the health checks when it is installed: its sensor's monitor, and
+/// the record itself when the sensor is in a co-located pair (the pair's check needs both
+/// records; the gateway keeps no other record in memory).
+#[derive(Debug, Default)]
+pub struct HealthSeed {
+    pub monitor: Option<SensorHealth>,
+    pub record: Option<Arc<CalibrationRecord>>,
+}
+
+/// One declared co-located pair, shared by the workers of its two sensors.
+#[derive(Debug)]
+pub struct PairSlot {
+    pub a: SensorId,
+    pub b: SensorId,
+    config: PairConfig,
+    state: Mutex<PairState>,
+}
+
+#[derive(Debug, Default)]
+struct PairState {
+    /// The records in force of A and B.
+    records: [Option<Arc<CalibrationRecord>>; 2],
+    /// The check for those two records; made when both are known.
+    pair: Option<ColocatedPair>,
+    /// The records' versions the check was refused for (logged once).
+    refused: Option<(u64, u64)>,
+}
+
+/// A pair's tests as one of its sensors reports them.
+#[derive(Debug, Clone)]
+pub struct PairTests {
+    pub peer: SensorId,
+    pub absolute: [TestReport; 3],
+    pub relative: [TestReport; 3],
+}
+
+impl PairSlot {
+    fn lock(&self) -> std::sync::MutexGuard<'_, PairState> {
+        // Replaced whole or fed a batch at a time: a consistent pair after any panic.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Which side `sensor` is: 0 for A, 1 for B.
+    fn side(&self, sensor: &SensorId) -> usize {
+        usize::from(sensor == &self.b)
+    }
+
+    /// A new record of one of the two sensors: the pair's check starts afresh.
+    pub fn set_record(&self, record: Arc<CalibrationRecord>) {
+        let side = self.side(&record.sensor_id);
+        let mut s = self.lock();
+        s.records[side] = Some(record);
+        s.pair = None;
+    }
+
+    /// Feeds `sensor`'s corrected readings of a batch corrected with `version`.
+    pub fn feed(
+        &self,
+        sensor: &SensorId,
+        version: u64,
+        timestamp_ns: i64,
+        sample_rate_hz: f64,
+        accel_mps2: &[[f64; 3]],
+    ) {
+        let side = self.side(sensor);
+        let mut s = self.lock();
+        if s.records[side].as_ref().map(|r| r.version) != Some(version) {
+            return;
+        }
+        let Some(pair) = self.ready(&mut s) else {
+            return;
+        };
+        if side == 0 {
+            pair.feed_a(timestamp_ns, sample_rate_hz, accel_mps2);
+        } else {
+            pair.feed_b(timestamp_ns, sample_rate_hz, accel_mps2);
+        }
+    }
+
+    /// The pair's check for the records in force, made on first need.
+    fn ready<'s>(&self, s: &'s mut PairState) -> Option<&'s mut ColocatedPair> {
+        if s.pair.is_none() {
+            let (Some(ra), Some(rb)) = (&s.records[0], &s.records[1]) else {
+                return None;
+            };
+            let versions = (ra.version, rb.version);
+            if s.refused == Some(versions) {
+                return None;
+            }
+            match ColocatedPair::new(ra, rb, &self.config) {
+                Ok(p) => s.pair = Some(p),
+                Err(e) => {
+                    tracing::error!(a = %self.a, b = %self.b, cause = %e,
+                        "no co-located check for this pair's records");
+                    s.refused = Some(versions);
+                    return None;
+                }
+            }
+        }
+        s.pair.as_mut()
+    }
+
+    /// The pair's tests for `sensor`'s report, when its record `version` is the one judged.
+    pub fn tests_for(&self, sensor: &SensorId, version: u64) -> Option<PairTests> {
+        let side = self.side(sensor);
+        let s = self.lock();
+        if s.records[side].as_ref().map(|r| r.version) != Some(version) {
+            return None;
+        }
+        let pair = s.pair.as_ref()?;
+        Some(PairTests {
+            peer: if side == 0 {
+                self.b.clone()
+            } else {
+                self.a.clone()
+            },
+            absolute: pair.absolute_report(),
+            relative: pair.relative_report(),
+        })
+    }
+}
+
+/// Every declared pair, by sensor.
+#[derive(Debug, Default)]
+pub struct Pairs {
+    by_sensor: HashMap<SensorId, Vec<Arc<PairSlot>>>,
+}
+
+impl Pairs {
+    pub fn new(settings: &[ColocatedSettings]) -> Pairs {
+        let mut by_sensor: HashMap<SensorId, Vec<Arc<PairSlot>>> = HashMap::new();
+        for p in settings {
+            let slot = Arc::new(PairSlot {
+                a: p.a.clone(),
+                b: p.b.clone(),
+                config: p.pair.clone(),
+                state: Mutex::new(PairState::default()),
+            });
+            for id in [&p.a, &p.b] {
+                by_sensor.entry(id.clone()).or_default().push(slot.clone());
+            }
+        }
+        Pairs { by_sensor }
+    }
+
+    /// The pairs `sensor` is in.
+    pub fn of(&self, sensor: &SensorId) -> &[Arc<PairSlot>] {
+        self.by_sensor.get(sensor).map_or(&[], Vec::as_slice)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_clock_is_watched_beyond_its_bound_and_never_suspect() {
+        let q = |min_ms| Quality {
+            latency_min_ms: min_ms,
+            ..Quality::default()
+        };
+        assert_eq!(
+            q(Some(1500.0)).clock_test(Some(1000.0)).verdict,
+            HealthVerdict::Watch
+        );
+        assert_eq!(
+            q(Some(-1500.0)).clock_test(Some(1000.0)).verdict,
+            HealthVerdict::Watch
+        );
+        let fine = q(Some(3.0)).clock_test(Some(1000.0));
+        assert_eq!(
+            (fine.verdict, fine.judged, fine.statistic),
+            (HealthVerdict::Ok, true, Some(3.0))
+        );
+        let off = q(Some(1e9)).clock_test(None);
+        assert_eq!((off.verdict, off.judged), (HealthVerdict::Ok, false));
+        assert!(!q(None).clock_test(Some(1000.0)).judged);
+    }
+
+    #[test]
+    fn the_flag_rule_takes_the_record_and_the_time() {
+        let latch = Some((3, 1_000));
+        assert_eq!(
+            suspect_flag(latch, Some(3), 1_000),
+            flags::CALIBRATION_SUSPECT
+        );
+        assert_eq!(suspect_flag(latch, Some(3), 999), 0, "before the mark");
+        assert_eq!(suspect_flag(latch, Some(4), 5_000), 0, "another record");
+        assert_eq!(suspect_flag(latch, None, 5_000), 0, "uncalibrated");
+        assert_eq!(suspect_flag(None, Some(3), 5_000), 0);
+    }
 }

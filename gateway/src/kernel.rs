@@ -526,6 +526,11 @@ pub struct Scratch {
 }
 
 impl Scratch {
+    /// The last calibrated batch's corrected accelerations, m/s².
+    pub fn corrected(&self) -> &[[f64; 3]] {
+        &self.a
+    }
+
     fn load(&mut self, raw: &RawBatchView<'_>) {
         let n = raw.len();
         raw.samples_f64_into(&mut self.v);

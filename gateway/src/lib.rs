@@ -263,8 +263,8 @@ async fn open_and_load(
             let corrector = Corrector::from_record(&record);
             let health = corrector
                 .as_ref()
-                .ok()
-                .and_then(|c| t.health_monitor(&record, c));
+                .map(|c| t.health_seed(&record, c))
+                .unwrap_or_default();
             (record.sensor_id, record.version, corrector, health)
         })?;
         Ok::<_, StoreError>((scan, store.suspects()?))
@@ -580,6 +580,7 @@ impl Gateway {
             store: store.clone(),
             health: config.health.as_ref().map(|h| health::Reporting {
                 publish_interval_ns: (h.publish_interval_s * 1e9) as i64,
+                clock_watch_ms: h.clock_watch_ms,
             }),
         });
         let (inboxes, shards, subscriber) =

@@ -168,7 +168,7 @@ impl Updater {
             Err(e) => return refused(RefusalReason::InvalidRecord, e.to_string()),
         };
         let version = record.version;
-        let health = self.table.health_monitor(&record, &corrector);
+        let health = self.table.health_seed(&record, &corrector);
         let _guard = self.update_lock.lock().await;
         let in_force = self.version_in_force(&record.sensor_id);
         if let Some(current) = in_force.filter(|&c| version < c) {

@@ -45,6 +45,7 @@ use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{Mode, SensorId};
 
 use crate::config::{Config, SensorSettings};
+use crate::health::{HealthSeed, PairSlot, Pairs};
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     // Each guarded value is replaced whole, never left half-written: valid after a panic.
@@ -246,12 +247,21 @@ pub struct SensorTable {
     /// checked when it reaches the front.
     probation: Mutex<VecDeque<SensorId>>,
     pub admission: AdmissionCounters,
+    /// The declared co-located pairs (field health).
+    pairs: Pairs,
 }
 
 impl SensorTable {
     pub fn new(config: Arc<Config>) -> SensorTable {
+        let pairs = Pairs::new(
+            config
+                .health
+                .as_ref()
+                .map_or(&[], |h| h.colocated.as_slice()),
+        );
         SensorTable {
             config,
+            pairs,
             sensors: RwLock::new(HashMap::new()),
             probation: Mutex::new(VecDeque::new()),
             admission: AdmissionCounters::default(),
@@ -379,33 +389,47 @@ impl SensorTable {
         n
     }
 
-    /// Puts `corrector` in force for its sensor from the next batch on, with the health
-    /// monitor made for its record ([`SensorTable::health_monitor`]); returns the version it
+    /// Puts `corrector` in force for its sensor from the next batch on, with what the health
+    /// checks take from its record ([`SensorTable::health_seed`]); returns the version it
     /// replaced. The caller has already made the record durable.
-    pub fn install(&self, corrector: Corrector, health: Option<SensorHealth>) -> Option<u64> {
+    pub fn install(&self, corrector: Corrector, health: HealthSeed) -> Option<u64> {
         let entry = self.entry(corrector.sensor_id());
         // The seed first: a worker that sees the new corrector finds its monitor.
-        *lock(&entry.health_seed) = health.map(Box::new);
+        *lock(&entry.health_seed) = health.monitor.map(Box::new);
+        if let Some(record) = health.record {
+            for pair in self.pairs.of(corrector.sensor_id()) {
+                pair.set_record(record.clone());
+            }
+        }
         let old = entry.corrector.swap(Some(Arc::new(corrector)));
         old.map(|c| c.version())
     }
 
-    /// A health monitor for `record`, loaded as `corrector`; none when health checks are off
-    /// or the record cannot be judged (logged: the sensor is corrected all the same).
-    pub fn health_monitor(
-        &self,
-        record: &CalibrationRecord,
-        corrector: &Corrector,
-    ) -> Option<SensorHealth> {
-        let settings = self.config.health.as_ref()?;
-        match SensorHealth::with_corrector(record, corrector, &settings.checks) {
+    /// What the health checks take from `record`, loaded as `corrector`: its monitor (none
+    /// when health checks are off or the record cannot be judged: logged, and the sensor is
+    /// corrected all the same), and the record itself if the sensor is in a co-located pair.
+    pub fn health_seed(&self, record: &CalibrationRecord, corrector: &Corrector) -> HealthSeed {
+        let Some(settings) = self.config.health.as_ref() else {
+            return HealthSeed::default();
+        };
+        let monitor = match SensorHealth::with_corrector(record, corrector, &settings.checks) {
             Ok(h) => Some(h),
             Err(e) => {
                 tracing::error!(sensor = %record.sensor_id, version = record.version, cause = %e,
                     "no health checks for this record");
                 None
             }
+        };
+        let paired = !self.pairs.of(&record.sensor_id).is_empty();
+        HealthSeed {
+            monitor,
+            record: paired.then(|| Arc::new(record.clone())),
         }
+    }
+
+    /// The co-located pairs `sensor` is in.
+    pub fn pairs_of(&self, sensor: &SensorId) -> Vec<Arc<PairSlot>> {
+        self.pairs.of(sensor).to_vec()
     }
 
     /// Versions in force, for catch-up requests.
@@ -518,10 +542,10 @@ mod tests {
         assert!(e.corrector().is_none());
         assert_eq!(e.status().mode, Mode::None);
         let c1 = Corrector::from_record(&sample::record("s", 1)).unwrap();
-        assert_eq!(t.install(c1, None), None);
+        assert_eq!(t.install(c1, HealthSeed::default()), None);
         let held = e.corrector().unwrap();
         let c2 = Corrector::from_record(&sample::record("s", 2)).unwrap();
-        assert_eq!(t.install(c2, None), Some(1));
+        assert_eq!(t.install(c2, HealthSeed::default()), Some(1));
         assert_eq!(held.version(), 1, "a batch in flight keeps its snapshot");
         assert_eq!(e.calibration_version(), Some(2));
         assert_eq!(t.versions(), [(id, 2)]);
@@ -556,7 +580,7 @@ mod tests {
         // A calibration always gets its entry: it comes signed from the lab.
         t.install(
             Corrector::from_record(&sample::record("c", 1)).unwrap(),
-            None,
+            HealthSeed::default(),
         );
         assert_eq!(t.len(), 3);
         assert!(t.seen(&id("c")).is_some());
@@ -567,7 +591,7 @@ mod tests {
         let t = table(100);
         t.install(
             Corrector::from_record(&sample::record("cal", 1)).unwrap(),
-            None,
+            HealthSeed::default(),
         );
         let mut real_node_batches = 0;
         for i in 0..10_000 {
@@ -611,7 +635,7 @@ mod tests {
         // A calibrated sensor is never forgotten.
         t.install(
             Corrector::from_record(&sample::record("z", 1)).unwrap(),
-            None,
+            HealthSeed::default(),
         );
         assert_eq!(t.expire_idle(i64::MAX), 0);
         assert_eq!(t.len(), 1);

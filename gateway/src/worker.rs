@@ -23,7 +23,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
-use crate::health::{self, HealthFeed};
+use crate::health::{self, HealthFeed, PairSlot};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
 use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
@@ -195,6 +195,8 @@ struct SensorState {
     next_checkpoint_ns: i64,
     since_checkpoint: u32,
     health: HealthFeed,
+    /// The co-located pairs the sensor is in (field health).
+    pairs: Vec<Arc<PairSlot>>,
 }
 
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
@@ -493,6 +495,7 @@ impl Shard {
 impl SensorState {
     fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
         let entry_suspect = entry.suspect();
+        let pairs = shared.table.pairs_of(&entry.id);
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             keys: SensorKeys::new(shared, &entry, false)?,
@@ -503,6 +506,7 @@ impl SensorState {
             next_checkpoint_ns: i64::MIN,
             since_checkpoint: 0,
             health: HealthFeed::new(entry_suspect),
+            pairs,
         })
     }
 
@@ -600,6 +604,17 @@ impl SensorState {
         }
         let received_ns = now_ns();
         c.last_seen_ns.store(received_ns, Relaxed);
+        if let (Some(v), true) = (version, judged != history::Verdict::Duplicate) {
+            let accel = scratch.corrected();
+            // A pair's spectra take whole, finite stretches: a batch with a lost value is a
+            // break for it, as a gap is.
+            if accel.len() == n && accel.iter().flatten().all(|x| x.is_finite()) {
+                for pair in &self.pairs {
+                    let h = &view.header;
+                    pair.feed(&self.entry.id, v, h.timestamp_ns, h.sample_rate_hz, accel);
+                }
+            }
+        }
         let health = shared.health.and_then(|reporting| {
             self.health.observe(
                 &shared.building,
@@ -610,6 +625,7 @@ impl SensorState {
                 judged,
                 received_ns,
                 reporting,
+                &self.pairs,
             )
         });
 

@@ -97,7 +97,8 @@ impl Default for PairConfig {
 }
 
 impl PairConfig {
-    fn validate(&self) -> Result<(), HealthError> {
+    /// Refuses settings that would make the estimate meaningless, by field.
+    pub fn validate(&self) -> Result<(), HealthError> {
         let bad =
             |field: &'static str, problem: String| Err(HealthError::Config { field, problem });
         let [low, high] = self.band_hz;

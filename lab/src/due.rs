@@ -191,6 +191,7 @@ mod tests {
             tests: vec![HealthTest {
                 test: "gravity_relative".into(),
                 channel: None,
+                peer: None,
                 verdict,
                 judged: true,
                 statistic: Some(0.012_34),

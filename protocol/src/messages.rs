@@ -645,6 +645,7 @@ mod tests {
             tests: vec![HealthTest {
                 test: "stuck".into(),
                 channel: Some(2),
+                peer: None,
                 verdict: HealthVerdict::Suspect,
                 judged: true,
                 statistic: Some(12.0),
@@ -801,10 +802,15 @@ impl JsonMessage for SensorHealthReport {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HealthTest {
-    /// `gravity_absolute`, `gravity_relative`, `stuck`, `noise` or `spikes`.
+    /// `gravity_absolute`, `gravity_relative`, `stuck`, `noise`, `spikes`, `clock`,
+    /// `colocated_absolute` or `colocated_relative`.
     pub test: String,
-    /// Output channel 0, 1 or 2 for the per-channel tests; absent for the gravity tests.
+    /// Output channel 0, 1 or 2 for the per-channel tests, the axis of A's frame for the
+    /// co-located tests; null for the others.
     pub channel: Option<u8>,
+    /// The other sensor of a co-located pair (`colocated_*` tests only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peer: Option<SensorId>,
     pub verdict: HealthVerdict,
     /// Whether the test has had the data it needs; a test not yet judged is `ok`.
     pub judged: bool,
@@ -813,7 +819,7 @@ pub struct HealthTest {
     /// Its standard uncertainty (k = 1), in `unit`.
     pub uncertainty: Option<f64>,
     /// `m/s^2` (gravity), `s` (stuck), `ratio` (noise over the record's `output_noise`),
-    /// `1/h` (spikes).
+    /// `1/h` (spikes), `ms` (clock), `1` (co-located: relative gain).
     pub unit: String,
     /// Since when the verdict holds (`watch`, `suspect`), sensor time, ns.
     pub since_ns: Option<i64>,

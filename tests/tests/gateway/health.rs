@@ -164,10 +164,10 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     };
     seed_store(&store, &[record(OK, 11, 1), record(STUCK, 12, 1)]);
     let mut cfg = config(BUILDING, &store);
-    cfg.health
-        .as_mut()
-        .expect("health is on by default")
-        .publish_interval_s = 10.0;
+    let h = cfg.health.as_mut().expect("health is on by default");
+    h.publish_interval_s = 10.0;
+    // Sensor time runs far ahead of the gateway's clock here.
+    h.clock_watch_ms = None;
     let gateway = start(cfg.clone()).await;
     let session = client(&gateway.endpoint).await;
     let (_hs, health) = gather(&session, format!("triax/{BUILDING}/health/*")).await;
@@ -237,9 +237,10 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     // The healthy sensor: never flagged, reports all ok, one every 10 s of sensor time.
     assert!(batches(&corrected, OK).iter().all(|(b, _)| !suspect(b)));
     let ok_reports = reports(&health, OK);
+    let verdicts: Vec<_> = ok_reports.iter().map(|r| r.verdict).collect();
     assert!(
-        ok_reports.iter().all(|r| r.verdict == HealthVerdict::Ok),
-        "{ok_reports:?}"
+        verdicts.iter().all(|v| *v == HealthVerdict::Ok),
+        "{verdicts:?}"
     );
     assert!(
         (17..=19).contains(&ok_reports.len()),
@@ -300,7 +301,10 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     assert_eq!(due.len(), 1);
     assert_eq!(triax_lab::due::due_count(&due), 1);
     let table = triax_lab::due::render(&due, &problems);
-    assert!(table.contains(STUCK) && table.contains("stuck[1]"), "{table}");
+    assert!(
+        table.contains(STUCK) && table.contains("stuck[1]"),
+        "{table}"
+    );
 
     // A restart: the latch holds with fresh tests, on healthy data too.
     gateway.stop().await;
@@ -373,5 +377,140 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     .await
     .unwrap();
     assert!(replayed >= 170, "{replayed}");
+    gateway.stop().await;
+}
+
+/// Two co-located sensors share the building's motion; B's x channel reads 5 % high against
+/// its record (a part changed after its calibration). Within one estimate (five minutes here)
+/// the pair's `colocated_absolute` test on x is `suspect` in both sensors' reports, naming the
+/// other as `peer`; y and z are not; both records are marked and their samples flagged, since
+/// a pair alone cannot tell which of its two changed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_co_located_pair_finds_a_horizontal_gain_change() {
+    const A: &str = "hp-a";
+    const B: &str = "hp-b";
+    const PAIR: &str = "hhealth-pair";
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let truth = field_sensor_truth();
+    let mut ra = calibrate(&truth, 21, A).unwrap();
+    let mut rb = calibrate(&truth, 22, B).unwrap();
+    ra.version = 1;
+    rb.version = 1;
+    seed_store(&store, &[ra, rb]);
+    let mut cfg = config(PAIR, &store);
+    let toml = format!(
+        "[health]\nclock_watch_ms = 0\n[[health.colocated]]\na = \"{A}\"\nb = \"{B}\"\nestimate_s = 300\n"
+    );
+    let parsed = triax_gateway::config::FileConfig::parse(&toml, std::path::Path::new("pair.toml"))
+        .unwrap()
+        .into_config()
+        .unwrap();
+    cfg.health = parsed.health;
+    let gateway = start(cfg).await;
+    let session = client(&gateway.endpoint).await;
+    let (_hs, health) = gather(&session, format!("triax/{PAIR}/health/*")).await;
+    let (_cs, corrected) = gather(&session, format!("triax/{PAIR}/corrected/*")).await;
+
+    let field = |seed| FieldConfig {
+        seed,
+        start_hour: 12.0,
+        batch_samples: 100,
+        ..FieldConfig::default()
+    };
+    let mut a = FieldSensor::new(truth.clone(), field(5));
+    let mut b = FieldSensor::new(truth.clone(), field(6));
+    b.inject(
+        EPOCH_NS,
+        Fault::GainStep {
+            channel: 0,
+            relative: 0.05,
+        },
+    );
+    let mut motion = triax_health::sim::Vibration::new(7, 100.0);
+    let mut publishers = Vec::new();
+    for id in [A, B] {
+        let p = session
+            .declare_publisher(key_raw(PAIR, id))
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .await
+            .unwrap();
+        wait_matching(&p).await;
+        publishers.push(p);
+    }
+    let (mut shared, mut samples) = (Vec::new(), Vec::new());
+    const BATCHES: u64 = 420;
+    for sequence in 0..BATCHES {
+        motion.batch(0.02, 100, &mut shared);
+        for (id, (sensor, p)) in [A, B]
+            .iter()
+            .zip([&mut a, &mut b].into_iter().zip(&publishers))
+        {
+            let info = sensor.next_batch_with(&mut samples, &shared);
+            let batch = RawBatch {
+                header: BatchHeader {
+                    sensor_id: SensorId::new(*id).unwrap(),
+                    sequence,
+                    timestamp_ns: info.timestamp_ns,
+                    sample_rate_hz: info.sample_rate_hz,
+                },
+                temperature_c: info.temperature_c,
+                samples: samples.clone(),
+            };
+            p.put(batch.encode()).await.unwrap();
+        }
+    }
+    wait_until("the last batches published", || {
+        [A, B].iter().all(|s| {
+            batches(&corrected, s)
+                .iter()
+                .any(|(b, _)| b.header.sequence == BATCHES - 1)
+        })
+    })
+    .await;
+    wait_until("both sensors reported suspect", || {
+        [A, B].iter().all(|s| {
+            reports(&health, s)
+                .iter()
+                .any(|r| r.verdict == HealthVerdict::Suspect)
+        })
+    })
+    .await;
+    for (me, peer) in [(A, B), (B, A)] {
+        let r = reports(&health, me)
+            .into_iter()
+            .find(|r| r.verdict == HealthVerdict::Suspect)
+            .unwrap();
+        let pair: Vec<_> = r.tests.iter().filter(|t| t.peer.is_some()).collect();
+        assert_eq!(pair.len(), 6, "absolute and relative per axis: {pair:?}");
+        assert!(pair
+            .iter()
+            .all(|t| t.peer.as_ref().unwrap().as_str() == peer));
+        let suspect_tests: Vec<_> = r
+            .tests
+            .iter()
+            .filter(|t| t.verdict == HealthVerdict::Suspect)
+            .map(|t| (t.test.as_str(), t.channel))
+            .collect();
+        assert_eq!(
+            suspect_tests,
+            [("colocated_absolute", Some(0))],
+            "{me}: {:?}",
+            r.tests
+        );
+        let x = pair
+            .iter()
+            .find(|t| t.test == "colocated_absolute" && t.channel == Some(0))
+            .unwrap();
+        let d = x.statistic.unwrap();
+        assert!(
+            (d - 0.05).abs() < 5.0 * x.uncertainty.unwrap(),
+            "{me}: r − 1 = {d}"
+        );
+        let flagged_from = r.flagged_from_ns.unwrap();
+        assert!(batches(&corrected, me)
+            .iter()
+            .all(|(b, _)| suspect(b) == (b.header.timestamp_ns >= flagged_from)));
+    }
     gateway.stop().await;
 }
