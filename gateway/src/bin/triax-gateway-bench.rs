@@ -18,7 +18,9 @@
 //! - `gateway-backpressure`: the same with `overload = "backpressure"`: corrected on Zenoh's
 //!   receive thread, no queue;
 //! - `gateway-no-history`: the default gateway with its history off: what keeping every batch
-//!   on disk costs, in the same run.
+//!   on disk costs, in the same run;
+//! - `gateway-no-health`: the default gateway with its field health checks off: what they
+//!   cost, in the same run.
 //!
 //! For each:
 //!
@@ -201,6 +203,7 @@ enum System {
     Gateway,
     GatewayBackpressure,
     GatewayNoHistory,
+    GatewayNoHealth,
 }
 
 impl System {
@@ -211,6 +214,7 @@ impl System {
             System::Gateway => "gateway",
             System::GatewayBackpressure => "gateway-backpressure",
             System::GatewayNoHistory => "gateway-no-history",
+            System::GatewayNoHealth => "gateway-no-health",
         }
     }
 }
@@ -396,7 +400,10 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
 
     let server = match system {
         System::Relay | System::KeyedRelay => Server::spawn(system, None, port)?,
-        System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
+        System::Gateway
+        | System::GatewayBackpressure
+        | System::GatewayNoHistory
+        | System::GatewayNoHealth => {
             let n = args.sensors;
             let sp = store_path.clone();
             tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
@@ -418,11 +425,12 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
                 System::Relay | System::KeyedRelay => RawBatch::decode(&bytes)
                     .ok()
                     .map(|b| (b.header, b.samples.len())),
-                System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
-                    CorrectedBatch::decode(&bytes)
-                        .ok()
-                        .map(|b| (b.header, b.samples.len()))
-                }
+                System::Gateway
+                | System::GatewayBackpressure
+                | System::GatewayNoHistory
+                | System::GatewayNoHealth => CorrectedBatch::decode(&bytes)
+                    .ok()
+                    .map(|b| (b.header, b.samples.len())),
             };
             if let Some((h, n)) = header {
                 r.samples.fetch_add(n as u64, Relaxed);
@@ -733,6 +741,25 @@ fn report_building(results: &[(System, BuildingResult)]) {
             );
         }
     }
+    for (a, b) in [
+        (System::Gateway, System::GatewayNoHealth),
+        (System::Gateway, System::GatewayNoHistory),
+    ] {
+        for (_, on) in results.iter().filter(|(s, _)| *s == a) {
+            if let Some((_, off)) = results
+                .iter()
+                .find(|(s, r)| *s == b && r.sensors == on.sensors)
+            {
+                println!(
+                    "- {} / {} at {} sensors: CPU per batch {:.3}×",
+                    a.name(),
+                    b.name(),
+                    on.sensors,
+                    on.server_us_per_batch / off.server_us_per_batch
+                );
+            }
+        }
+    }
 }
 
 fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
@@ -872,12 +899,16 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
             std::future::pending::<()>().await;
             Ok(())
         }
-        System::Gateway | System::GatewayBackpressure | System::GatewayNoHistory => {
+        System::Gateway
+        | System::GatewayBackpressure
+        | System::GatewayNoHistory
+        | System::GatewayNoHealth => {
             let store = store.context("--store")?;
             let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
             match system {
                 System::GatewayBackpressure => config.overload = Overload::Backpressure,
                 System::GatewayNoHistory => config.history = None,
+                System::GatewayNoHealth => config.health = None,
                 _ => {}
             }
             // Experiments with the key budget (inherited from the bench's environment).
@@ -1095,6 +1126,7 @@ fn main() -> Result<()> {
             System::Gateway,
             System::GatewayBackpressure,
             System::GatewayNoHistory,
+            System::GatewayNoHealth,
         ];
         let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
         if !args.no_throughput {
