@@ -7,9 +7,13 @@ use triax_modal::{identify, Direction, SsiConfig};
 
 use crate::util::{find, true_shape_like};
 
-/// 200 windows of 30 minutes of the five-storey building (the same building, independent
-/// forces and noise): the share of windows whose stated 95 % interval holds the truth, per
-/// mode, for frequency, damping and the shape's in-phase components.
+/// 600 windows (`WINDOWS` to change) of 30 minutes of the five-storey building (the same
+/// building, independent forces and noise): the share of windows whose stated 95 % interval
+/// holds the truth, per mode, for frequency, damping and the shape's in-phase components.
+/// Asserted: each of the first three modes of each direction found in at least 99 % of the
+/// windows, and its frequency covered in 93–97 % of those. Over 200 windows a share's binomial standard
+/// deviation is 1.5 %, so that band is ±1.3σ and a right interval fails it one time in five
+/// per mode; over 600 it is ±2.2σ.
 ///
 /// `cargo test --release -p triax-modal --test modal coverage -- --ignored --nocapture`
 #[test]
@@ -18,7 +22,7 @@ fn coverage() {
     let windows: u64 = std::env::var("WINDOWS")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(200);
+        .unwrap_or(600);
     let building = SimBuilding::five_storey(5);
     let temperature_c = building.frame.reference_temperature_c;
     let config = SsiConfig::default();
@@ -78,7 +82,7 @@ fn coverage() {
             100.0 * worst_error[j],
             min_mac[j]
         );
-        if found[j] < windows as usize || !(0.93..=0.97).contains(&share(f_in[j])) {
+        if (found[j] as f64) < 0.99 * windows as f64 || !(0.93..=0.97).contains(&share(f_in[j])) {
             failures.push(format!("{:?}{}", truth.direction, truth.number));
         }
     }
