@@ -25,6 +25,11 @@ use triax_protocol::{BuildingId, SensorId};
 /// triax/<building>/buffer/<sensor> queries.
 #[derive(Debug, Parser)]
 #[command(name = "triax-node", version)]
+// The node reaches out (`outbound_config`): say so where the shared flag is described.
+#[command(mut_arg("listen", |a| a
+    .help("Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeat or comma-separate). \
+           Default: none, the node only connects (--connect, or multicast scouting), unless a \
+           --zenoh-config file lists listen endpoints")))]
 struct Cli {
     /// Building id (A-Z a-z 0-9 _ -).
     #[arg(long, env = "TRIAX_BUILDING")]
