@@ -113,8 +113,24 @@ fn above(threshold: f64) -> Limit {
     }
 }
 
-/// Default of [`Config::state_path`].
-pub const DEFAULT_STATE_PATH: &str = "triax-alert-state.json";
+/// Default of [`Config::state_path`], under the user's state directory
+/// (`$XDG_STATE_HOME`, else `$HOME/.local/state`), as services keep state.
+pub const DEFAULT_STATE_PATH: &str = "triax-alert/state.json";
+
+/// The default state path; in the working directory only when neither `XDG_STATE_HOME` nor
+/// `HOME` is set (a bare container).
+pub fn default_state_path() -> PathBuf {
+    let var = |k| {
+        std::env::var_os(k)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    match (var("XDG_STATE_HOME"), var("HOME")) {
+        (Some(x), _) => x.join(DEFAULT_STATE_PATH),
+        (None, Some(h)) => h.join(".local/state").join(DEFAULT_STATE_PATH),
+        (None, None) => PathBuf::from("triax-alert-state.json"),
+    }
+}
 
 /// Settings of the window and decision logic, shared by every sensor.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -348,7 +364,7 @@ impl FileConfig {
             watch_all_buildings: self.watch_all_buildings,
             // Empty: no state kept.
             state_path: match self.state_path {
-                None => Some(PathBuf::from(DEFAULT_STATE_PATH)),
+                None => Some(default_state_path()),
                 Some(p) if p.as_os_str().is_empty() => None,
                 Some(p) => Some(p),
             },

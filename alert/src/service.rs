@@ -194,6 +194,9 @@ fn load_state(path: &Path) -> Result<Positions, ServiceError> {
 
 /// Writes the resume state whole or not at all (a new file renamed over the old).
 fn save_state(path: &Path, positions: &Positions) -> std::io::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
     let tmp = path.with_extension("tmp");
     // A map of ids to numbers always serialises.
     let body = serde_json::to_vec(positions).expect("positions serialise");
