@@ -307,6 +307,8 @@ fn statement(
         AlertKind::DominantFrequency => "dominant frequency",
         AlertKind::TiltChange => "tilt change from baseline",
         AlertKind::Stale => "silence",
+        // Raised by the modal service, never by this monitor; named for completeness.
+        AlertKind::ModalShift => "building mode frequency",
     };
     let level = match j.level {
         AlertLevel::Exceeded => "exceeded",

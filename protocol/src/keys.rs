@@ -14,6 +14,7 @@
 //! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
 //! triax/<building>/health/<sensor>               SensorHealthReport (JSON), gateway → lab, operators
 //! triax/<building>/buffer/<sensor>               node's buffer query → raw batches (binary), gateway → node
+//! triax/<building>/modes                         BuildingModes (JSON), modal service → operators
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -162,6 +163,8 @@ pub enum Key {
     Health(BuildingId, SensorId),
     /// A sensor node's buffer of the raw batches it sent (its queryable, for backfill).
     Buffer(BuildingId, SensorId),
+    /// The building's modes identified over each window (the modal service's publications).
+    Modes(BuildingId),
 }
 
 /// Why a key string is not a Triax key.
@@ -194,7 +197,8 @@ impl Key {
             | Key::Heartbeat(b)
             | Key::Alerting(b)
             | Key::Health(b, _)
-            | Key::Buffer(b, _) => b,
+            | Key::Buffer(b, _)
+            | Key::Modes(b) => b,
         }
     }
 
@@ -209,9 +213,11 @@ impl Key {
             | Key::History(_, s)
             | Key::Health(_, s)
             | Key::Buffer(_, s) => Some(s),
-            Key::CalibrationRegistry(_) | Key::Status(_) | Key::Heartbeat(_) | Key::Alerting(_) => {
-                None
-            }
+            Key::CalibrationRegistry(_)
+            | Key::Status(_)
+            | Key::Heartbeat(_)
+            | Key::Alerting(_)
+            | Key::Modes(_) => None,
         }
     }
 
@@ -241,6 +247,7 @@ impl Key {
             ["alerting"] => Key::Alerting(b),
             ["health", s] => Key::Health(b, sensor(s)?),
             ["buffer", s] => Key::Buffer(b, sensor(s)?),
+            ["modes"] => Key::Modes(b),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -262,6 +269,7 @@ impl fmt::Display for Key {
             Key::Alerting(b) => write!(f, "{ROOT}/{b}/alerting"),
             Key::Health(b, s) => write!(f, "{ROOT}/{b}/health/{s}"),
             Key::Buffer(b, s) => write!(f, "{ROOT}/{b}/buffer/{s}"),
+            Key::Modes(b) => write!(f, "{ROOT}/{b}/modes"),
         }
     }
 }
@@ -417,6 +425,7 @@ mod tests {
             Key::Alerting(b("hq")),
             Key::Health(b("hq"), s("acc-01")),
             Key::Buffer(b("hq"), s("acc-01")),
+            Key::Modes(b("hq")),
         ];
         for k in keys {
             let text = k.to_string();

@@ -342,6 +342,9 @@ pub enum AlertKind {
     DominantFrequency,
     TiltChange,
     Stale,
+    /// A building mode's frequency moved beyond what the environment explains (the modal
+    /// service, §3.10).
+    ModalShift,
 }
 
 /// Decision under uncertainty, ISO/IEC 17025 §7.8.6 style with a guard band of k·u.
@@ -493,6 +496,173 @@ impl SignedAlert {
         let mut m = ALERT_SIGNING_CONTEXT.to_vec();
         m.extend_from_slice(alert_json.as_bytes());
         m
+    }
+}
+
+/// A value with its standard uncertainty, degrees of freedom and the interval it claims:
+/// `value ± coverage_factor · standard_uncertainty` holds the truth with probability
+/// `coverage_probability`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalEstimate {
+    pub value: f64,
+    pub standard_uncertainty: f64,
+    /// Degrees of freedom; `null` in JSON when infinite.
+    #[serde(with = "finite_or_null")]
+    pub dof: f64,
+    pub coverage_factor: f64,
+    pub coverage_probability: f64,
+}
+
+/// JSON has no infinity: an infinite (or NaN) number travels as `null` and comes back infinite.
+mod finite_or_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() {
+            s.serialize_f64(*v)
+        } else {
+            s.serialize_none()
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+    }
+}
+
+/// A horizontal (or vertical) direction of a building's frame (`z` up).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModalDirection {
+    X,
+    Y,
+    Z,
+}
+
+/// The tracker's judgement of a mode's frequency against its environmental baseline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModalVerdict {
+    /// The track's baseline is still being fitted.
+    Training,
+    /// The residual's interval is clear of the threshold.
+    Normal,
+    /// The residual's interval reaches the threshold.
+    Possible,
+    /// Even the near end of the residual's interval is beyond the threshold.
+    Shift,
+}
+
+/// One component of a mode shape: one sensor's motion along one direction, relative to the
+/// shape's reference component (exactly 1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModeShapeComponent {
+    pub sensor_id: SensorId,
+    pub direction: ModalDirection,
+    /// In-phase part.
+    pub real: ModalEstimate,
+    /// Quadrature part.
+    pub imag: ModalEstimate,
+}
+
+/// One identified mode, with its track's judgement.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModeReport {
+    /// The track the mode joined (stable across windows and restarts); absent when the window
+    /// was not tracked.
+    pub track: Option<u64>,
+    /// Direction carrying most of the shape's energy.
+    pub direction: ModalDirection,
+    pub frequency_hz: ModalEstimate,
+    /// Fraction of critical damping.
+    pub damping_ratio: ModalEstimate,
+    pub shape: Vec<ModeShapeComponent>,
+    /// Index in `shape` of the component the shape is normalised to.
+    pub reference_component: usize,
+    /// Model order of the representative pole, orders it was stable at, and jackknife
+    /// replicates it was found in.
+    pub order: usize,
+    pub stable_orders: usize,
+    pub replicates: usize,
+    /// The baseline's frequency at this window's regressors, Hz; absent while training.
+    pub predicted_hz: Option<f64>,
+    /// `(f − predicted) / predicted` with a prediction's uncertainty and the guard band's
+    /// coverage; absent while training.
+    pub residual_relative: Option<ModalEstimate>,
+    pub verdict: Option<ModalVerdict>,
+    /// The mean relative residual of the block of windows this window completed, and its
+    /// verdict; absent except on a block's last window.
+    pub block_mean_relative: Option<ModalEstimate>,
+    pub block_verdict: Option<ModalVerdict>,
+}
+
+/// A mode selected in the stabilisation diagram but found in too few jackknife replicates to
+/// be given an uncertainty: shown, never tracked.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UnquantifiedModeReport {
+    pub frequency_hz: f64,
+    pub damping_ratio: f64,
+    pub replicates: usize,
+}
+
+/// How much of one sensor's stream a window could use.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalSensorCoverage {
+    pub sensor_id: SensorId,
+    /// Grid points of the window.
+    pub samples: u64,
+    /// Points left invalid: a quality flag on the sample, no sample (a gap), or a sample off
+    /// the grid by more than the alignment tolerance (or at another rate).
+    pub flagged: u64,
+    pub missing: u64,
+    pub misaligned: u64,
+    /// Calibration versions of the batches used.
+    pub calibration_versions: Vec<u64>,
+}
+
+/// The modes of a building over one window, published on `triax/<building>/modes` by the modal
+/// service and kept, one per line, in its record.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BuildingModes {
+    pub format_version: u32,
+    pub building: BuildingId,
+    /// The window's grid: first point and the end (exclusive), ns since the Unix epoch by the
+    /// sensors' clocks, and its rate, Hz.
+    pub window_start_ns: i64,
+    pub window_end_ns: i64,
+    pub sample_rate_hz: f64,
+    /// Rate identification ran at after decimation, Hz (0 when refused).
+    pub identification_rate_hz: f64,
+    pub sensors: Vec<ModalSensorCoverage>,
+    /// Mean temperature over the window from the configured source, °C; absent when none is
+    /// configured or it gave nothing in the window.
+    pub temperature_c: Option<f64>,
+    /// The regressors the tracker was given, temperature first (empty: none).
+    pub regressors: Vec<f64>,
+    /// Whether the tracker judged this window (not when refused, or when a configured
+    /// regressor was missing).
+    pub tracked: bool,
+    pub modes: Vec<ModeReport>,
+    pub unquantified: Vec<UnquantifiedModeReport>,
+    /// Why the window gave no identification; absent when it did.
+    pub refused: Option<String>,
+    /// Some of the window's batches were read back from the gateway's history.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub late: bool,
+    #[serde(with = "time::serde::rfc3339")]
+    pub identified_at: OffsetDateTime,
+}
+
+impl JsonMessage for BuildingModes {
+    const WHAT: &'static str = "building modes";
+    fn format_version(&self) -> u32 {
+        self.format_version
     }
 }
 

@@ -290,7 +290,7 @@
   // The alert log (/api/alerts), filtered by the URL's query. The table is built once per
   // route; refreshes update rows in place by alert id, so a row under the cursor, an open
   // statement or a ticked box stays as it is while alerts arrive.
-  const KINDS = ['peak_acceleration', 'rms_acceleration', 'dominant_frequency', 'tilt_change', 'stale'];
+  const KINDS = ['peak_acceleration', 'rms_acceleration', 'dominant_frequency', 'tilt_change', 'stale', 'modal_shift'];
   const LEVELS = ['exceeded', 'possible', 'stale', 'unverified'];
   const STATES = ['all', 'open', 'acknowledged', 'silenced'];
   const SINCE = [['', 'any time'], ['3600', 'last 1 h'], ['86400', 'last 24 h'], ['604800', 'last 7 d'], ['2592000', 'last 30 d']];
