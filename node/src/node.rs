@@ -239,11 +239,12 @@ pub async fn run(
     tokio::pin!(shutdown);
     tokio::select! {
         () = &mut shutdown => {}
-        r = ended_rx => match r {
-            Ok(r) => source_result = r,
-            // The sampler ended without a word: it panicked; its join says so below.
-            Err(_) => {}
-        },
+        r = ended_rx => {
+            // Without a word the sampler panicked; the node stops all the same.
+            if let Ok(r) = r {
+                source_result = r;
+            }
+        }
     }
     stop.store(true, Ordering::Relaxed);
     let sampler_done = wait_thread(sampler, STOP_WAIT).await;

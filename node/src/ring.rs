@@ -325,6 +325,7 @@ impl Ring {
         };
         inner.record.clear();
         encode_record(&mut inner.record, sequence, payload);
+        // `roll` pushed the segment the writer appends to, or returned its error.
         let seg = inner
             .segments
             .back_mut()
