@@ -12,7 +12,9 @@
 //! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
 //! | `/api/trend?building=&sensor=&from_ns=&to_ns=` | per-minute aggregates, up to 7 days ([`crate::trend`]) |
 //! | `/api/spectrum?building=&sensor=&from_ns=&to_ns=[&segment=]` | PSD per axis with its band, up to 1 h ([`crate::spectrum`]) |
+//! | `/api/spectrogram?building=&sensor=&from_ns=&to_ns=[&axis=&segment=&columns=]` | one axis's PSD per column of time, up to 1 h ([`crate::spectrum::Spectrogram`]) |
 //! | `/api/export.csv?building=&sensor=&from_ns=&to_ns=` | every sample of up to 1 h, as CSV |
+//! | `/api/export.mseed?building=&sensor=&from_ns=&to_ns=[&network=]` | every calibrated sample of up to 1 h, as miniSEED 2 |
 //! | `/events[?building=&sensor=&span_s=&width=]` | Server-Sent Events: `fleet` every second; with a sensor, `live` and `tilt` |
 //!
 //! Anything else is 404; an unknown or malformed parameter or body field is 400 naming it.
@@ -226,6 +228,26 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             p.only(&["building", "sensor", "from_ns", "to_ns", "segment"])?;
             let body = spectrum(ctx, &p).await?;
             ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/spectrogram" => {
+            p.only(&[
+                "building", "sensor", "from_ns", "to_ns", "axis", "segment", "columns",
+            ])?;
+            let body = spectrogram(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/export.mseed" => {
+            p.only(&["building", "sensor", "from_ns", "to_ns", "network"])?;
+            let (name, body) = export_mseed(ctx, &p).await?;
+            let _ = http::respond_download(
+                stream,
+                "application/vnd.fdsn.mseed",
+                &name,
+                &body,
+                head_only,
+            )
+            .await;
+            Ok(())
         }
         "/api/export.csv" => {
             p.only(&["building", "sensor", "from_ns", "to_ns"])?;
@@ -809,6 +831,122 @@ async fn spectrum(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Re
         (Err(_), Err(e)) => serde_json::json!({ "error": e }),
     };
     Ok(answer)
+}
+
+async fn spectrogram(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    use crate::spectrum::{SpectrumError, DEFAULT_COLUMNS, MAX_COLUMNS};
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let axis = match p.get("axis").unwrap_or("x") {
+        "x" => 0,
+        "y" => 1,
+        "z" => 2,
+        v => {
+            return Err(Refusal::new(
+                400,
+                format!("parameter \"axis\": {v:?} is not x, y or z"),
+            ))
+        }
+    };
+    let segment = match p.get("segment") {
+        None => None,
+        Some(_) => Some(p.int(
+            "segment",
+            None,
+            crate::spectrum::MIN_SEGMENT as i64..=crate::spectrum::MAX_SPECTROGRAM_SEGMENT as i64,
+        )? as usize),
+    };
+    let columns = p.int(
+        "columns",
+        Some(DEFAULT_COLUMNS as i64),
+        10..=MAX_COLUMNS as i64,
+    )? as usize;
+    let mut c = crate::spectrum::Collector::new(from_ns, to_ns);
+    let read = read_history(ctx, &b, &s, from_ns, to_ns, &mut |batch| c.push(batch)).await?;
+    Ok(match (c.spectrogram(axis, segment, columns), read) {
+        (Err(e @ SpectrumError::SpectrogramSegment(_)), _) => {
+            return Err(Refusal::new(400, format!("parameter \"segment\": {e}")))
+        }
+        (Ok(g), Ok(n)) => serde_json::json!({ "batches_read": n, "spectrogram": g }),
+        (Ok(g), Err(e)) => serde_json::json!({ "error": e, "spectrogram": g }),
+        (Err(e), Ok(n)) => serde_json::json!({ "batches_read": n, "error": e.to_string() }),
+        (Err(_), Err(e)) => serde_json::json!({ "error": e }),
+    })
+}
+
+/// Every calibrated sample of up to an hour as miniSEED 2, written by the export's own code
+/// ([`triax_client::mseed`]): the nine channels of the sensor (acceleration, standard
+/// uncertainty, flags per axis) in one file of 512-byte records, the day files of an SDS tree
+/// laid end to end (miniSEED readers take records in any order). The records are staged in a
+/// temporary directory, since the writer makes an archive, and read back.
+async fn export_mseed(ctx: &Context, p: &Params<'_>) -> Result<(String, Vec<u8>), Refusal> {
+    use triax_client::mseed::SdsWriter;
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let network = p.get("network").unwrap_or("XX");
+    let internal = |what: &str, e: &dyn std::fmt::Display| {
+        tracing::warn!(cause = %e, "miniSEED export: {what}");
+        Refusal::new(500, format!("miniSEED export: {what}: {e}"))
+    };
+    let dir = tempfile::Builder::new()
+        .prefix("triax-console-mseed-")
+        .tempdir()
+        .map_err(|e| internal("a temporary directory", &e))?;
+    let mut writer = SdsWriter::new(dir.path(), network, Default::default())
+        .map_err(|e| Refusal::new(400, format!("parameter \"network\": {e}")))?;
+    let mut failed: Option<triax_client::mseed::MseedError> = None;
+    let read = read_history(ctx, &b, &s, from_ns, to_ns, &mut |batch| {
+        if failed.is_some() {
+            return;
+        }
+        if let Some(within) = trimmed(batch, from_ns, to_ns) {
+            if let Err(e) = writer.push(&within) {
+                failed = Some(e);
+            }
+        }
+    })
+    .await?;
+    if let Err(e) = read {
+        return Err(Refusal::new(502, format!("history of {b}/{s}: {e}")));
+    }
+    if let Some(e) = failed {
+        return Err(Refusal::new(
+            422,
+            format!("miniSEED export of {b}/{s}: {e}"),
+        ));
+    }
+    let staged = writer.stage().map_err(|e| internal("staging", &e))?;
+    let written = staged.commit().map_err(|e| internal("writing", &e))?;
+    let mut body = Vec::new();
+    for path in written.keys() {
+        let bytes = std::fs::read(path).map_err(|e| internal("reading back", &e))?;
+        body.extend_from_slice(&bytes);
+    }
+    Ok((format!("{b}_{s}_{from_ns}_{to_ns}.mseed"), body))
+}
+
+/// The samples of `batch` within `[from_ns, to_ns)`, as a batch starting at the first of
+/// them, so that an export holds the view's samples and no others (the CSV's rule).
+fn trimmed(
+    batch: &triax_protocol::batch::CorrectedBatch,
+    from_ns: i64,
+    to_ns: i64,
+) -> Option<triax_protocol::batch::CorrectedBatch> {
+    let h = &batch.header;
+    let period_ns = 1e9 / h.sample_rate_hz;
+    let at = |i: usize| h.timestamp_ns.saturating_add((i as f64 * period_ns) as i64);
+    let keep: Vec<usize> = (0..batch.samples.len())
+        .filter(|&i| (from_ns..to_ns).contains(&at(i)))
+        .collect();
+    let (&first, &last) = (keep.first()?, keep.last()?);
+    let mut out = batch.clone();
+    out.samples = batch.samples[first..=last].to_vec();
+    out.header.timestamp_ns = at(first);
+    if first > 0 {
+        // A gap or a duplicate is said on the batch's first sample, which is not in the range.
+        out.batch_flags &= !triax_protocol::batch::flags::BATCH_ONLY;
+    }
+    Some(out)
 }
 
 fn mode_name(m: triax_protocol::batch::Mode) -> &'static str {

@@ -23,6 +23,12 @@ pub const MAX_SAMPLES: usize = 1_000_000;
 pub const MAX_SEGMENT: usize = 16_384;
 /// Shortest segment.
 pub const MIN_SEGMENT: usize = 64;
+/// Longest segment of a spectrogram: 513 frequencies per column keeps its answer within a
+/// few hundred kilobytes at the most columns.
+pub const MAX_SPECTROGRAM_SEGMENT: usize = 1024;
+/// Columns of a spectrogram when not asked, and the most.
+pub const DEFAULT_COLUMNS: usize = 200;
+pub const MAX_COLUMNS: usize = 1000;
 
 /// Why no spectrum.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -31,6 +37,8 @@ pub enum SpectrumError {
     TooShort { need: usize, longest: usize },
     #[error("segment of {0} samples: must be a power of two from {MIN_SEGMENT} to {MAX_SEGMENT}")]
     Segment(usize),
+    #[error("segment of {0} samples: must be a power of two from {MIN_SEGMENT} to {MAX_SPECTROGRAM_SEGMENT}")]
+    SpectrogramSegment(usize),
 }
 
 /// The spectrum of one axis.
@@ -73,6 +81,8 @@ pub struct Collector {
 #[derive(Debug)]
 struct Run {
     rate_hz: f64,
+    /// Time of the run's first sample.
+    start_ns: f64,
     next_ns: f64,
     values: [Vec<f32>; 3],
 }
@@ -110,6 +120,7 @@ impl Collector {
             if !continues {
                 self.runs.push(Run {
                     rate_hz: h.sample_rate_hz,
+                    start_ns: t,
                     next_ns: t,
                     values: Default::default(),
                 });
@@ -133,21 +144,12 @@ impl Collector {
                 return Err(SpectrumError::Segment(n));
             }
         }
-        // The rate with the most samples.
-        let mut rates: Vec<(f64, usize)> = Vec::new();
-        for r in &self.runs {
-            match rates.iter_mut().find(|(f, _)| *f == r.rate_hz) {
-                Some((_, n)) => *n += r.values[0].len(),
-                None => rates.push((r.rate_hz, r.values[0].len())),
-            }
-        }
-        let Some(&(fs, _)) = rates.iter().max_by_key(|(_, n)| *n) else {
+        let Some((fs, runs)) = self.main_rate() else {
             return Err(SpectrumError::TooShort {
                 need: segment.unwrap_or(MIN_SEGMENT),
                 longest: 0,
             });
         };
-        let runs: Vec<&Run> = self.runs.iter().filter(|r| r.rate_hz == fs).collect();
         let longest = runs.iter().map(|r| r.values[0].len()).max().unwrap_or(0);
         let n = match segment {
             Some(n) => n,
@@ -161,10 +163,7 @@ impl Collector {
         if longest < n {
             return Err(SpectrumError::TooShort { need: n, longest });
         }
-        let window: Vec<f64> = (0..n)
-            .map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * i as f64 / n as f64).cos())
-            .collect();
-        let w2: f64 = window.iter().map(|w| w * w).sum();
+        let window = hann(n);
         let bins = n / 2 + 1;
         let mut sums = vec![vec![0f64; bins]; 3];
         let mut segments = 0;
@@ -176,17 +175,7 @@ impl Collector {
             while start + n <= len {
                 for (axis, sum) in sums.iter_mut().enumerate() {
                     let seg = &r.values[axis][start..start + n];
-                    let mean = seg.iter().map(|x| f64::from(*x)).sum::<f64>() / n as f64;
-                    for i in 0..n {
-                        re[i] = (f64::from(seg[i]) - mean) * window[i];
-                        im[i] = 0.0;
-                    }
-                    fft(&mut re, &mut im);
-                    for (k, s) in sum.iter_mut().enumerate() {
-                        let p = re[k] * re[k] + im[k] * im[k];
-                        let one_sided = if k == 0 || k == n / 2 { 1.0 } else { 2.0 };
-                        *s += one_sided * p / (fs * w2);
-                    }
+                    add_periodogram(seg, &window, fs, &mut re, &mut im, sum);
                 }
                 segments += 1;
                 start += n / 2;
@@ -232,6 +221,184 @@ impl Collector {
             axes,
             unit: "(m/s²)²/Hz",
         })
+    }
+}
+
+impl Collector {
+    /// The rate with the most samples, and the runs at it.
+    fn main_rate(&self) -> Option<(f64, Vec<&Run>)> {
+        let mut rates: Vec<(f64, usize)> = Vec::new();
+        for r in &self.runs {
+            match rates.iter_mut().find(|(f, _)| *f == r.rate_hz) {
+                Some((_, n)) => *n += r.values[0].len(),
+                None => rates.push((r.rate_hz, r.values[0].len())),
+            }
+        }
+        let &(fs, _) = rates.iter().max_by_key(|(_, n)| *n)?;
+        Some((fs, self.runs.iter().filter(|r| r.rate_hz == fs).collect()))
+    }
+
+    /// A spectrogram of one axis (0 = x, 1 = y, 2 = z) over `[from_ns, to_ns)` in about
+    /// `columns` columns of time: per column, the Welch average of the half-overlapping
+    /// segments whose middle falls in it. The segment (None: the longest power of two that
+    /// fits a column, so that every column of unbroken stream has a segment) is from
+    /// [`MIN_SEGMENT`] to [`MAX_SPECTROGRAM_SEGMENT`]; a column is never shorter than
+    /// [`MIN_SEGMENT`] samples, so a short span has fewer columns.
+    pub fn spectrogram(
+        self,
+        axis: usize,
+        segment: Option<usize>,
+        columns: usize,
+    ) -> Result<Spectrogram, SpectrumError> {
+        if let Some(n) = segment {
+            if !n.is_power_of_two() || !(MIN_SEGMENT..=MAX_SPECTROGRAM_SEGMENT).contains(&n) {
+                return Err(SpectrumError::SpectrogramSegment(n));
+            }
+        }
+        let Some((fs, runs)) = self.main_rate() else {
+            return Err(SpectrumError::TooShort {
+                need: segment.unwrap_or(MIN_SEGMENT),
+                longest: 0,
+            });
+        };
+        let span_ns = (self.to_ns - self.from_ns).max(1);
+        let shortest_column_ns = (MIN_SEGMENT as f64 * 1e9 / fs).ceil() as i64;
+        let column_ns = (span_ns / columns.max(1) as i64).max(shortest_column_ns);
+        let columns = usize::try_from((span_ns + column_ns - 1) / column_ns).unwrap_or(1);
+        let n = match segment {
+            Some(n) => n,
+            None => {
+                let fit = (column_ns as f64 * fs / 1e9) as usize;
+                (1usize << fit.max(1).ilog2()).clamp(MIN_SEGMENT, MAX_SPECTROGRAM_SEGMENT)
+            }
+        };
+        let longest = runs.iter().map(|r| r.values[0].len()).max().unwrap_or(0);
+        if longest < n {
+            return Err(SpectrumError::TooShort { need: n, longest });
+        }
+        let window = hann(n);
+        let bins = n / 2 + 1;
+        let mut sums = vec![vec![0f64; bins]; columns];
+        let mut counts = vec![0usize; columns];
+        let (mut re, mut im) = (vec![0f64; n], vec![0f64; n]);
+        let period_ns = 1e9 / fs;
+        for r in &runs {
+            let values = &r.values[axis.min(2)];
+            let mut start = 0;
+            while start + n <= values.len() {
+                let middle_ns = r.start_ns + (start as f64 + n as f64 / 2.0) * period_ns;
+                let c = ((middle_ns - self.from_ns as f64) / column_ns as f64).floor();
+                if c >= 0.0 && (c as usize) < columns {
+                    let c = c as usize;
+                    add_periodogram(
+                        &values[start..start + n],
+                        &window,
+                        fs,
+                        &mut re,
+                        &mut im,
+                        &mut sums[c],
+                    );
+                    counts[c] += 1;
+                }
+                start += n / 2;
+            }
+        }
+        let frequencies_hz: Vec<f64> = (0..bins).map(|k| k as f64 * fs / n as f64).collect();
+        // The mean over columns finds a tone that lasts, not one loud instant.
+        let mut mean = vec![0f64; bins];
+        let filled = counts.iter().filter(|c| **c > 0).count().max(1) as f64;
+        let db = sums
+            .iter()
+            .zip(&counts)
+            .map(|(sum, &count)| {
+                (count > 0).then(|| {
+                    sum.iter()
+                        .zip(mean.iter_mut())
+                        .map(|(s, m)| {
+                            let psd = s / count as f64;
+                            *m += psd / filled;
+                            // A tenth of a decibel is finer than any colour map shows.
+                            ((10.0 * psd.max(1e-30).log10()) * 10.0).round() as f32 / 10.0
+                        })
+                        .collect()
+                })
+            })
+            .collect();
+        let peak_hz = mean
+            .iter()
+            .enumerate()
+            .skip(2)
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .filter(|(_, p)| **p > 0.0)
+            .map(|(k, _)| frequencies_hz[k]);
+        Ok(Spectrogram {
+            axis: ["x", "y", "z"][axis.min(2)],
+            sample_rate_hz: fs,
+            segment_samples: n,
+            resolution_hz: fs / n as f64,
+            from_ns: self.from_ns,
+            to_ns: self.to_ns,
+            column_ns,
+            frequencies_hz,
+            segments: counts,
+            psd_db: db,
+            peak_hz,
+            unit: "dB re 1 (m/s²)²/Hz",
+        })
+    }
+}
+
+/// The answer of `/api/spectrogram`: one axis's PSD per column of time.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Spectrogram {
+    pub axis: &'static str,
+    pub sample_rate_hz: f64,
+    pub segment_samples: usize,
+    pub resolution_hz: f64,
+    pub from_ns: i64,
+    pub to_ns: i64,
+    /// Column `i` covers `[from_ns + i·column_ns, from_ns + (i+1)·column_ns)`.
+    pub column_ns: i64,
+    pub frequencies_hz: Vec<f64>,
+    /// Segments averaged per column.
+    pub segments: Vec<usize>,
+    /// Per column, per frequency, 10·log10(PSD / 1 (m/s²)²/Hz) to 0.1 dB; null where no
+    /// segment fell (a break in the stream).
+    pub psd_db: Vec<Option<Vec<f32>>>,
+    /// The frequency of the largest PSD averaged over the columns, above the lowest two bins.
+    pub peak_hz: Option<f64>,
+    pub unit: &'static str,
+}
+
+/// The Hann window of `n` samples (periodic, as Welch's segments want).
+fn hann(n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * i as f64 / n as f64).cos())
+        .collect()
+}
+
+/// Adds the one-sided periodogram `2·|X(f)|²/(fs·Σw²)` of `seg` (its mean removed, windowed)
+/// to `sum`; DC and Nyquist are not doubled, having no negative twin.
+fn add_periodogram(
+    seg: &[f32],
+    window: &[f64],
+    fs: f64,
+    re: &mut [f64],
+    im: &mut [f64],
+    sum: &mut [f64],
+) {
+    let n = seg.len();
+    let w2: f64 = window.iter().map(|w| w * w).sum();
+    let mean = seg.iter().map(|x| f64::from(*x)).sum::<f64>() / n as f64;
+    for i in 0..n {
+        re[i] = (f64::from(seg[i]) - mean) * window[i];
+        im[i] = 0.0;
+    }
+    fft(re, im);
+    for (k, s) in sum.iter_mut().enumerate() {
+        let p = re[k] * re[k] + im[k] * im[k];
+        let one_sided = if k == 0 || k == n / 2 { 1.0 } else { 2.0 };
+        *s += one_sided * p / (fs * w2);
     }
 }
 
@@ -409,5 +576,48 @@ mod tests {
         ));
         let c = Collector::new(T0, T0 + 1);
         assert_eq!(c.finish(Some(1000)), Err(SpectrumError::Segment(1000)));
+    }
+
+    #[test]
+    fn a_spectrogram_follows_a_tone_that_changes() {
+        // 3.125 Hz for the first minute, 6.25 Hz for the second.
+        let tone = |t: f64| {
+            let f = if t < 60.0 { 3.125 } else { 6.25 };
+            0.1 * (2.0 * std::f64::consts::PI * f * t).sin()
+        };
+        let mut c = Collector::new(T0, T0 + 120_000_000_000);
+        for b in batches(120, tone) {
+            c.push(&b);
+        }
+        let g = c.spectrogram(0, None, 60).unwrap();
+        assert_eq!(g.column_ns, 2_000_000_000);
+        assert_eq!(g.psd_db.len(), 60);
+        assert_eq!(
+            g.segment_samples, 128,
+            "the longest power of two in 200 samples"
+        );
+        let peak = |col: &[f32]| {
+            let k = (2..col.len())
+                .max_by(|a, b| col[*a].total_cmp(&col[*b]))
+                .unwrap();
+            g.frequencies_hz[k]
+        };
+        let early = g.psd_db[10].as_deref().unwrap();
+        let late = g.psd_db[50].as_deref().unwrap();
+        assert!(
+            (peak(early) - 3.125).abs() <= g.resolution_hz,
+            "{}",
+            peak(early)
+        );
+        assert!(
+            (peak(late) - 6.25).abs() <= g.resolution_hz,
+            "{}",
+            peak(late)
+        );
+        assert!(g.segments.iter().all(|n| *n >= 1), "{:?}", g.segments);
+        assert_eq!(
+            Collector::new(T0, T0 + 1).spectrogram(0, Some(2048), 10),
+            Err(SpectrumError::SpectrogramSegment(2048))
+        );
     }
 }

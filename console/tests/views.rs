@@ -8,6 +8,8 @@
 //! - `alert_table_in_a_browser`: rows are updated in place (a row, its open statement and a
 //!   ticked box survive new alerts), statements are one line with details on demand, and an
 //!   operator acknowledges from the page.
+//! - `spectrogram_and_miniseed_over_http`: a spectrogram finds the sway's frequency in every
+//!   column; the miniSEED export of a view is read by ObsPy with the CSV export's values.
 
 mod site;
 
@@ -637,4 +639,185 @@ async fn time_spectra_building_and_export_in_a_browser() {
     browser.assert_no_errors("dark mode");
     drop(browser);
     console.stop().await;
+}
+
+fn python() -> String {
+    std::env::var("TRIAX_PYTHON").unwrap_or_else(|_| {
+        panic!(
+            "TRIAX_PYTHON is not set: the miniSEED test reads the export with ObsPy; run the \
+             tests with scripts/test, which makes a Python with it"
+        )
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn spectrogram_and_miniseed_over_http() {
+    let site = Site::start(15 * 60).await;
+    let console = Console::start(&site, None).await;
+    let now = now_ns();
+    let q = |path: &str, from: i64, to: i64| {
+        format!("{path}?building=hq&sensor=acc-01&from_ns={from}&to_ns={to}")
+    };
+
+    // Spectrogram of ten minutes of x: the sway's 2.5 Hz is the loudest row of every column.
+    let (from, to) = (now - 700_000_000_000, now - 100_000_000_000);
+    let g = console
+        .json(&(q("/api/spectrogram", from, to) + "&columns=100"))
+        .await;
+    assert_eq!(g["error"], Value::Null, "{}", g["error"]);
+    let g = &g["spectrogram"];
+    let res = g["resolution_hz"].as_f64().unwrap();
+    let freqs: Vec<f64> = g["frequencies_hz"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_f64().unwrap())
+        .collect();
+    let columns = g["psd_db"].as_array().unwrap();
+    assert_eq!(columns.len(), 100);
+    assert_eq!(g["column_ns"], 6_000_000_000i64);
+    assert_eq!(g["axis"], "x");
+    assert_eq!(g["unit"], "dB re 1 (m/s²)²/Hz");
+    for (i, c) in columns.iter().enumerate() {
+        let db: Vec<f64> = c
+            .as_array()
+            .unwrap_or_else(|| panic!("column {i} is empty"))
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let loudest = (2..db.len())
+            .max_by(|a, b| db[*a].total_cmp(&db[*b]))
+            .unwrap();
+        assert!(
+            (freqs[loudest] - SWAY_HZ).abs() <= res,
+            "column {i}: {} Hz",
+            freqs[loudest]
+        );
+    }
+    assert!((g["peak_hz"].as_f64().unwrap() - SWAY_HZ).abs() <= res);
+    // z holds gravity and noise only: no tone there.
+    let gz = console
+        .json(&(q("/api/spectrogram", from, to) + "&axis=z"))
+        .await;
+    assert_eq!(gz["spectrogram"]["axis"], "z");
+    for (bad, name) in [
+        ("&axis=w", "\"axis\""),
+        ("&segment=100", "\"segment\""),
+        ("&segment=2048", "\"segment\""),
+        ("&columns=5", "\"columns\""),
+    ] {
+        let (status, body) = console.get(&(q("/api/spectrogram", from, to) + bad)).await;
+        assert_eq!(status, 400, "{bad}: {body}");
+        assert!(body.contains(name), "{bad}: {body}");
+    }
+    let (status, _) = console
+        .get(&q("/api/spectrogram", now - 7_200_000_000_000, now))
+        .await;
+    assert_eq!(status, 400, "more than an hour");
+
+    // miniSEED of 20 s that starts and ends inside batches: ObsPy reads the nine channels, and
+    // every value equals the CSV export's.
+    let (from, to) = (now - 60_123_000_000, now - 40_077_000_000);
+    let (status, csv) = console.get(&q("/api/export.csv", from, to)).await;
+    assert_eq!(status, 200, "{csv}");
+    let mseed = get_bytes(&console, &q("/api/export.mseed", from, to)).await;
+    assert!(
+        mseed
+            .head
+            .contains("Content-Type: application/vnd.fdsn.mseed"),
+        "{}",
+        mseed.head
+    );
+    assert!(
+        mseed
+            .head
+            .contains(&format!("filename=\"hq_acc-01_{from}_{to}.mseed\"")),
+        "{}",
+        mseed.head
+    );
+    assert_eq!(mseed.body.len() % 512, 0);
+    let dir = tempfile::tempdir().unwrap();
+    let (mseed_path, csv_path) = (dir.path().join("view.mseed"), dir.path().join("view.csv"));
+    std::fs::write(&mseed_path, &mseed.body).unwrap();
+    std::fs::write(&csv_path, &csv).unwrap();
+    let script = r#"
+import csv, sys
+import numpy as np
+from obspy import read
+st = read(sys.argv[1], format="MSEED")
+st.merge(method=0)
+rows = list(csv.DictReader(open(sys.argv[2])))
+ids = sorted(tr.id for tr in st)
+assert len(ids) == 9, ids
+for axis, name in enumerate("xyz"):
+    tr = st.select(location="00", channel="EN%d" % (axis + 1))
+    assert len(tr) == 1, (name, tr)
+    tr = tr[0]
+    want = np.array([np.float32(r["a%s_mps2" % name]) for r in rows], dtype=np.float32)
+    assert tr.stats.npts == len(rows), (tr.stats.npts, len(rows))
+    assert np.array_equal(tr.data.astype(np.float32), want), name
+    u = st.select(location="U0", channel="EN%d" % (axis + 1))[0]
+    uwant = np.array([np.float32(r["u%s_mps2" % name]) for r in rows], dtype=np.float32)
+    assert np.array_equal(u.data.astype(np.float32), uwant), "u" + name
+    first_ns = tr.stats.starttime.ns
+    assert first_ns == int(rows[0]["t_ns"]), (first_ns, rows[0]["t_ns"])
+    assert tr.stats.sampling_rate == 100.0
+print("ok", len(rows), st[0].stats.network, st[0].stats.station)
+"#;
+    let out = std::process::Command::new(python())
+        .arg("-c")
+        .arg(script)
+        .arg(&mseed_path)
+        .arg(&csv_path)
+        .output()
+        .expect("the Python interpreter runs");
+    let said =
+        String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "ObsPy: {said}");
+    let rows = csv.lines().count() - 1;
+    assert!(rows > 2000, "{rows}");
+    assert!(said.starts_with(&format!("ok {rows} XX ACC01")), "{said}");
+    let (status, body) = console
+        .get(&(q("/api/export.mseed", from, to) + "&network=TOOLONG"))
+        .await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("\"network\""), "{body}");
+    let (status, _) = console
+        .get(&q("/api/export.mseed", now - 7_200_000_000_000, now))
+        .await;
+    assert_eq!(status, 400, "more than an hour");
+    console.stop().await;
+}
+
+struct Raw {
+    head: String,
+    body: Vec<u8>,
+}
+
+/// GET `path` as bytes, with the response head.
+async fn get_bytes(console: &Console, path: &str) -> Raw {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(console.addr).await.unwrap();
+    s.write_all(
+        format!(
+            "GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n",
+            console.addr
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(site::TIMEOUT, s.read_to_end(&mut out))
+        .await
+        .expect("the console answers")
+        .unwrap();
+    let split = out
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a response head");
+    Raw {
+        head: String::from_utf8_lossy(&out[..split]).into_owned(),
+        body: out[split + 4..].to_vec(),
+    }
 }
