@@ -573,6 +573,20 @@ async fn time_spectra_building_and_export_in_a_browser() {
     );
     browser.js("document.getElementById('spectrum').scrollIntoView(); return 1");
     browser.screenshot("sensor-spectrum");
+
+    // Spectrogram of the same span: the sway's frequency is the strongest row.
+    browser.js("document.getElementById('btn-spectrogram').click(); return 1");
+    let peak = browser
+        .wait("the spectrogram", "const c = document.getElementById('canvas-spectrogram'); return c.dataset.drawn && c.dataset.peakHz")
+        .await;
+    let res = browser.js("return document.getElementById('canvas-spectrogram') && JSON.stringify(document.getElementById('spectrogram-line').textContent)");
+    let peak: f64 = peak.as_str().unwrap().parse().unwrap();
+    let columns =
+        browser.js("return Number(document.getElementById('canvas-spectrogram').dataset.drawn)");
+    assert_eq!(columns, 60, "{res}");
+    assert!((peak - SWAY_HZ).abs() < 0.4, "{peak} Hz; {res}");
+    browser.js("document.getElementById('spectrogram').scrollIntoView(); return 1");
+    browser.screenshot("sensor-spectrogram");
     browser.js("window.scrollTo(0, 0); return 1");
 
     // Export: the plot as PNG and SVG, the samples as CSV.
@@ -594,6 +608,18 @@ async fn time_spectra_building_and_export_in_a_browser() {
             .contains("/api/export.csv?building=hq&sensor=acc-01&from_ns="),
         "{csv}"
     );
+    browser.js("document.getElementById('btn-mseed').click(); return 1");
+    let mseed = browser
+        .wait("a miniSEED link", "const a = document.getElementById('export-link'); return a && a.dataset.type === 'application/vnd.fdsn.mseed' && a.href")
+        .await;
+    let mseed = mseed.as_str().unwrap().to_owned();
+    assert!(
+        mseed.contains("/api/export.mseed?building=hq&sensor=acc-01&from_ns="),
+        "{mseed}"
+    );
+    let path = &mseed[mseed.find("/api/").unwrap()..];
+    let (status, _) = console.get(path).await;
+    assert_eq!(status, 200, "{path}");
 
     // The last 24 hours: a trend of per-minute aggregates (the site keeps 75 minutes).
     browser.js("document.querySelector('button.last[data-last=\"86400\"]').click(); return 1");

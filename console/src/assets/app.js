@@ -83,6 +83,7 @@
   let detail = null;         // /api/sensor answer
   let trendView = null;      // /api/trend answer of the sensor view
   let spectrumView = null;   // /api/spectrum answer
+  let spectrogramView = null; // /api/spectrogram answer
   let alertInfo = null;      // the alert a link came from
   let drawPending = false;
 
@@ -470,7 +471,7 @@
   function renderSensor() {
     const r = route;
     live = null; tilt = []; historyView = null; detail = null;
-    trendView = null; spectrumView = null; alertInfo = null;
+    trendView = null; spectrumView = null; spectrogramView = null; alertInfo = null;
     const isLive = !r.window;
     const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
     // The span asked for is listed even if it is not one of the usual ones.
@@ -497,7 +498,9 @@
       el('span', { class: 'meta' }, 'last'),
       [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : ''); } }, t)),
       el('button', { id: 'btn-spectrum', onclick: loadSpectrum, title: 'power spectral density per axis of the span shown' }, 'Spectrum'),
+      el('button', { id: 'btn-spectrogram', onclick: loadSpectrogram, title: 'spectrogram of one axis over the span shown: its PSD per column of time' }, 'Spectrogram'),
       el('button', { id: 'btn-csv', onclick: exportCsv, title: 'every sample of the span shown (up to 1 h), as CSV' }, 'CSV'),
+      el('button', { id: 'btn-mseed', onclick: exportMseed, title: 'every calibrated sample of the span shown (up to 1 h), as miniSEED 2: acceleration (location 00), standard uncertainty (U0) and flags (Q0) per axis' }, 'miniSEED'),
       el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
       el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG'),
       el('a', { id: 'btn-building', href: `#/building/${encodeURIComponent(r.building)}` + (r.window ? `?from=${msToNs(r.window[0])}&to=${msToNs(r.window[1])}` : '') + (r.alert ? `${r.window ? '&' : '?'}alert=${r.alert}` : '') }, 'building view'));
@@ -517,6 +520,10 @@
       plots),
     el('section', { class: 'card', id: 'spectrum', hidden: 'hidden' }, el('h3', {}, 'Spectrum'), el('div', { id: 'spectrum-line', class: 'meta' }),
       el('div', { class: 'plot' }, el('canvas', { id: 'canvas-psd', width: 1000, height: 260 }), el('span', { class: 'title' }, 'PSD per axis, (m/s²)²/Hz, log–log; 95 % band (χ², 2·segments degrees of freedom) shaded'))),
+    el('section', { class: 'card', id: 'spectrogram', hidden: 'hidden' }, el('h3', {}, 'Spectrogram'),
+      el('div', { class: 'controls' }, el('label', {}, 'axis ', el('select', { id: 'spectrogram-axis', onchange: loadSpectrogram }, AXES.map((a) => el('option', { value: a }, a))))),
+      el('div', { id: 'spectrogram-line', class: 'meta' }),
+      el('div', { class: 'plot' }, el('canvas', { id: 'canvas-spectrogram', width: 1000, height: 260 }), el('span', { class: 'title', id: 'spectrogram-title' }, 'PSD per column of time, dB re 1 (m/s²)²/Hz'))),
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
@@ -685,6 +692,90 @@
     canvas.dataset.drawn = String(f.length);
   }
 
+  async function loadSpectrogram() {
+    const [fromMs, toMs] = currentWindow();
+    $('spectrogram').hidden = false;
+    const line = $('spectrogram-line');
+    if ((toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S) { line.textContent = 'A spectrogram is computed over at most 1 h: zoom in first.'; return; }
+    const axis = $('spectrogram-axis').value;
+    line.textContent = `computing the spectrogram of a${axis}, ${fmtTime(fromMs)} – ${fmtTime(toMs)}…`;
+    const myRoute = route;
+    // 60 columns: finer ones would pay for time resolution with frequency resolution (a
+    // column's segment fits in it), and the modes sought change slowly.
+    const columns = 60;
+    const body = await getJson('/api/spectrogram?' + new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), axis, columns: String(columns) }));
+    if (route !== myRoute) return;
+    spectrogramView = body.spectrogram || null;
+    if (!spectrogramView) { line.textContent = `spectrogram: ${body.error}`; delete $('canvas-spectrogram').dataset.drawn; return; }
+    const g = spectrogramView;
+    line.replaceChildren(`a${g.axis}, ${fmtTime(fromMs)} – ${fmtTime(toMs)}: ${g.psd_db.length} columns of ${fmtNum(g.column_ns / 1e9, 3)} s, segments of ${g.segment_samples} samples (Hann, half overlap), ${fmtNum(g.resolution_hz, 3)} Hz resolution. Strongest over the span: `,
+      el('span', { id: 'spectrogram-peak' }, g.peak_hz === null ? '—' : `${fmtNum(g.peak_hz, 3)} Hz`),
+      body.error ? ` (${body.error})` : '');
+    drawSpectrogram();
+  }
+
+  // Dark blue (quiet) through green and yellow to white (loud): readable in both themes.
+  function heat(t) {
+    const stops = [[13, 8, 135], [84, 2, 163], [139, 10, 165], [185, 50, 137], [219, 92, 104], [244, 136, 73], [254, 188, 43], [240, 249, 33]];
+    const x = Math.max(0, Math.min(1, t)) * (stops.length - 1), i = Math.min(stops.length - 2, Math.floor(x)), f = x - i;
+    return stops[i].map((v, k) => Math.round(v + (stops[i + 1][k] - v) * f));
+  }
+
+  function drawSpectrogram() {
+    const sg = spectrogramView;
+    const canvas = $('canvas-spectrogram');
+    if (!sg || !canvas) return;
+    const c = colors();
+    const dpr = window.devicePixelRatio || 1;
+    const w = Math.max(50, canvas.clientWidth), h = canvas.clientHeight || 260;
+    canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr);
+    const g = canvas.getContext('2d');
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    g.fillStyle = c.bg; g.fillRect(0, 0, w, h);
+    const left = 62, right = 70, top = 20, bottom = 20, pw = w - left - right, ph = h - top - bottom;
+    const f = sg.frequencies_hz, cols = sg.psd_db, n = cols.length;
+    // The colour scale spans the loudest 60 dB, so that the noise floor does not wash it out.
+    let hi = -Infinity;
+    for (const col of cols) if (col) for (let k = 1; k < col.length; k++) hi = Math.max(hi, col[k]);
+    const lo = hi - 60;
+    const img = g.createImageData(n, f.length);
+    for (let i = 0; i < n; i++) {
+      const col = cols[i];
+      for (let k = 0; k < f.length; k++) {
+        const o = ((f.length - 1 - k) * n + i) * 4;
+        if (!col) { img.data[o + 3] = 0; continue; }
+        const [r, gg, b] = heat((col[k] - lo) / (hi - lo));
+        img.data[o] = r; img.data[o + 1] = gg; img.data[o + 2] = b; img.data[o + 3] = 255;
+      }
+    }
+    const off = document.createElement('canvas');
+    off.width = n; off.height = f.length;
+    off.getContext('2d').putImageData(img, 0, 0);
+    g.imageSmoothingEnabled = false;
+    g.drawImage(off, left, top, pw, ph);
+    const fMax = f[f.length - 1], t0 = sg.from_ns / 1e6, t1 = t0 + n * sg.column_ns / 1e6;
+    g.font = '11px system-ui, sans-serif'; g.fillStyle = c.muted; g.strokeStyle = c.frame;
+    const step = [0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500].find((s) => fMax / s <= 6) || 1000;
+    for (let v = 0; v <= fMax + 1e-9; v += step) { const y = top + ph - v / fMax * ph; g.fillText(`${+v.toFixed(2)} Hz`, 4, y + 4); }
+    for (let i = 0; i <= 4; i++) { const t = t0 + (t1 - t0) * i / 4; const x = left + pw * i / 4; g.fillText(fmtTime(t).slice(11, 19), Math.min(x, left + pw - 50), h - 6); }
+    g.strokeRect(left, top, pw, ph);
+    // The colour bar, loud at the top.
+    const bx = left + pw + 10;
+    for (let y = 0; y < ph; y++) { const [r, gg, b] = heat(1 - y / ph); g.fillStyle = `rgb(${r},${gg},${b})`; g.fillRect(bx, top + y, 12, 1); }
+    g.fillStyle = c.muted;
+    g.fillText(`${Math.round(hi)} dB`, bx + 15, top + 9);
+    g.fillText(`${Math.round(lo)} dB`, bx + 15, top + ph);
+    canvas.dataset.drawn = String(n);
+    canvas.dataset.peakHz = sg.peak_hz === null ? '' : String(sg.peak_hz);
+  }
+
+  function exportMseed() {
+    const [fromMs, toMs] = currentWindow();
+    const line = $('status-line');
+    if ((toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S) { line.textContent = 'miniSEED export covers at most 1 h of samples: zoom in first.'; return; }
+    download(`/api/export.mseed?` + new URLSearchParams({ building: route.building, sensor: route.sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) }), null, null, 'application/vnd.fdsn.mseed');
+  }
+
   // ---- Export ------------------------------------------------------------------------------
   function exportCsv() {
     const [fromMs, toMs] = currentWindow();
@@ -695,11 +786,11 @@
 
   // Saves `href` (or `blob`) under `name` through a link kept on the page (#export-link), which
   // also says what was last exported.
-  function download(href, name, blob) {
+  function download(href, name, blob, type) {
     let a = $('export-link');
     if (!a) { a = el('a', { id: 'export-link', hidden: 'hidden' }); document.body.append(a); }
     if (a.dataset.url) URL.revokeObjectURL(a.dataset.url);
-    if (blob) { href = URL.createObjectURL(blob); a.dataset.url = href; a.dataset.bytes = String(blob.size); a.dataset.type = blob.type; } else { delete a.dataset.url; a.dataset.bytes = ''; a.dataset.type = 'text/csv'; }
+    if (blob) { href = URL.createObjectURL(blob); a.dataset.url = href; a.dataset.bytes = String(blob.size); a.dataset.type = blob.type; } else { delete a.dataset.url; a.dataset.bytes = ''; a.dataset.type = type || 'text/csv'; }
     a.href = href;
     if (name) a.setAttribute('download', name); else a.removeAttribute('download');
     a.click();
@@ -1192,7 +1283,7 @@
   window.addEventListener('error', (e) => pageError(e.message));
   window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
-  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); });
+  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); });
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   render();
 })();
