@@ -1,0 +1,472 @@
+//! One building: its windows, identification, tracker, and what each window publishes. Pure
+//! and synchronous (the service calls [`identify_window`] off its loop).
+
+use std::collections::{BTreeMap, VecDeque};
+
+use nalgebra::Complex;
+use serde::{Deserialize, Serialize};
+use time::OffsetDateTime;
+use triax_client::follow::Position;
+use triax_modal::track::{Baseline, Track};
+use triax_modal::{
+    identify, ChainUncertainty, Direction, Estimate, Identification, ModalError, ModeObservation,
+    ModeTracker, ShiftVerdict, TrackUpdate,
+};
+use triax_protocol::messages::{
+    Alert, AlertKind, AlertLevel, BuildingModes, ModalDirection, ModalEstimate, ModalVerdict,
+    ModeReport, ModeShapeComponent, UnquantifiedModeReport,
+};
+use triax_protocol::{BuildingId, CorrectedBatch, SensorId, JSON_FORMAT_VERSION};
+
+use crate::config::BuildingConfig;
+use crate::grid::{ClosedWindow, Gatherer};
+
+/// Temperature readings kept per building: two days of one a minute.
+const MAX_TEMPERATURES: usize = 2 * 24 * 60;
+
+/// Unit of a `modal_shift` alert's value and threshold: the frequency's drop, %.
+pub const UNIT_PERCENT: &str = "%";
+
+/// What a building keeps across a restart.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct BuildingState {
+    /// Windows below this index were identified.
+    pub next_index: Option<i64>,
+    /// Per sensor, the last batch wholly inside an identified window: `[sequence, timestamp_ns]`.
+    pub positions: BTreeMap<String, (u64, i64)>,
+    pub tracks: Vec<TrackState>,
+    /// Lines in the current record file.
+    pub record_lines: u64,
+}
+
+/// A track as saved: its baseline is fitted again from its training observations.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrackState {
+    pub id: usize,
+    pub direction: Direction,
+    pub last_frequency_hz: f64,
+    /// `[re, im]` per component.
+    pub last_shape: Vec<[f64; 2]>,
+    pub training_frequencies_hz: Vec<f64>,
+    pub training_regressors: Vec<Vec<f64>>,
+    pub observations: usize,
+    pub block: Vec<(f64, f64, Vec<f64>)>,
+}
+
+impl TrackState {
+    fn of(t: &Track) -> TrackState {
+        TrackState {
+            id: t.id,
+            direction: t.direction,
+            last_frequency_hz: t.last_frequency_hz,
+            last_shape: t.last_shape.iter().map(|c| [c.re, c.im]).collect(),
+            training_frequencies_hz: t.training_frequencies_hz.clone(),
+            training_regressors: t.training_regressors.clone(),
+            observations: t.observations,
+            block: t.block.clone(),
+        }
+    }
+
+    fn track(&self, training_windows: usize) -> Track {
+        let baseline = (self.training_frequencies_hz.len() >= training_windows)
+            .then(|| Baseline::fit(&self.training_frequencies_hz, &self.training_regressors))
+            .flatten();
+        Track {
+            id: self.id,
+            direction: self.direction,
+            last_frequency_hz: self.last_frequency_hz,
+            last_shape: self
+                .last_shape
+                .iter()
+                .map(|c| Complex::new(c[0], c[1]))
+                .collect(),
+            training_frequencies_hz: self.training_frequencies_hz.clone(),
+            training_regressors: self.training_regressors.clone(),
+            baseline,
+            observations: self.observations,
+            block: self.block.clone(),
+        }
+    }
+}
+
+/// One building followed by the service.
+#[derive(Debug, Clone)]
+pub struct Building {
+    pub id: BuildingId,
+    pub config: BuildingConfig,
+    pub gatherer: Gatherer,
+    pub tracker: ModeTracker,
+    temperatures: VecDeque<(i64, f64)>,
+    pub record_lines: u64,
+}
+
+/// What one window gives: the message to publish and keep, and the alerts to sign.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    pub modes: BuildingModes,
+    pub alerts: Vec<Alert>,
+}
+
+/// Identifies a closed window (the costly step: a fraction of a second to seconds).
+pub fn identify_window(
+    config: &BuildingConfig,
+    closed: &ClosedWindow,
+) -> Result<Identification, ModalError> {
+    identify(&config.model, &closed.window, &config.ssi)
+}
+
+fn estimate(e: &Estimate) -> ModalEstimate {
+    ModalEstimate {
+        value: e.value,
+        standard_uncertainty: e.standard_uncertainty,
+        dof: e.dof,
+        coverage_factor: e.coverage_factor,
+        coverage_probability: e.coverage_probability,
+    }
+}
+
+fn direction(d: Direction) -> ModalDirection {
+    match d {
+        Direction::X => ModalDirection::X,
+        Direction::Y => ModalDirection::Y,
+        Direction::Z => ModalDirection::Z,
+    }
+}
+
+fn verdict(v: ShiftVerdict) -> ModalVerdict {
+    match v {
+        ShiftVerdict::Training => ModalVerdict::Training,
+        ShiftVerdict::Normal => ModalVerdict::Normal,
+        ShiftVerdict::Possible => ModalVerdict::Possible,
+        ShiftVerdict::Shift => ModalVerdict::Shift,
+    }
+}
+
+impl Building {
+    pub fn new(id: BuildingId, config: BuildingConfig, state: Option<&BuildingState>) -> Self {
+        let chain = config.chain.unwrap_or(ChainUncertainty::NONE);
+        let mut gatherer = Gatherer::new(
+            &config.model,
+            config.window_s,
+            config.alignment_tolerance,
+            config.close_after_s,
+            chain,
+        );
+        let tracker_config = config.tracker_per_track();
+        let mut tracker = ModeTracker::new(tracker_config.clone());
+        let mut record_lines = 0;
+        if let Some(state) = state {
+            if let Some(next) = state.next_index {
+                let positions = state
+                    .positions
+                    .iter()
+                    .filter_map(|(s, &(sequence, timestamp_ns))| {
+                        Some((
+                            SensorId::new(s.clone()).ok()?,
+                            Position {
+                                sequence,
+                                timestamp_ns,
+                            },
+                        ))
+                    })
+                    .collect();
+                gatherer.resume_from(next, &positions);
+            }
+            tracker.tracks = state
+                .tracks
+                .iter()
+                .map(|t| t.track(tracker_config.training_windows))
+                .collect();
+            record_lines = state.record_lines;
+        }
+        Building {
+            id,
+            config,
+            gatherer,
+            tracker,
+            temperatures: VecDeque::new(),
+            record_lines,
+        }
+    }
+
+    /// The state to save after a window.
+    pub fn state(&self) -> BuildingState {
+        let next = self.gatherer.next_index();
+        BuildingState {
+            next_index: (next != i64::MIN).then_some(next),
+            positions: self
+                .gatherer
+                .positions()
+                .into_iter()
+                .map(|(s, p)| (s.to_string(), (p.sequence, p.timestamp_ns)))
+                .collect(),
+            tracks: self.tracker.tracks.iter().map(TrackState::of).collect(),
+            record_lines: self.record_lines,
+        }
+    }
+
+    pub fn on_batch(&mut self, batch: &CorrectedBatch, recovered: bool) -> Vec<ClosedWindow> {
+        self.gatherer.add(batch, recovered)
+    }
+
+    /// A temperature reading of the configured source, by its own clock.
+    pub fn on_temperature(&mut self, timestamp_ns: i64, temperature_c: f64) {
+        if !temperature_c.is_finite() {
+            return;
+        }
+        if self.temperatures.len() >= MAX_TEMPERATURES {
+            self.temperatures.pop_front();
+        }
+        self.temperatures.push_back((timestamp_ns, temperature_c));
+    }
+
+    /// Mean of the readings inside `[start, end)`.
+    fn mean_temperature(&self, start_ns: i64, end_ns: i64) -> Option<f64> {
+        let inside: Vec<f64> = self
+            .temperatures
+            .iter()
+            .filter(|(t, _)| (start_ns..end_ns).contains(t))
+            .map(|&(_, c)| c)
+            .collect();
+        (!inside.is_empty()).then(|| inside.iter().sum::<f64>() / inside.len() as f64)
+    }
+
+    /// Tracks the window's modes and writes what it publishes. `temperature_c` overrides the
+    /// configured source (a caller that has the window's temperature by other means).
+    pub fn conclude(
+        &mut self,
+        closed: &ClosedWindow,
+        result: Result<Identification, ModalError>,
+        temperature_c: Option<f64>,
+        now: OffsetDateTime,
+    ) -> Outcome {
+        let start_ns = closed.window.start_timestamp_ns;
+        let temperature_c = temperature_c.or_else(|| {
+            self.config
+                .temperature_key
+                .as_ref()
+                .and_then(|_| self.mean_temperature(start_ns, closed.end_ns))
+        });
+        let wants_temperature = self.config.temperature_key.is_some();
+        let regressors: Vec<f64> = temperature_c.into_iter().collect();
+        let mut modes = BuildingModes {
+            format_version: JSON_FORMAT_VERSION,
+            building: self.id.clone(),
+            window_start_ns: start_ns,
+            window_end_ns: closed.end_ns,
+            sample_rate_hz: closed.window.sample_rate_hz,
+            identification_rate_hz: 0.0,
+            sensors: closed.coverage.clone(),
+            temperature_c,
+            regressors: regressors.clone(),
+            tracked: false,
+            modes: Vec::new(),
+            unquantified: Vec::new(),
+            refused: None,
+            late: closed.late,
+            identified_at: now,
+        };
+        let identification = match result {
+            Ok(i) => i,
+            Err(e) => {
+                modes.refused = Some(e.to_string());
+                return Outcome {
+                    modes,
+                    alerts: Vec::new(),
+                };
+            }
+        };
+        modes.identification_rate_hz = identification.sample_rate_hz;
+        modes.unquantified = identification
+            .unquantified
+            .iter()
+            .map(|u| UnquantifiedModeReport {
+                frequency_hz: u.frequency_hz,
+                damping_ratio: u.damping_ratio,
+                replicates: u.replicates,
+            })
+            .collect();
+        // A configured source that gave nothing in the window: the baseline's regressors would
+        // change length, so the window is published but not tracked.
+        let track = !(wants_temperature && temperature_c.is_none());
+        let updates: Vec<Option<TrackUpdate>> = if track {
+            let observations: Vec<ModeObservation> = identification
+                .modes
+                .iter()
+                .map(ModeObservation::from)
+                .collect();
+            self.tracker
+                .update(&observations, &regressors)
+                .into_iter()
+                .map(Some)
+                .collect()
+        } else {
+            vec![None; identification.modes.len()]
+        };
+        modes.tracked = track;
+        let alerting = self.alerting_tracks();
+        let mut alerts = Vec::new();
+        for (mode, update) in identification.modes.iter().zip(&updates) {
+            let shape: Vec<ModeShapeComponent> = mode
+                .shape
+                .iter()
+                .filter_map(|c| {
+                    Some(ModeShapeComponent {
+                        sensor_id: SensorId::new(c.sensor_id.clone()).ok()?,
+                        direction: direction(c.direction),
+                        real: estimate(&c.real),
+                        imag: estimate(&c.imag),
+                    })
+                })
+                .collect();
+            let report = ModeReport {
+                track: update.as_ref().map(|u| u.track as u64),
+                direction: direction(mode.direction),
+                frequency_hz: estimate(&mode.frequency_hz),
+                damping_ratio: estimate(&mode.damping_ratio),
+                reference_component: mode.reference_component,
+                order: mode.order,
+                stable_orders: mode.stable_orders,
+                replicates: mode.replicates,
+                predicted_hz: update.as_ref().and_then(|u| u.predicted_hz),
+                residual_relative: update
+                    .as_ref()
+                    .and_then(|u| u.residual_relative.as_ref().map(estimate)),
+                verdict: update.as_ref().map(|u| verdict(u.verdict)),
+                block_mean_relative: update
+                    .as_ref()
+                    .and_then(|u| u.block_mean_relative.as_ref().map(estimate)),
+                block_verdict: update.as_ref().and_then(|u| u.block_verdict.map(verdict)),
+                shape,
+            };
+            if let Some(u) = update {
+                if alerting.contains(&u.track) {
+                    alerts.extend(self.shift_alerts(closed, &report, u, now));
+                }
+            }
+            modes.modes.push(report);
+        }
+        Outcome { modes, alerts }
+    }
+
+    /// The tracks that may alert: per direction, the lowest `alert_modes_per_direction` of
+    /// those with a baseline.
+    fn alerting_tracks(&self) -> Vec<usize> {
+        let mut out = Vec::new();
+        for d in &self.config.ssi.channels.directions {
+            let mut trained: Vec<&Track> = self
+                .tracker
+                .tracks
+                .iter()
+                .filter(|t| t.direction == *d && t.baseline.is_some())
+                .collect();
+            trained.sort_by(|a, b| a.last_frequency_hz.total_cmp(&b.last_frequency_hz));
+            out.extend(
+                trained
+                    .iter()
+                    .take(self.config.alert_modes_per_direction)
+                    .map(|t| t.id),
+            );
+        }
+        out
+    }
+
+    fn shift_alerts(
+        &self,
+        closed: &ClosedWindow,
+        report: &ModeReport,
+        update: &TrackUpdate,
+        now: OffsetDateTime,
+    ) -> Vec<Alert> {
+        let tracker = &self.tracker.config;
+        let reference = report
+            .shape
+            .get(report.reference_component)
+            .map(|c| c.sensor_id.clone())
+            .or_else(|| closed.coverage.first().map(|c| c.sensor_id.clone()));
+        let Some(sensor_id) = reference else {
+            return Vec::new();
+        };
+        let valid: u64 = closed
+            .coverage
+            .iter()
+            .map(|c| c.samples - c.flagged - c.missing - c.misaligned)
+            .sum();
+        let all: u64 = closed.coverage.iter().map(|c| c.samples).sum();
+        let flagged_fraction = if all == 0 {
+            1.0
+        } else {
+            1.0 - valid as f64 / all as f64
+        };
+        let mut alerts = Vec::new();
+        let window_ns = (self.config.window_s * 1e9) as i64;
+        let mut raise = |residual: &Estimate, windows: usize, test: &str, alpha: f64| {
+            let span_ns = window_ns.saturating_mul(windows as i64);
+            alerts.push(Alert {
+                format_version: JSON_FORMAT_VERSION,
+                building: self.id.clone(),
+                sensor_id: sensor_id.clone(),
+                kind: AlertKind::ModalShift,
+                level: AlertLevel::Exceeded,
+                value: -100.0 * residual.value,
+                standard_uncertainty: 100.0 * residual.standard_uncertainty,
+                coverage_factor: residual.coverage_factor,
+                threshold: 100.0 * tracker.threshold_relative,
+                unit: UNIT_PERCENT.into(),
+                window_s: self.config.window_s * windows as f64,
+                flagged_fraction,
+                statement: format!(
+                    "Track {} ({:?}, {:.4} Hz): frequency {:.3} % below its environmental \
+                     baseline{} (k = {:.2}, ν = {:.0}), by the {test}; drop beyond {:.3} % even \
+                     at the interval's near end. False-alarm probability of this test {alpha:.2e} \
+                     per {}, the building's budget {} false modal_shift a year shared by its \
+                     {} alerting tracks. The reference sensor of the mode's shape names the \
+                     alert.",
+                    update.track,
+                    update.direction,
+                    report.frequency_hz.value,
+                    -100.0 * residual.value,
+                    if self.config.temperature_key.is_some() {
+                        " (temperature regressed out)"
+                    } else {
+                        " (no temperature source: the baseline is a constant)"
+                    },
+                    residual.coverage_factor,
+                    residual.dof,
+                    100.0 * tracker.threshold_relative,
+                    if windows == 1 { "window" } else { "block" },
+                    self.config.tracker.false_alarms_per_year,
+                    self.config.alert_modes_per_direction
+                        * self.config.ssi.channels.directions.len(),
+                ),
+                at: now,
+                late: closed.late,
+                window_start_ns: Some(closed.end_ns.saturating_sub(span_ns)),
+                window_end_ns: Some(closed.end_ns),
+                first_sequence: None,
+                last_sequence: None,
+            });
+        };
+        if update.verdict == ShiftVerdict::Shift {
+            if let Some(r) = &update.residual_relative {
+                raise(
+                    r,
+                    1,
+                    "single-window test",
+                    tracker.window_false_alarm_probability(),
+                );
+            }
+        }
+        if update.block_verdict == Some(ShiftVerdict::Shift) {
+            if let Some(r) = &update.block_mean_relative {
+                raise(
+                    r,
+                    tracker.average_windows.max(1),
+                    "block-mean test",
+                    tracker.block_false_alarm_probability(),
+                );
+            }
+        }
+        alerts
+    }
+}

@@ -1,0 +1,276 @@
+//! The thin Zenoh layer around [`Building`]: follow, gather, identify, track, publish, record,
+//! sign, remember.
+//!
+//! Corrected streams come through one [`Fleet`] subscription and a follower per building,
+//! which reads back from the gateway's history whatever this service missed (PROTOCOL.md
+//! §5.2). After each window the building's state is written to `<state_dir>/<building>/
+//! state.json`, whole or not at all: the next window's index, per sensor the last batch wholly
+//! inside an identified window (a restarted service resumes its follower there, so the window
+//! it was filling is filled again from the history), and the tracks with their training
+//! observations. The identification runs on a blocking thread; the loop waits for it, so a
+//! slow window slows the followers, whose own gap filling makes up for what Zenoh then drops.
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use time::OffsetDateTime;
+use tokio::sync::mpsc;
+use triax_client::{Delivery, Fleet, FollowOptions};
+use triax_protocol::messages::Alert;
+use triax_protocol::signing::{sign_alert, LabSigningKey};
+use triax_protocol::{to_json, BuildingId, Key};
+
+use crate::building::{identify_window, Building, BuildingState};
+use crate::config::{BuildingConfig, Config};
+use crate::grid::ClosedWindow;
+
+/// Messages waiting for the loop.
+pub const INBOX_CAPACITY: usize = 4096;
+
+/// A reading of a building's temperature source, as JSON on its configured key:
+/// `{"timestamp_ns": …, "temperature_c": …}`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TemperatureReading {
+    /// ns since the Unix epoch, on the clock the sensors' batches are stamped with.
+    pub timestamp_ns: i64,
+    pub temperature_c: f64,
+}
+
+/// Why the service could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    #[error(transparent)]
+    ZenohConfig(#[from] triax_net::ZenohConfigError),
+    #[error("zenoh: {what}: {message}")]
+    Zenoh { what: &'static str, message: String },
+    #[error("state file {path}: {message}")]
+    State { path: String, message: String },
+    #[error(transparent)]
+    SigningKey(#[from] triax_alert::ServiceError),
+}
+
+fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError {
+    move |e| ServiceError::Zenoh {
+        what,
+        message: e.to_string(),
+    }
+}
+
+enum Inbound {
+    Corrected(BuildingId, Delivery),
+    Temperature(BuildingId, Vec<u8>),
+}
+
+fn state_path(dir: &Path, building: &BuildingId) -> PathBuf {
+    dir.join(building.as_str()).join("state.json")
+}
+
+/// Reads a building's state; none if the file does not exist.
+pub fn load_state(path: &Path) -> Result<Option<BuildingState>, ServiceError> {
+    let bad = |message: String| ServiceError::State {
+        path: path.display().to_string(),
+        message,
+    };
+    match std::fs::read(path) {
+        Ok(bytes) => serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| bad(e.to_string())),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(bad(e.to_string())),
+    }
+}
+
+/// Writes a building's state whole or not at all (a new file renamed over the old).
+fn save_state(path: &Path, state: &BuildingState) -> std::io::Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = path.with_extension("tmp");
+    let body = serde_json::to_vec(state).map_err(std::io::Error::other)?;
+    std::fs::write(&tmp, body)?;
+    std::fs::File::open(&tmp)?.sync_all()?;
+    std::fs::rename(&tmp, path)
+}
+
+/// Runs the service until `shutdown` completes.
+pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(), ServiceError> {
+    let signing = triax_alert::service::signing_key(config.signing_key_file.as_deref())?;
+    let session = zenoh::open(config.zenoh.to_config()?)
+        .await
+        .map_err(zenoh_error("open session"))?;
+    let (tx, mut rx) = mpsc::channel::<Inbound>(INBOX_CAPACITY);
+    let only = (config.buildings.len() == 1)
+        .then(|| config.buildings.keys().next().cloned())
+        .flatten();
+    let fleet = Fleet::start(&session, only.as_ref())
+        .await
+        .map_err(|e| ServiceError::Zenoh {
+            what: "follow the buildings",
+            message: e.to_string(),
+        })?;
+    let mut buildings: BTreeMap<BuildingId, Building> = BTreeMap::new();
+    let mut followers = Vec::new();
+    let mut subscribers = Vec::new();
+    for (id, bc) in &config.buildings {
+        let state = match &config.state_dir {
+            Some(dir) => load_state(&state_path(dir, id))?,
+            None => None,
+        };
+        if bc.chain.is_none() {
+            tracing::warn!(building = %id, "no [chain] uncertainty configured: mode shapes carry \
+                their statistical uncertainty only");
+        }
+        if bc.temperature_key.is_none() {
+            tracing::warn!(building = %id, "no temperature_key: the tracker has no regressor, \
+                and a temperature swing will read as a shift");
+        }
+        let building = Building::new(id.clone(), bc.clone(), state.as_ref());
+        let mut options = FollowOptions::new(id.clone());
+        options.resume_at = building.gatherer.positions();
+        if let Some(next) = state.as_ref().and_then(|s| s.next_index) {
+            options.new_sensors_from_ns = Some(building.gatherer.window_start_ns(next));
+        }
+        tracing::info!(building = %id, resume = ?state.as_ref().and_then(|s| s.next_index),
+            "following corrected streams");
+        let mut follower = fleet.follow(options);
+        let (tx_f, b) = (tx.clone(), id.clone());
+        followers.push(tokio::spawn(async move {
+            while let Some(d) = follower.next().await {
+                if tx_f.send(Inbound::Corrected(b.clone(), d)).await.is_err() {
+                    return;
+                }
+            }
+        }));
+        if let Some(key) = &bc.temperature_key {
+            let (tx_t, b) = (tx.clone(), id.clone());
+            let sub = session
+                .declare_subscriber(key.clone())
+                .callback(move |sample| {
+                    let payload = sample.payload().to_bytes().into_owned();
+                    let _ = tx_t.try_send(Inbound::Temperature(b.clone(), payload));
+                })
+                .await
+                .map_err(zenoh_error("subscribe to a temperature source"))?;
+            subscribers.push(sub);
+        }
+        buildings.insert(id.clone(), building);
+    }
+    drop(tx);
+    tokio::pin!(shutdown);
+    loop {
+        let msg = tokio::select! {
+            _ = &mut shutdown => break,
+            msg = rx.recv() => match msg { Some(m) => m, None => break },
+        };
+        match msg {
+            Inbound::Temperature(b, payload) => {
+                match serde_json::from_slice::<TemperatureReading>(&payload) {
+                    Ok(r) => {
+                        if let Some(building) = buildings.get_mut(&b) {
+                            building.on_temperature(r.timestamp_ns, r.temperature_c);
+                        }
+                    }
+                    Err(e) => tracing::warn!(building = %b, cause = %e, "malformed temperature"),
+                }
+            }
+            Inbound::Corrected(b, d) => {
+                let Some(building) = buildings.get_mut(&b) else {
+                    continue;
+                };
+                for closed in building.on_batch(&d.batch, d.recovered) {
+                    conclude(&session, &config, building, closed, &signing).await;
+                }
+            }
+        }
+    }
+    for f in &followers {
+        f.abort();
+    }
+    drop(subscribers);
+    session
+        .close()
+        .await
+        .map_err(zenoh_error("close session"))?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+/// Identifies a closed window off the loop, then tracks, publishes, records, alerts and saves.
+async fn conclude(
+    session: &zenoh::Session,
+    config: &Config,
+    building: &mut Building,
+    closed: ClosedWindow,
+    signing: &LabSigningKey,
+) {
+    let bc: Arc<BuildingConfig> = Arc::new(building.config.clone());
+    let closed = Arc::new(closed);
+    let result = {
+        let (bc, closed) = (bc.clone(), closed.clone());
+        tokio::task::spawn_blocking(move || identify_window(&bc, &closed)).await
+    };
+    let result = match result {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::error!(building = %building.id, cause = %e, "identification panicked");
+            return;
+        }
+    };
+    let outcome = building.conclude(&closed, result, None, OffsetDateTime::now_utc());
+    let m = &outcome.modes;
+    tracing::info!(
+        building = %building.id,
+        window_start_ns = m.window_start_ns,
+        modes = m.modes.len(),
+        refused = m.refused.as_deref().unwrap_or(""),
+        tracked = m.tracked,
+        late = m.late,
+        "window identified"
+    );
+    let key = Key::Modes(building.id.clone()).to_string();
+    if let Err(e) = session.put(&key, to_json(m)).await {
+        tracing::error!(key = %key, cause = %e, "modes not published");
+    }
+    if let Some(dir) = &config.state_dir {
+        let dir = dir.join(building.id.as_str());
+        match crate::record::append(
+            &dir,
+            m,
+            building.record_lines,
+            building.config.record_max_windows,
+        ) {
+            Ok(lines) => building.record_lines = lines,
+            Err(e) => tracing::error!(dir = %dir.display(), cause = %e, "record not written"),
+        }
+        let path = state_path(
+            config.state_dir.as_deref().unwrap_or(Path::new(".")),
+            &building.id,
+        );
+        if let Err(e) = save_state(&path, &building.state()) {
+            tracing::error!(path = %path.display(), cause = %e, "state not written");
+        }
+    }
+    for alert in &outcome.alerts {
+        publish_alert(session, alert, signing).await;
+    }
+}
+
+async fn publish_alert(session: &zenoh::Session, alert: &Alert, key: &LabSigningKey) {
+    tracing::warn!(
+        building = %alert.building,
+        sensor = %alert.sensor_id,
+        kind = ?alert.kind,
+        value = alert.value,
+        standard_uncertainty = alert.standard_uncertainty,
+        statement = %alert.statement,
+        "alert"
+    );
+    let signed = sign_alert(alert, key);
+    let expr = Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string();
+    if let Err(e) = session.put(&expr, to_json(&signed)).await {
+        tracing::error!(key = %expr, cause = %e, "alert not published");
+    }
+}
