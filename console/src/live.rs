@@ -42,6 +42,8 @@ struct Ring {
     malformed: u64,
     /// Times older batches were put in front (the history read on opening).
     prepends: u64,
+    /// Batches pushed since the feed opened: the newest `arrivals - n` are at the back.
+    arrivals: u64,
 }
 
 fn end_ns(b: &CorrectedBatch) -> i64 {
@@ -53,6 +55,7 @@ fn end_ns(b: &CorrectedBatch) -> i64 {
 
 impl Ring {
     fn push(&mut self, b: CorrectedBatch) {
+        self.arrivals += 1;
         let newest = end_ns(&b);
         self.samples += b.samples.len();
         self.batches.push_back(Arc::new(b));
@@ -153,6 +156,22 @@ impl Feed {
             .filter(|t| t.timestamp_ns > after_ns)
             .cloned()
             .collect()
+    }
+
+    /// How many batches have arrived, and the earliest start among those that arrived after
+    /// the first `seen` of them (None if none did, or all are gone from the buffer): where a
+    /// page that has everything up to `seen` must be sent from, a late batch included.
+    pub fn arrivals_since(&self, seen: u64) -> (u64, Option<i64>) {
+        let r = lock(&self.ring);
+        let new = usize::try_from(r.arrivals.saturating_sub(seen)).unwrap_or(usize::MAX);
+        let earliest = r
+            .batches
+            .iter()
+            .rev()
+            .take(new)
+            .map(|b| b.header.timestamp_ns)
+            .min();
+        (r.arrivals, earliest)
     }
 
     pub fn malformed(&self) -> u64 {

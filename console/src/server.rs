@@ -53,6 +53,10 @@ const HISTORY_LEAD_NS: i64 = 60 * 1_000_000_000;
 const LIVE_PERIOD: Duration = Duration::from_millis(250);
 /// Each live frame repeats this much of the stream, so a late batch still reaches the page.
 const RESEND_NS: i64 = 2_000_000_000;
+/// Time between live frames of a light stream (`lite=1`).
+const LITE_PERIOD: Duration = Duration::from_secs(1);
+/// Time between fleet events of a light stream.
+const LITE_FLEET_PERIOD: Duration = Duration::from_secs(5);
 /// Plot widths accepted, in buckets (pixel columns).
 const WIDTH_RANGE: std::ops::RangeInclusive<i64> = 50..=4000;
 
@@ -263,13 +267,14 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             Ok(())
         }
         "/events" => {
-            p.only(&["building", "sensor", "span_s", "width"])?;
+            p.only(&["building", "sensor", "span_s", "width", "lite"])?;
             let sensor = match (p.get("building"), p.get("sensor")) {
                 (None, None) => None,
                 _ => Some((p.building()?, p.sensor()?)),
             };
             let span_s = p.int("span_s", Some(30), 1..=KEEP_NS / 1_000_000_000)?;
             let width = p.int("width", Some(1000), WIDTH_RANGE)?;
+            let lite = p.int("lite", Some(0), 0..=1)? == 1;
             let Ok(permit) = ctx.streams.clone().try_acquire_owned() else {
                 return Err(Refusal::new(
                     503,
@@ -282,7 +287,7 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             if req.head_only {
                 return ok(stream, "text/event-stream", Vec::new(), head_only).await;
             }
-            events(ctx, stream, sensor, span_s * 1_000_000_000, width).await;
+            events(ctx, stream, sensor, span_s * 1_000_000_000, width, lite).await;
             drop(permit);
             Ok(())
         }
@@ -1003,12 +1008,18 @@ async fn export_csv(ctx: &Context, p: &Params<'_>) -> Result<(String, String), R
 
 /// The event stream of one page: the fleet every second and, for a sensor view, its live frames
 /// and tilt. Ends when the page goes, a write stalls, or the console stops.
+///
+/// A light stream (`lite`, for slow links) sends a live frame once a second holding only the
+/// buckets that changed (from the bucket of the earliest batch that arrived since the last
+/// frame, a late one included), and the fleet every 5 s: the page draws the same buckets,
+/// later.
 async fn events(
     ctx: &Context,
     stream: &mut TcpStream,
     sensor: Option<(BuildingId, SensorId)>,
     span_ns: i64,
     width: i64,
+    lite: bool,
 ) {
     if http::start_events(stream).await.is_err() {
         return;
@@ -1037,9 +1048,11 @@ async fn events(
     let bucket_ns = (span_ns / width).max(1);
     let mut last_end: Option<i64> = None;
     let mut prepends = 0;
+    let mut arrivals = 0;
     let mut last_tilt_ns = i64::MIN;
-    let mut tick = tokio::time::interval(LIVE_PERIOD);
+    let mut tick = tokio::time::interval(if lite { LITE_PERIOD } else { LIVE_PERIOD });
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut fleet_sent = tokio::time::Instant::now();
     loop {
         tokio::select! {
             _ = stop.changed() => return,
@@ -1047,6 +1060,12 @@ async fn events(
                 if changed.is_err() {
                     return;
                 }
+                if lite && fleet_sent.elapsed() < LITE_FLEET_PERIOD {
+                    // Left marked as changed? No: the next one after the period carries it.
+                    fleet.mark_unchanged();
+                    continue;
+                }
+                fleet_sent = tokio::time::Instant::now();
                 let text = fleet.borrow_and_update().clone();
                 if http::send_event(stream, "fleet", &text).await.is_err() {
                     return;
@@ -1059,7 +1078,17 @@ async fn events(
                     prepends = feed.prepends();
                     last_end = None;
                 }
-                if let Some(frame) = live_frame(feed, &mut last_end, span_ns, bucket_ns) {
+                let resend = if lite {
+                    let (now, earliest) = feed.arrivals_since(arrivals);
+                    if now == arrivals && last_end.is_some() {
+                        continue;
+                    }
+                    arrivals = now;
+                    Resend::From(earliest)
+                } else {
+                    Resend::Last(RESEND_NS)
+                };
+                if let Some(frame) = live_frame(feed, &mut last_end, span_ns, bucket_ns, resend) {
                     if http::send_event(stream, "live", &frame).await.is_err() {
                         return;
                     }
@@ -1077,29 +1106,42 @@ async fn events(
     }
 }
 
+/// What a live frame repeats of what it sent before.
+#[derive(Debug, Clone, Copy)]
+enum Resend {
+    /// This much before the end of the last frame.
+    Last(i64),
+    /// From this time (the earliest batch that arrived since), if any arrived.
+    From(Option<i64>),
+}
+
 /// The next live frame, if the stream moved: the whole window the first time, then what is new
-/// plus [`RESEND_NS`] before it (the page replaces buckets by index).
+/// and what `resend` says (the page replaces buckets by index, so a frame starts on a bucket's
+/// start: a bucket sent in part would replace the whole one).
 fn live_frame(
     feed: &crate::live::Feed,
     last_end: &mut Option<i64>,
     span_ns: i64,
     bucket_ns: i64,
+    resend: Resend,
 ) -> Option<String> {
     let newest = feed.newest_end_ns()?;
-    if *last_end == Some(newest) {
+    if *last_end == Some(newest) && matches!(resend, Resend::Last(_) | Resend::From(None)) {
         return None;
     }
     let window_start = newest.saturating_sub(span_ns);
-    let mut from = match *last_end {
-        None => window_start,
-        Some(e) => window_start.max(e.saturating_sub(RESEND_NS)),
+    let mut from = match (*last_end, resend) {
+        (None, _) => window_start,
+        (Some(e), Resend::Last(back)) => window_start.max(e.saturating_sub(back)),
+        (Some(e), Resend::From(t)) => window_start.max(t.map_or(e, |t| t.min(e))),
     };
     if from >= newest {
         // The node's clock went back: start over.
         from = window_start;
     }
     // Keep within the bucket budget whatever the span and width.
-    from = from.max(newest.saturating_sub(bucket_ns.saturating_mul(MAX_BUCKETS as i64 - 2)));
+    from = from.max(newest.saturating_sub(bucket_ns.saturating_mul(MAX_BUCKETS as i64 - 3)));
+    from = from.div_euclid(bucket_ns) * bucket_ns;
     let view: View = feed.view(from, newest, bucket_ns).ok()?;
     *last_end = Some(newest);
     let frame = serde_json::json!({

@@ -847,3 +847,153 @@ async fn get_bytes(console: &Console, path: &str) -> Raw {
         body: out[split + 4..].to_vec(),
     }
 }
+
+/// What one event stream carried from its first live frame on.
+#[derive(Default)]
+struct Carried {
+    /// Bytes of every event after the first live frame.
+    bytes: usize,
+    live_frames: usize,
+    fleet_events: usize,
+    /// The stream time covered from the first frame's end to the last's, ns.
+    first_end_ns: i64,
+    last_end_ns: i64,
+    bucket_ns: i64,
+    /// Each bucket as last sent, by index.
+    buckets: std::collections::BTreeMap<i64, Value>,
+}
+
+/// Reads `/events?<query>` until a live frame reaches `until_ns`.
+async fn carried(addr: std::net::SocketAddr, query: String, until_ns: i64) -> Carried {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET /events?{query} HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut lines = BufReader::new(s).lines();
+    let mut out = Carried::default();
+    let mut event = String::new();
+    let mut started = false;
+    loop {
+        let line = tokio::time::timeout(TIMEOUT, lines.next_line())
+            .await
+            .expect("the stream goes on")
+            .unwrap()
+            .expect("the stream stays open");
+        if let Some(e) = line.strip_prefix("event: ") {
+            event = e.to_owned();
+        }
+        if started {
+            out.bytes += line.len() + 1;
+        }
+        let Some(data) = line.strip_prefix("data: ") else {
+            continue;
+        };
+        match event.as_str() {
+            "fleet" if started => out.fleet_events += 1,
+            "live" => {
+                let v: Value = serde_json::from_str(data).unwrap();
+                let view = &v["view"];
+                let end = view["end_ns"].as_i64().unwrap();
+                out.bucket_ns = view["bucket_ns"].as_i64().unwrap();
+                for b in view["buckets"].as_array().unwrap() {
+                    out.buckets.insert(b[0].as_i64().unwrap(), b.clone());
+                }
+                if !started {
+                    started = true;
+                    out.first_end_ns = end;
+                } else {
+                    out.live_frames += 1;
+                }
+                out.last_end_ns = end;
+                if end >= until_ns {
+                    return out;
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// A light stream (`lite=1`) carries the same buckets as the full one for a fraction of the
+/// bytes: the sensor publishes live at 100 Hz and two streams of the same view read it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_light_live_stream_carries_the_same_buckets_for_fewer_bytes() {
+    let site = Site::start(60).await;
+    let console = Console::start(&site, None).await;
+    let period_ns = BATCH as i64 * 1_000_000_000 / RATE_HZ as i64;
+    let first = ((now_ns() - site.t0_ns) / period_ns + 1) as u64;
+    let batches = 30;
+    let last_end_ns = site.t0_ns + (first + batches) as i64 * period_ns;
+    // The sensor: each batch put once its last sample is past, as a node sends it.
+    let publisher = site.session.clone();
+    let t0 = site.t0_ns;
+    let sensor = tokio::spawn(async move {
+        for seq in first..first + batches {
+            let b = batch(0, "acc-01", t0, seq);
+            let due = b.header.timestamp_ns + period_ns - now_ns();
+            if due > 0 {
+                tokio::time::sleep(std::time::Duration::from_nanos(due as u64)).await;
+            }
+            publisher
+                .put("triax/hq/corrected/acc-01", b.encode())
+                .await
+                .unwrap();
+        }
+    });
+    let q = |lite: &str| format!("building=hq&sensor=acc-01&span_s=10&width=1300{lite}");
+    let (full, light) = tokio::join!(
+        carried(console.addr, q(""), last_end_ns),
+        carried(console.addr, q("&lite=1"), last_end_ns)
+    );
+    sensor.await.unwrap();
+    let rate = |c: &Carried| c.bytes as f64 / ((c.last_end_ns - c.first_end_ns) as f64 / 1e9);
+    let (full_bps, light_bps) = (rate(&full), rate(&light));
+    eprintln!(
+        "10 s over 1300 columns at 100 Hz: full {:.0} B/s ({} frames, {} fleet events), light {:.0} B/s ({} frames, {} fleet events)",
+        full_bps, full.live_frames, full.fleet_events, light_bps, light.live_frames, light.fleet_events
+    );
+    assert!(
+        light_bps * 4.0 < full_bps,
+        "light {light_bps:.0} B/s, full {full_bps:.0} B/s"
+    );
+    assert!(light.live_frames < full.live_frames);
+    // Every bucket both have whole (after the first frames, up to the end) is the same.
+    assert_eq!(full.bucket_ns, light.bucket_ns);
+    let (lo, hi) = (
+        full.first_end_ns.max(light.first_end_ns) / full.bucket_ns + 1,
+        last_end_ns / full.bucket_ns,
+    );
+    let mut compared = 0;
+    for i in lo..hi {
+        assert_eq!(full.buckets.get(&i), light.buckets.get(&i), "bucket {i}");
+        compared += 1;
+    }
+    assert!(compared > 500, "{compared}");
+    // The page: the light stream chosen with its box, kept in the browser.
+    let browser = Browser::start(false);
+    browser.go(&format!("{}#/sensor/hq/acc-01", console.url()));
+    browser
+        .wait("the full stream", "const p = document.getElementById('plot'); return p && p.dataset.stream === 'full' && Number(p.dataset.frames) > 0")
+        .await;
+    browser.js("document.getElementById('lite').click(); return 1");
+    browser
+        .wait("the light stream", "const p = document.getElementById('plot'); return p && p.dataset.stream === 'light' && document.getElementById('lite').checked && Number(p.dataset.buckets) > 100")
+        .await;
+    browser.screenshot("sensor-light-stream");
+    browser.go(&format!("{}#/sensor/hq/acc-02", console.url()));
+    browser
+        .wait(
+            "the choice kept",
+            "const p = document.getElementById('plot'); return p && p.dataset.stream === 'light'",
+        )
+        .await;
+    browser.assert_no_errors("the light stream");
+    drop(browser);
+    let (status, body) = console
+        .get("/events?building=hq&sensor=acc-01&lite=2")
+        .await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("\"lite\""), "{body}");
+    console.stop().await;
+}

@@ -468,6 +468,15 @@
     return Math.max(50, Math.min(4000, Math.round(($('view').clientWidth || 1000) - 4)));
   }
 
+  // The light live stream: as chosen on this browser, else when it says that its link is
+  // slow or metered (Network Information API, where there is one).
+  function liteStream() {
+    const chosen = localStorage.getItem('triax.lite');
+    if (chosen !== null) return chosen === '1';
+    const c = navigator.connection;
+    return !!(c && (c.saveData || ['slow-2g', '2g', '3g'].includes(c.effectiveType)));
+  }
+
   function renderSensor() {
     const r = route;
     live = null; tilt = []; historyView = null; detail = null;
@@ -497,6 +506,7 @@
       el('label', {}, 'span ', spanSel),
       el('span', { class: 'meta' }, 'last'),
       [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : ''); } }, t)),
+      isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
       el('button', { id: 'btn-spectrum', onclick: loadSpectrum, title: 'power spectral density per axis of the span shown' }, 'Spectrum'),
       el('button', { id: 'btn-spectrogram', onclick: loadSpectrogram, title: 'spectrogram of one axis over the span shown: its PSD per column of time' }, 'Spectrogram'),
       el('button', { id: 'btn-csv', onclick: exportCsv, title: 'every sample of the span shown (up to 1 h), as CSV' }, 'CSV'),
@@ -530,6 +540,8 @@
     loadDetail();
     if (r.error) { connect(''); return; }
     const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
+    if (liteStream()) q.set('lite', '1');
+    $('plot').dataset.stream = liteStream() ? 'light' : 'full';
     for (const c of document.querySelectorAll('#plot canvas')) attachPointer(c, () => scheduleDraw());
     if (r.alert) loadAlert(r.alert);
     if (isLive) connect(q.toString());
