@@ -33,6 +33,8 @@
 //!   outage, retention.
 //! - `replay_restart`: the history byte for byte the live stream across clean stops and kills of
 //!   the gateway (split-mode and dynamic sensors).
+//! - `modes`: `triax-modes` identifies a simulated five-storey building's first three modes of
+//!   each direction from a 30-minute window streamed through the gateway faster than real time.
 //! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
 //!   sample's instant lies within ±k·u at the stated rate.
 
@@ -54,6 +56,8 @@ mod history;
 mod history_owner;
 #[path = "gateway/intervals.rs"]
 mod intervals;
+#[path = "gateway/modes.rs"]
+mod modes;
 #[path = "gateway/replay_restart.rs"]
 mod replay_restart;
 #[path = "gateway/tilt.rs"]

@@ -1,0 +1,201 @@
+//! `triax-modes` through a real gateway: a simulated five-storey building's six sensors stream
+//! raw batches (their outputs through the records' sensitivity and offset) faster than real
+//! time, stamped by the simulation's clock; the service gathers the corrected streams into a
+//! 30-minute window, identifies it and publishes the modes on `triax/<building>/modes`.
+
+use std::collections::BTreeMap;
+
+use triax_modal::sim::{SimBuilding, SimConfig};
+use triax_modal::{Direction, SsiConfig, TrackerConfig};
+use triax_modes::{BuildingConfig, Config as ModesConfig};
+use triax_net::{ZenohMode, ZenohSettings};
+use triax_protocol::batch::{BatchHeader, RawBatch};
+use triax_protocol::messages::{BuildingModes, ModalDirection};
+use triax_protocol::record::sample;
+use triax_protocol::{from_json, BuildingId, SensorId};
+
+use crate::util::*;
+
+/// Midnight UTC, a window boundary: the simulation's first sample.
+const EPOCH_NS: i64 = 1_800_921_600_000_000_000;
+const STANDARD_GRAVITY_MPS2: f64 = 9.806_65;
+/// Samples per raw batch: 5 s at 100 Hz.
+const BATCH: usize = 500;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_identifies_the_first_three_modes_of_each_direction_through_a_gateway() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let building = SimBuilding::five_storey(11);
+    // Static and dynamic sets alike, whichever the gateway applies; a band up to Nyquist, so
+    // the sensors' white noise is in band.
+    let records: Vec<_> = building
+        .model
+        .sensors
+        .iter()
+        .map(|s| {
+            let mut r = sample::record(&s.sensor_id, 1);
+            r.dynamic.domain.frequency_max_hz = 50.0;
+            r.static_set = r.dynamic.clone();
+            r
+        })
+        .collect();
+    seed_store(&store, &records);
+    // The field health checks judge the records against the data; the sample record's
+    // sensor is not this simulation's (its stated noise, its gravity), and a record turned
+    // suspect flags every sample after: the checks are not what this test is about.
+    let mut gw_config = config("hm1", &store);
+    gw_config.health = None;
+    let gw = start(gw_config).await;
+    let node = client(&gw.endpoint).await;
+    let published = node.declare_subscriber("triax/hm1/modes").await.unwrap();
+
+    let state_dir = dir.path().join("modes");
+    let mut buildings = BTreeMap::new();
+    buildings.insert(
+        BuildingId::new("hm1").unwrap(),
+        BuildingConfig {
+            model: building.model.clone(),
+            window_s: 1800.0,
+            alignment_tolerance: 0.1,
+            close_after_s: 60.0,
+            chain: Some(SimConfig::default().chain),
+            ssi: SsiConfig::default(),
+            tracker: TrackerConfig::default(),
+            alert_modes_per_direction: 3,
+            temperature_key: None,
+            record_max_windows: 100,
+        },
+    );
+    let modes_config = ModesConfig {
+        zenoh: ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![gw.endpoint.clone()]),
+        buildings,
+        state_dir: Some(state_dir.clone()),
+        signing_key_file: Some(dir.path().join("modes.key")),
+    };
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let service = tokio::spawn(triax_modes::run(modes_config, async {
+        let _ = stopped.await;
+    }));
+
+    // A window and a second more, so that every sensor passes the window's last point.
+    let t = building.frame.reference_temperature_c;
+    let sim = building.simulate(t, 1801.0, EPOCH_NS, 3);
+    let mut publishers = Vec::new();
+    for s in &building.model.sensors {
+        publishers.push(blocking_publisher(&node, key_raw("hm1", &s.sensor_id)).await);
+    }
+    // The service follows live batches from the moment it starts: wait until it listens.
+    wait_until_async("the modes service subscribed", || async {
+        node.declare_publisher("triax/hm1/corrected/probe")
+            .await
+            .unwrap()
+            .matching_status()
+            .await
+            .unwrap()
+            .matching()
+    })
+    .await;
+    let set = &records[0].dynamic;
+    let batches = sim.len().div_ceil(BATCH);
+    for b in 0..batches {
+        for (series, publisher) in sim.sensors.iter().zip(&publishers) {
+            let from = b * BATCH;
+            let to = (from + BATCH).min(series.acceleration_mps2.len());
+            let samples = series.acceleration_mps2[from..to]
+                .iter()
+                // The sensors' axes turn about the vertical only: gravity is on their z, where
+                // the gateway's health checks expect it.
+                .map(|a| {
+                    let a = [a[0], a[1], a[2] + STANDARD_GRAVITY_MPS2];
+                    outputs(&set.sensitivity, &set.offset, a).map(|v| v as f32)
+                })
+                .collect();
+            let raw = RawBatch {
+                header: BatchHeader {
+                    sensor_id: SensorId::new(series.sensor_id.clone()).unwrap(),
+                    sequence: b as u64,
+                    timestamp_ns: EPOCH_NS + (from as i64) * 10_000_000,
+                    sample_rate_hz: 100.0,
+                },
+                temperature_c: None,
+                samples,
+            };
+            publisher.put(raw.encode()).await.unwrap();
+        }
+    }
+    let sample = tokio::time::timeout(TIMEOUT, published.recv_async())
+        .await
+        .expect("the window's modes are published")
+        .unwrap();
+    let modes: BuildingModes = from_json(&sample.payload().to_bytes()).unwrap();
+    assert!(
+        modes.refused.is_none(),
+        "{:?}: {:?}",
+        modes.refused,
+        modes.sensors
+    );
+    assert_eq!(modes.window_start_ns, EPOCH_NS);
+    assert_eq!(modes.sensors.len(), 6);
+    for c in &modes.sensors {
+        assert_eq!(c.samples, 180_000, "{c:?}");
+        assert_eq!(c.flagged + c.missing + c.misaligned, 0, "{c:?}");
+        assert_eq!(c.calibration_versions, vec![1]);
+    }
+    // The same window identified directly, off the wire: the gateway's correction gives back
+    // the simulated accelerations to f32 precision, so the service's frequencies are those.
+    let direct = triax_modal::identify(&building.model, &sim, &SsiConfig::default()).unwrap();
+    for direction in [Direction::X, Direction::Y] {
+        let d = if direction == Direction::X {
+            ModalDirection::X
+        } else {
+            ModalDirection::Y
+        };
+        for truth in building.frame.direction_modes(direction, t).iter().take(3) {
+            let nearest = |fs: &mut dyn Iterator<Item = (f64, f64)>| {
+                fs.min_by(|a, b| {
+                    (a.0 - truth.frequency_hz)
+                        .abs()
+                        .total_cmp(&(b.0 - truth.frequency_hz).abs())
+                })
+            };
+            let (f, band) = nearest(&mut modes.modes.iter().filter(|m| m.direction == d).map(
+                |m| {
+                    (
+                        m.frequency_hz.value,
+                        m.frequency_hz.coverage_factor * m.frequency_hz.standard_uncertainty,
+                    )
+                },
+            ))
+            .unwrap_or_else(|| panic!("{direction:?} mode {} not published", truth.number));
+            let error = (f - truth.frequency_hz).abs();
+            assert!(
+                error <= 0.005 * truth.frequency_hz && error <= band,
+                "{direction:?} {}: {f} ± {band} Hz against {}",
+                truth.number,
+                truth.frequency_hz
+            );
+            let (g, _) = nearest(
+                &mut direct
+                    .modes
+                    .iter()
+                    .filter(|m| m.direction == direction)
+                    .map(|m| (m.frequency_hz.value, 0.0)),
+            )
+            .unwrap();
+            assert!(
+                (f - g).abs() <= 1e-4 * g,
+                "through the gateway {f}, direct {g}"
+            );
+        }
+    }
+    // Kept: one line in the record, and where to resume.
+    let record = triax_modes::record::read(&state_dir.join("hm1")).unwrap();
+    assert_eq!(record.len(), 1);
+    assert_eq!(record[0].window_start_ns, EPOCH_NS);
+    assert!(state_dir.join("hm1").join("state.json").exists());
+    stop.send(()).unwrap();
+    service.await.unwrap().unwrap();
+    node.close().await.unwrap();
+    gw.stop().await;
+}
