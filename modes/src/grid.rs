@@ -270,10 +270,7 @@ impl Gatherer {
     /// Closes every window whose time has come.
     fn close_ready(&mut self) -> Vec<ClosedWindow> {
         let mut closed = Vec::new();
-        loop {
-            let Some((&index, pending)) = self.pending.iter().next() else {
-                break;
-            };
+        while let Some((&index, pending)) = self.pending.iter().next() {
             let start_ns = index.saturating_mul(self.window_ns);
             let end_ns = start_ns.saturating_add(self.window_ns);
             let last_point = pending.start_offset_ns

@@ -430,3 +430,37 @@ fn tracking_targets() {
     println!("false modal_shift per simulated year (6 tracks, {years} years): {rate:.2}");
     assert!(rate <= 1.5, "{rate} false alarms a year");
 }
+
+/// What one building costs the service per window (`cargo test --release -p triax-modes --test
+/// pipeline cost_of_a_window -- --ignored --nocapture`): gathering a 30-minute window of six
+/// sensors from 5-second batches, and identifying it.
+#[test]
+#[ignore]
+fn cost_of_a_window() {
+    let building = SimBuilding::five_storey(6);
+    let sim = building.simulate(20.0, 1801.0, EPOCH_NS, 1);
+    let stream = interleaved(&sim, 500, 0);
+    let config = config(building.model.clone(), 1800.0);
+    let runs = 5;
+    let mut gather_s = 0.0;
+    let mut identify_s = 0.0;
+    for _ in 0..runs {
+        let mut core = Building::new(BuildingId::new("sim").unwrap(), config.clone(), None);
+        let started = std::time::Instant::now();
+        let closed: Vec<ClosedWindow> = stream
+            .iter()
+            .flat_map(|b| core.on_batch(b, false))
+            .collect();
+        gather_s += started.elapsed().as_secs_f64();
+        let started = std::time::Instant::now();
+        let result = identify_window(&core.config, &closed[0]);
+        identify_s += started.elapsed().as_secs_f64();
+        assert!(result.is_ok());
+    }
+    let (gather_s, identify_s) = (gather_s / runs as f64, identify_s / runs as f64);
+    println!(
+        "one 30-minute window, six sensors at 100 Hz: gathering {gather_s:.3} s, identification \
+         {identify_s:.3} s; 100 buildings: {:.2} % of a core",
+        100.0 * 100.0 * (gather_s + identify_s) / 1800.0
+    );
+}
