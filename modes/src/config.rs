@@ -251,6 +251,15 @@ mod tests {
     }
 
     #[test]
+    fn the_example_is_valid() {
+        let c = Config::from_toml(include_str!("../modes.example.toml")).unwrap();
+        let b = &c.buildings[&BuildingId::new("hq").unwrap()];
+        assert_eq!(b.model.sensors.len(), 2);
+        assert_eq!(b.tracker.training_windows, 336);
+        assert!(b.chain.is_some() && b.temperature_key.is_some());
+    }
+
+    #[test]
     fn mistakes_are_named() {
         let bad_rotation = "[buildings.hq]\n[[buildings.hq.sensors]]\nsensor_id = \"roof\"\n\
             floor = 5\nheight_m = 17.5\nmounting = [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]\n";
