@@ -34,7 +34,8 @@
 //! - `replay_restart`: the history byte for byte the live stream across clean stops and kills of
 //!   the gateway (split-mode and dynamic sensors).
 //! - `modes`: `triax-modes` identifies a simulated five-storey building's first three modes of
-//!   each direction from a 30-minute window streamed through the gateway faster than real time.
+//!   each direction from a 30-minute window streamed through the gateway faster than real time,
+//!   and after a restart the window it missed, from the history.
 //! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
 //!   sample's instant lies within ±k·u at the stated rate.
 

@@ -1,7 +1,9 @@
 //! `triax-modes` through a real gateway: a simulated five-storey building's six sensors stream
 //! raw batches (their outputs through the records' sensitivity and offset) faster than real
 //! time, stamped by the simulation's clock; the service gathers the corrected streams into a
-//! 30-minute window, identifies it and publishes the modes on `triax/<building>/modes`.
+//! 30-minute window, identifies it and publishes the modes on `triax/<building>/modes`; stopped
+//! over the next window, it reads that back from the history when started again, says it is
+//! late, and its tracks go on.
 
 use std::collections::BTreeMap;
 
@@ -21,6 +23,46 @@ const EPOCH_NS: i64 = 1_800_921_600_000_000_000;
 const STANDARD_GRAVITY_MPS2: f64 = 9.806_65;
 /// Samples per raw batch: 5 s at 100 Hz.
 const BATCH: usize = 500;
+
+/// Publishes a simulated stretch as raw batches of every sensor, interleaved, from sequence
+/// `first_sequence` and sample `first_sample` of the simulation's clock; returns how many
+/// batches each sensor sent.
+async fn stream(
+    sim: &triax_modal::Window,
+    publishers: &[zenoh::pubsub::Publisher<'static>],
+    set: &triax_protocol::CalibrationSet,
+    first_sequence: u64,
+    first_sample: usize,
+) -> u64 {
+    let batches = sim.len().div_ceil(BATCH);
+    for b in 0..batches {
+        for (series, publisher) in sim.sensors.iter().zip(publishers) {
+            let from = b * BATCH;
+            let to = (from + BATCH).min(series.acceleration_mps2.len());
+            let samples = series.acceleration_mps2[from..to]
+                .iter()
+                // The sensors' axes turn about the vertical only: gravity is on their z, where
+                // the gateway's health checks expect it.
+                .map(|a| {
+                    let a = [a[0], a[1], a[2] + STANDARD_GRAVITY_MPS2];
+                    outputs(&set.sensitivity, &set.offset, a).map(|v| v as f32)
+                })
+                .collect();
+            let raw = RawBatch {
+                header: BatchHeader {
+                    sensor_id: SensorId::new(series.sensor_id.clone()).unwrap(),
+                    sequence: first_sequence + b as u64,
+                    timestamp_ns: EPOCH_NS + ((first_sample + from) as i64) * 10_000_000,
+                    sample_rate_hz: 100.0,
+                },
+                temperature_c: None,
+                samples,
+            };
+            publisher.put(raw.encode()).await.unwrap();
+        }
+    }
+    batches as u64
+}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_service_identifies_the_first_three_modes_of_each_direction_through_a_gateway() {
@@ -67,14 +109,14 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
             record_max_windows: 100,
         },
     );
-    let modes_config = ModesConfig {
+    let modes_config = || ModesConfig {
         zenoh: ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![gw.endpoint.clone()]),
-        buildings,
+        buildings: buildings.clone(),
         state_dir: Some(state_dir.clone()),
         signing_key_file: Some(dir.path().join("modes.key")),
     };
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let service = tokio::spawn(triax_modes::run(modes_config, async {
+    let service = tokio::spawn(triax_modes::run(modes_config(), async {
         let _ = stopped.await;
     }));
 
@@ -96,34 +138,8 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
             .matching()
     })
     .await;
-    let set = &records[0].dynamic;
-    let batches = sim.len().div_ceil(BATCH);
-    for b in 0..batches {
-        for (series, publisher) in sim.sensors.iter().zip(&publishers) {
-            let from = b * BATCH;
-            let to = (from + BATCH).min(series.acceleration_mps2.len());
-            let samples = series.acceleration_mps2[from..to]
-                .iter()
-                // The sensors' axes turn about the vertical only: gravity is on their z, where
-                // the gateway's health checks expect it.
-                .map(|a| {
-                    let a = [a[0], a[1], a[2] + STANDARD_GRAVITY_MPS2];
-                    outputs(&set.sensitivity, &set.offset, a).map(|v| v as f32)
-                })
-                .collect();
-            let raw = RawBatch {
-                header: BatchHeader {
-                    sensor_id: SensorId::new(series.sensor_id.clone()).unwrap(),
-                    sequence: b as u64,
-                    timestamp_ns: EPOCH_NS + (from as i64) * 10_000_000,
-                    sample_rate_hz: 100.0,
-                },
-                temperature_c: None,
-                samples,
-            };
-            publisher.put(raw.encode()).await.unwrap();
-        }
-    }
+    let set = records[0].dynamic.clone();
+    let first_batches = stream(&sim, &publishers, &set, 0, 0).await;
     let sample = tokio::time::timeout(TIMEOUT, published.recv_async())
         .await
         .expect("the window's modes are published")
@@ -194,6 +210,53 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
     assert_eq!(record.len(), 1);
     assert_eq!(record[0].window_start_ns, EPOCH_NS);
     assert!(state_dir.join("hm1").join("state.json").exists());
+    stop.send(()).unwrap();
+    service.await.unwrap().unwrap();
+
+    // Stopped, the service misses the next window whole; started again, it reads it back
+    // from the history from where it left off, identifies it late, and its tracks go on.
+    let next = building.simulate(t, 1800.0, EPOCH_NS + 1_801_000_000_000, 4);
+    let last = first_batches + stream(&next, &publishers, &set, first_batches, 180_100).await - 1;
+    for s in &building.model.sensors {
+        wait_history_holds(&node, "hm1", &s.sensor_id, last).await;
+    }
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let service = tokio::spawn(triax_modes::run(modes_config(), async {
+        let _ = stopped.await;
+    }));
+    let sample = tokio::time::timeout(TIMEOUT, published.recv_async())
+        .await
+        .expect("the missed window's modes are published")
+        .unwrap();
+    let again: BuildingModes = from_json(&sample.payload().to_bytes()).unwrap();
+    assert_eq!(again.window_start_ns, EPOCH_NS + 1_800_000_000_000);
+    assert!(again.late, "read back from the history");
+    assert!(
+        again.refused.is_none(),
+        "{:?}: {:?}",
+        again.refused,
+        again.sensors
+    );
+    for c in &again.sensors {
+        assert_eq!(c.flagged + c.missing + c.misaligned, 0, "{c:?}");
+    }
+    let fundamental = |m: &BuildingModes| {
+        m.modes
+            .iter()
+            .find(|x| x.direction == ModalDirection::X)
+            .and_then(|x| x.track)
+    };
+    assert_eq!(
+        fundamental(&again),
+        fundamental(&modes),
+        "the x fundamental's track goes on"
+    );
+    assert_eq!(
+        triax_modes::record::read(&state_dir.join("hm1"))
+            .unwrap()
+            .len(),
+        2
+    );
     stop.send(()).unwrap();
     service.await.unwrap().unwrap();
     node.close().await.unwrap();
