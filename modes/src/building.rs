@@ -341,7 +341,13 @@ impl Building {
             };
             if let Some(u) = update {
                 if alerting.contains(&u.track) {
-                    alerts.extend(self.shift_alerts(closed, &report, u, now));
+                    alerts.extend(self.shift_alerts(
+                        closed,
+                        &report,
+                        u,
+                        !regressors.is_empty(),
+                        now,
+                    ));
                 }
             }
             modes.modes.push(report);
@@ -376,6 +382,7 @@ impl Building {
         closed: &ClosedWindow,
         report: &ModeReport,
         update: &TrackUpdate,
+        with_temperature: bool,
         now: OffsetDateTime,
     ) -> Vec<Alert> {
         let tracker = &self.tracker.config;
@@ -426,7 +433,7 @@ impl Building {
                     update.direction,
                     report.frequency_hz.value,
                     -100.0 * residual.value,
-                    if self.config.temperature_key.is_some() {
+                    if with_temperature {
                         " (temperature regressed out)"
                     } else {
                         " (no temperature source: the baseline is a constant)"
