@@ -713,6 +713,65 @@ mod tests {
     }
 
     #[test]
+    fn building_modes_round_trip_with_infinite_degrees_of_freedom_as_null() {
+        let estimate = |value: f64, dof: f64| ModalEstimate {
+            value,
+            standard_uncertainty: 0.001,
+            dof,
+            coverage_factor: 2.0,
+            coverage_probability: 0.95,
+        };
+        let modes = BuildingModes {
+            format_version: JSON_FORMAT_VERSION,
+            building: BuildingId::new("hq").unwrap(),
+            window_start_ns: 1_800_000_000_000_000_000,
+            window_end_ns: 1_800_001_800_000_000_000,
+            sample_rate_hz: 100.0,
+            identification_rate_hz: 25.0,
+            sensors: vec![ModalSensorCoverage {
+                sensor_id: SensorId::new("roof").unwrap(),
+                samples: 180_000,
+                flagged: 1,
+                missing: 2,
+                misaligned: 3,
+                calibration_versions: vec![4],
+            }],
+            temperature_c: Some(12.5),
+            regressors: vec![12.5],
+            tracked: true,
+            modes: vec![ModeReport {
+                track: Some(0),
+                direction: ModalDirection::X,
+                frequency_hz: estimate(1.0, 11.0),
+                damping_ratio: estimate(0.02, 11.0),
+                shape: vec![ModeShapeComponent {
+                    sensor_id: SensorId::new("roof").unwrap(),
+                    direction: ModalDirection::X,
+                    real: estimate(1.0, f64::INFINITY),
+                    imag: estimate(0.0, f64::INFINITY),
+                }],
+                reference_component: 0,
+                order: 20,
+                stable_orders: 10,
+                replicates: 12,
+                predicted_hz: Some(1.001),
+                residual_relative: Some(estimate(-0.001, 334.0)),
+                verdict: Some(ModalVerdict::Normal),
+                block_mean_relative: None,
+                block_verdict: None,
+            }],
+            unquantified: Vec::new(),
+            refused: None,
+            late: false,
+            identified_at: t(),
+        };
+        round_trip(&modes);
+        let text = String::from_utf8(to_json(&modes)).unwrap();
+        assert!(text.contains(r#""dof":null"#), "{text}");
+        assert!(!text.contains("late"), "absent when false: {text}");
+    }
+
+    #[test]
     fn every_json_message_round_trips() {
         let record_json = String::from_utf8(to_json(&sample::record("acc-1", 4))).unwrap();
         let signed = SignedRecord {
