@@ -16,6 +16,7 @@ fn all_keys(b: &BuildingId, s: &SensorId) -> Vec<Key> {
         Key::CalibrationRegistry(b.clone()),
         Key::Status(b.clone()),
         Key::Alert(b.clone(), s.clone()),
+        Key::Modes(b.clone()),
     ]
 }
 
