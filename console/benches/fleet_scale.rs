@@ -14,7 +14,7 @@
 //! resident memory, and the bytes a fleet event carries.
 
 #[path = "../tests/site/mod.rs"]
-#[allow(dead_code, unused_imports)]
+#[allow(unused_imports)]
 mod site;
 
 use std::process::{Child, Command, Stdio};
