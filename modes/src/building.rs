@@ -205,8 +205,19 @@ impl Building {
         }
     }
 
-    pub fn on_batch(&mut self, batch: &CorrectedBatch, recovered: bool) -> Vec<ClosedWindow> {
-        self.gatherer.add(batch, recovered)
+    /// A corrected batch, at `now_s` by the service's clock (any monotonic origin).
+    pub fn on_batch(
+        &mut self,
+        batch: &CorrectedBatch,
+        recovered: bool,
+        now_s: f64,
+    ) -> Vec<ClosedWindow> {
+        self.gatherer.add(batch, recovered, now_s)
+    }
+
+    /// Closes the windows whose wait for silent sensors is over.
+    pub fn tick(&mut self, now_s: f64) -> Vec<ClosedWindow> {
+        self.gatherer.tick(now_s)
     }
 
     /// A temperature reading of the configured source, by its own clock.

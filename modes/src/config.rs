@@ -56,8 +56,8 @@ pub struct BuildingConfig {
     /// A sample is put on the window's grid when it is within this fraction of a sample period
     /// of a grid point; further off, it is left out (`misaligned`).
     pub alignment_tolerance: f64,
-    /// A window is identified once every sensor has passed its end, or once any sensor is this
-    /// far past it (the others' missing samples are then gaps), s.
+    /// A window is identified once every sensor has passed its end, or this long (s, by the
+    /// service's clock) after the first did: the others' missing samples are then gaps.
     pub close_after_s: f64,
     /// What the measurement chain adds to the shapes, the same for every sensor; none given:
     /// shapes carry their statistical uncertainty only (said in the log at start).

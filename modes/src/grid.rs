@@ -13,8 +13,12 @@
 //! All three are invalid for identification, which leaves them out of every correlation.
 //!
 //! A window closes when every sensor of the model has delivered a sample at or past its last
-//! grid point, or when any sensor is `close_after_s` past its end (the others' silence is then
-//! a gap). Batches of a window already closed are dropped and counted.
+//! grid point, or `close_after_s` of the service's own time (not the sensors') after the first
+//! sensor passed its end: the others' silence is then a gap. Waiting by the service's clock
+//! rather than by how far the first sensor has run is what lets a restart work: the follower
+//! reads each sensor's missed stretch from the history in turn, so one sensor may run hours
+//! ahead of the others for a few seconds. At most [`MAX_PENDING_WINDOWS`] wait; beyond, the
+//! oldest closes as it is. Batches of a window already closed are dropped and counted.
 
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -24,6 +28,9 @@ use triax_protocol::messages::ModalSensorCoverage;
 use triax_protocol::{CorrectedBatch, SensorId};
 
 const NS_PER_S: f64 = 1e9;
+
+/// Windows open at once: a day of 30-minute windows (14 MB each for six sensors at 100 Hz).
+pub const MAX_PENDING_WINDOWS: usize = 48;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(u8)]
@@ -52,6 +59,8 @@ struct Pending {
     len: usize,
     sensors: Vec<SensorBuffer>,
     late: bool,
+    /// When (the service's clock, s) a sensor first passed the window's end.
+    first_past_s: Option<f64>,
 }
 
 /// A window ready for identification, with what each sensor gave it.
@@ -72,7 +81,7 @@ pub struct Gatherer {
     sensors: Vec<SensorId>,
     window_ns: i64,
     tolerance: f64,
-    close_after_ns: i64,
+    close_after_s: f64,
     chain: ChainUncertainty,
     pending: BTreeMap<i64, Pending>,
     /// Windows below this index are closed.
@@ -108,7 +117,7 @@ impl Gatherer {
             sensors,
             window_ns: (window_s * NS_PER_S).round() as i64,
             tolerance: alignment_tolerance,
-            close_after_ns: (close_after_s * NS_PER_S).round() as i64,
+            close_after_s,
             chain,
             pending: BTreeMap::new(),
             next_index: i64::MIN,
@@ -148,8 +157,14 @@ impl Gatherer {
             .collect()
     }
 
-    /// Takes one batch; returns the windows it closed, oldest first.
-    pub fn add(&mut self, batch: &CorrectedBatch, recovered: bool) -> Vec<ClosedWindow> {
+    /// Takes one batch, at `now_s` by the service's clock (any monotonic origin); returns the
+    /// windows it closed, oldest first.
+    pub fn add(
+        &mut self,
+        batch: &CorrectedBatch,
+        recovered: bool,
+        now_s: f64,
+    ) -> Vec<ClosedWindow> {
         let Some(s) = self
             .sensors
             .iter()
@@ -195,7 +210,18 @@ impl Gatherer {
         }
         let newest = self.newest_ns[s].get_or_insert(last_ns);
         *newest = (*newest).max(last_ns);
-        self.close_ready()
+        let window_ns = self.window_ns;
+        for (&index, p) in self.pending.iter_mut() {
+            if p.first_past_s.is_none() && last_ns >= (index + 1).saturating_mul(window_ns) {
+                p.first_past_s = Some(now_s);
+            }
+        }
+        self.close_ready(now_s)
+    }
+
+    /// Closes the windows whose wait for silent sensors is over.
+    pub fn tick(&mut self, now_s: f64) -> Vec<ClosedWindow> {
+        self.close_ready(now_s)
     }
 
     fn place(
@@ -231,6 +257,7 @@ impl Gatherer {
                     sensors
                 ],
                 late: false,
+                first_past_s: None,
             }
         });
         pending.late |= recovered;
@@ -268,11 +295,10 @@ impl Gatherer {
     }
 
     /// Closes every window whose time has come.
-    fn close_ready(&mut self) -> Vec<ClosedWindow> {
+    fn close_ready(&mut self, now_s: f64) -> Vec<ClosedWindow> {
         let mut closed = Vec::new();
         while let Some((&index, pending)) = self.pending.iter().next() {
             let start_ns = index.saturating_mul(self.window_ns);
-            let end_ns = start_ns.saturating_add(self.window_ns);
             let last_point = pending.start_offset_ns
                 + (pending.len as f64 - 1.0) * pending.period_ns
                 - 0.5 * pending.period_ns;
@@ -280,12 +306,11 @@ impl Gatherer {
                 .newest_ns
                 .iter()
                 .all(|t| t.is_some_and(|t| t.saturating_sub(start_ns) as f64 >= last_point));
-            let any_far = self
-                .newest_ns
-                .iter()
-                .flatten()
-                .any(|&t| t >= end_ns.saturating_add(self.close_after_ns));
-            if !(all_past || any_far) {
+            let waited = pending
+                .first_past_s
+                .is_some_and(|t| now_s - t >= self.close_after_s);
+            let too_many = self.pending.len() > MAX_PENDING_WINDOWS;
+            if !(all_past || waited || too_many) {
                 break;
             }
             closed.push(self.close(index));

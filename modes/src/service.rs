@@ -159,11 +159,23 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         buildings.insert(id.clone(), building);
     }
     drop(tx);
+    let started = tokio::time::Instant::now();
+    let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     tokio::pin!(shutdown);
     loop {
         let msg = tokio::select! {
             _ = &mut shutdown => break,
             msg = rx.recv() => match msg { Some(m) => m, None => break },
+            _ = tick.tick() => {
+                let now_s = started.elapsed().as_secs_f64();
+                for building in buildings.values_mut() {
+                    for closed in building.tick(now_s) {
+                        conclude(&session, &config, building, closed, &signing).await;
+                    }
+                }
+                continue;
+            }
         };
         match msg {
             Inbound::Temperature(b, payload) => {
@@ -180,7 +192,8 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
                 let Some(building) = buildings.get_mut(&b) else {
                     continue;
                 };
-                for closed in building.on_batch(&d.batch, d.recovered) {
+                let now_s = started.elapsed().as_secs_f64();
+                for closed in building.on_batch(&d.batch, d.recovered, now_s) {
                     conclude(&session, &config, building, closed, &signing).await;
                 }
             }
@@ -230,12 +243,9 @@ async fn conclude(
         late = m.late,
         "window identified"
     );
-    let key = Key::Modes(building.id.clone()).to_string();
-    if let Err(e) = session.put(&key, to_json(m)).await {
-        tracing::error!(key = %key, cause = %e, "modes not published");
-    }
-    if let Some(dir) = &config.state_dir {
-        let dir = dir.join(building.id.as_str());
+    // Kept before it is published: whoever sees it can read it back from the record.
+    if let Some(root) = &config.state_dir {
+        let dir = root.join(building.id.as_str());
         match crate::record::append(
             &dir,
             m,
@@ -245,13 +255,14 @@ async fn conclude(
             Ok(lines) => building.record_lines = lines,
             Err(e) => tracing::error!(dir = %dir.display(), cause = %e, "record not written"),
         }
-        let path = state_path(
-            config.state_dir.as_deref().unwrap_or(Path::new(".")),
-            &building.id,
-        );
+        let path = state_path(root, &building.id);
         if let Err(e) = save_state(&path, &building.state()) {
             tracing::error!(path = %path.display(), cause = %e, "state not written");
         }
+    }
+    let key = Key::Modes(building.id.clone()).to_string();
+    if let Err(e) = session.put(&key, to_json(m)).await {
+        tracing::error!(key = %key, cause = %e, "modes not published");
     }
     for alert in &outcome.alerts {
         publish_alert(session, alert, signing).await;

@@ -85,7 +85,7 @@ fn interleaved(window: &Window, len: usize, first_sequence: u64) -> Vec<Correcte
 fn feed(gatherer: &mut Gatherer, batches: &[CorrectedBatch]) -> Vec<ClosedWindow> {
     batches
         .iter()
-        .flat_map(|b| gatherer.add(b, false))
+        .flat_map(|b| gatherer.add(b, false, 0.0))
         .collect()
 }
 
@@ -158,12 +158,37 @@ fn windows_on_one_grid_leave_out_flags_gaps_and_misaligned_clocks() {
     assert!((chain.timestamp_u_s - 0.001f64.hypot(placement)).abs() < 1e-12);
     // A batch of a closed window is dropped and counted.
     let before = gatherer.dropped_late;
-    let _ = gatherer.add(&stream[0], true);
+    let _ = gatherer.add(&stream[0], true, 0.0);
     assert_eq!(gatherer.dropped_late, before + 1);
     // The restart point of each sensor: its last batch wholly inside the second window.
     let positions = gatherer.positions();
     let s1 = positions[&SensorId::new("s1").unwrap()];
     assert_eq!(s1.sequence, 239, "120 s of 0.5 s batches end at #239");
+
+    // Sensor 6 falls silent: the third window waits for it `close_after_s` (5 s) of the
+    // service's clock after the others passed its end, however far they run meanwhile, then
+    // closes with its silence as a gap.
+    let more = building.simulate(20.0, 70.0, EPOCH_NS + 130_000_000_000, 2);
+    let mut later = interleaved(&more, 50, 260);
+    later.retain(|b| b.header.sensor_id.as_str() != "s6");
+    let closed: Vec<ClosedWindow> = later
+        .iter()
+        .flat_map(|b| gatherer.add(b, false, 10.0))
+        .collect();
+    assert!(closed.is_empty(), "waits for s6");
+    assert!(gatherer.tick(14.9).is_empty());
+    let third = gatherer.tick(15.0);
+    assert_eq!(third.len(), 1);
+    assert_eq!(
+        third[0].window.start_timestamp_ns,
+        EPOCH_NS + 120_000_000_000
+    );
+    assert_eq!(
+        coverage(&third[0], "s6").missing,
+        5000,
+        "silent after 130 s"
+    );
+    assert_eq!(coverage(&third[0], "s1").missing, 0);
 }
 
 fn simulated_modes(
@@ -183,7 +208,7 @@ fn simulated_modes(
     let stream = interleaved(&sim, 500, (index as u64) * 1000);
     let closed: Vec<ClosedWindow> = stream
         .iter()
-        .flat_map(|b| core.on_batch(b, false))
+        .flat_map(|b| core.on_batch(b, false, 0.0))
         .collect();
     // Under a second of the next window never closes this one by time; every sensor passed
     // its end.
@@ -456,7 +481,7 @@ fn cost_of_a_window() {
         let started = std::time::Instant::now();
         let closed: Vec<ClosedWindow> = stream
             .iter()
-            .flat_map(|b| core.on_batch(b, false))
+            .flat_map(|b| core.on_batch(b, false, 0.0))
             .collect();
         gather_s += started.elapsed().as_secs_f64();
         let started = std::time::Instant::now();

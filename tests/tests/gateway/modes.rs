@@ -213,9 +213,11 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
     stop.send(()).unwrap();
     service.await.unwrap().unwrap();
 
-    // Stopped, the service misses the next window whole; started again, it reads it back
-    // from the history from where it left off, identifies it late, and its tracks go on.
-    let next = building.simulate(t, 1800.0, EPOCH_NS + 1_801_000_000_000, 4);
+    // Stopped, the service misses the next window whole and two minutes more; started again,
+    // it reads them back from the history from where it left off, one sensor's stretch after
+    // another's (the first runs minutes past the window's end before the others arrive: the
+    // window waits for them), identifies it late, and its tracks go on.
+    let next = building.simulate(t, 1920.0, EPOCH_NS + 1_801_000_000_000, 4);
     let last = first_batches + stream(&next, &publishers, &set, first_batches, 180_100).await - 1;
     for s in &building.model.sensors {
         wait_history_holds(&node, "hm1", &s.sensor_id, last).await;
