@@ -290,6 +290,68 @@ fn a_gathered_window_gives_the_first_three_modes_of_each_direction() {
 }
 
 #[test]
+fn a_storey_loss_raises_a_signed_modal_shift_naming_its_test_and_rate() {
+    // A baseline from three windows and a large budget (k small), so that a few windows show
+    // the alert path; the rates themselves are `tracking_targets`'.
+    let mut building = SimBuilding::five_storey(31);
+    let mut c = config(building.model.clone(), 1800.0);
+    c.tracker.training_windows = 4;
+    c.tracker.false_alarms_per_year = 5_000.0;
+    let mut core = Building::new(BuildingId::new("sim").unwrap(), c, None);
+    let t = building.frame.reference_temperature_c;
+    for w in 0..4 {
+        let (_, modes, alerts) =
+            simulated_modes(&building, t + w as f64, w, 50 + w as u64, &mut core);
+        assert!(alerts.is_empty(), "training");
+        assert!(modes
+            .modes
+            .iter()
+            .all(|m| m.verdict == Some(ModalVerdict::Training)));
+    }
+    // A tenth of the first storey's x stiffness: the x fundamental drops by about 2 %.
+    building.frame.damage.push((Direction::X, 1, 0.10));
+    let (_, modes, alerts) = simulated_modes(&building, t + 1.5, 4, 60, &mut core);
+    let x1 = modes
+        .modes
+        .iter()
+        .find(|m| m.direction == ModalDirection::X)
+        .unwrap();
+    assert_eq!(x1.verdict, Some(ModalVerdict::Shift), "{x1:?}");
+    let alert = alerts
+        .iter()
+        .find(|a| a.kind == AlertKind::ModalShift && a.value > 1.0)
+        .unwrap_or_else(|| panic!("no modal_shift for the x fundamental: {alerts:?}"));
+    assert_eq!(alert.unit, "%");
+    assert!(alert.value - alert.coverage_factor * alert.standard_uncertainty > 0.0);
+    assert!(
+        alert.statement.contains("single-window test"),
+        "{}",
+        alert.statement
+    );
+    assert!(
+        alert.statement.contains("false modal_shift a year"),
+        "{}",
+        alert.statement
+    );
+    assert_eq!(alert.window_end_ns, Some(modes.window_end_ns));
+    // The reference component's sensor names it: the roof's (floor 5).
+    assert!(
+        ["s5", "s6"].contains(&alert.sensor_id.as_str()),
+        "{}",
+        alert.sensor_id
+    );
+    // Signed as every alert, and read back verified.
+    let key = triax_protocol::signing::LabSigningKey::generate(&mut rand::rngs::OsRng);
+    let signed = triax_protocol::signing::sign_alert(alert, &key);
+    let trusted =
+        triax_protocol::signing::TrustedKeys::from_hex(&[signed.public_key_hex.clone()]).unwrap();
+    let (back, trust) =
+        triax_protocol::signing::read_alert(&triax_protocol::to_json(&signed), &trusted).unwrap();
+    assert!(trust.is_verified());
+    assert_eq!(&back, alert);
+}
+
+#[test]
 fn the_record_keeps_every_window_and_rotates() {
     let dir = tempfile::tempdir().unwrap();
     let modes = |start: i64| BuildingModes {
