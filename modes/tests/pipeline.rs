@@ -343,8 +343,10 @@ fn a_storey_loss_raises_a_signed_modal_shift_naming_its_test_and_rate() {
     // Signed as every alert, and read back verified.
     let key = triax_protocol::signing::LabSigningKey::generate(&mut rand::rngs::OsRng);
     let signed = triax_protocol::signing::sign_alert(alert, &key);
-    let trusted =
-        triax_protocol::signing::TrustedKeys::from_hex(&[signed.public_key_hex.clone()]).unwrap();
+    let trusted = triax_protocol::signing::TrustedKeys::from_hex(std::slice::from_ref(
+        &signed.public_key_hex,
+    ))
+    .unwrap();
     let (back, trust) =
         triax_protocol::signing::read_alert(&triax_protocol::to_json(&signed), &trusted).unwrap();
     assert!(trust.is_verified());
