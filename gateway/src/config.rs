@@ -453,7 +453,7 @@ fn colocated_settings(
 }
 
 /// Default time between a sensor's health reports, s.
-pub const DEFAULT_HEALTH_PUBLISH_INTERVAL_S: f64 = 10.0;
+pub const DEFAULT_HEALTH_PUBLISH_INTERVAL_S: f64 = 60.0;
 
 fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError> {
     if !h.enabled.unwrap_or(true) {

@@ -604,7 +604,8 @@ impl SensorState {
         }
         let received_ns = now_ns();
         c.last_seen_ns.store(received_ns, Relaxed);
-        if let (Some(v), true) = (version, judged != history::Verdict::Duplicate) {
+        let paired = !self.pairs.is_empty() && judged != history::Verdict::Duplicate;
+        if let (Some(v), true) = (version, paired) {
             let accel = scratch.corrected();
             // A pair's spectra take whole, finite stretches: a batch with a lost value is a
             // break for it, as a gap is.

@@ -179,6 +179,38 @@ fn raw_batch(sensor: &SensorId, sequence: u64, samples: &[[f32; 3]]) -> Vec<u8> 
     .encode()
 }
 
+/// A building node's batch `sequence`: time stamps that follow on from batch to batch, a sway
+/// that goes on across batches, and white noise at the bench record's stated `output_noise`
+/// (1 mV), so that the field health checks see the healthy sensor they would see in a building
+/// (a batch repeated verbatim looks like spikes at every boundary and turns every sensor
+/// suspect at once, which measures a one-off, not the steady state).
+fn building_batch(sensor: &SensorId, sequence: u64, rng: &mut rand::rngs::StdRng) -> Vec<u8> {
+    use rand::Rng;
+    const EPOCH_NS: i64 = 1_800_000_000_000_000_000;
+    let samples = (0..BUILDING_BATCH)
+        .map(|i| {
+            let t = (sequence as usize * BUILDING_BATCH + i) as f64 / 100.0;
+            let mut noise = || 0.001 * rng.sample::<f64, _>(rand_distr::StandardNormal);
+            [
+                (0.03 * (2.0 * std::f64::consts::PI * 1.3 * t).sin() + noise()) as f32,
+                (0.02 * (2.0 * std::f64::consts::PI * 1.9 * t).cos() + noise()) as f32,
+                (0.98 + noise()) as f32,
+            ]
+        })
+        .collect();
+    RawBatch {
+        header: BatchHeader {
+            sensor_id: sensor.clone(),
+            sequence,
+            timestamp_ns: EPOCH_NS + sequence as i64 * (BUILDING_BATCH as i64) * 10_000_000,
+            sample_rate_hz: 100.0,
+        },
+        temperature_c: None,
+        samples,
+    }
+    .encode()
+}
+
 fn outputs() -> Vec<[f32; 3]> {
     (0..SAMPLES_PER_BATCH)
         .map(|i| {
@@ -609,7 +641,7 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
                 .map_err(|e| anyhow::anyhow!("{e}"))?,
         );
     }
-    let samples: Vec<[f32; 3]> = outputs().into_iter().take(BUILDING_BATCH).collect();
+    let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(1);
     let mut seq = vec![0u64; n];
     // Every node online (and, for the gateway, established, its keys declared), then settled:
     // rounds of one batch per node until one round arrives whole. The first rounds may lose
@@ -622,7 +654,7 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
         let before = received.load(Relaxed);
         let t0 = Instant::now();
         for (i, p) in publishers.iter().enumerate() {
-            p.put(raw_batch(&ids[i], seq[i], &samples))
+            p.put(building_batch(&ids[i], seq[i], &mut rng))
                 .await
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
             seq[i] += 1;
@@ -669,7 +701,7 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
         while sent < due {
             let i = next % n;
             publishers[i]
-                .put(raw_batch(&ids[i], seq[i], &samples))
+                .put(building_batch(&ids[i], seq[i], &mut rng))
                 .await
                 .map_err(|e| anyhow::anyhow!("{e}"))?;
             seq[i] += 1;
