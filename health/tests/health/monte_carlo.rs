@@ -477,6 +477,23 @@ fn cost_per_sample() {
         "monitor: {} bytes (plus its record's corrector when it loads its own)",
         std::mem::size_of::<SensorHealth>()
     );
+    // A report, as the gateway asks for one after every block.
+    let mut field = FieldSensor::new(truth.clone(), FieldConfig::default());
+    let mut monitor = SensorHealth::new(&record, &config).unwrap();
+    let mut buf = Vec::new();
+    for _ in 0..6000 {
+        let b = field.next_batch(&mut buf);
+        monitor.feed_samples(b.timestamp_ns, b.sample_rate_hz, b.temperature_c, &buf);
+    }
+    let reports = 10_000;
+    let t0 = Instant::now();
+    for _ in 0..reports {
+        std::hint::black_box(monitor.report());
+    }
+    eprintln!(
+        "report: {:.2} µs",
+        t0.elapsed().as_secs_f64() / reports as f64 * 1e6
+    );
     // A co-located pair: ten minutes of both sensors' corrected readings (their values do not
     // change the work).
     let mut pair = ColocatedPair::new(&record, &record, &PairConfig::default()).unwrap();
