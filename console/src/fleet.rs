@@ -17,7 +17,7 @@ use time::OffsetDateTime;
 use triax_protocol::batch::Mode;
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::{
-    Alert, AlertLevel, GatewayStatus, Heartbeat, HistoryStatus, SensorStatus,
+    Alert, AlertLevel, GatewayStatus, HealthVerdict, Heartbeat, HistoryStatus, SensorStatus,
 };
 use triax_protocol::signing::{read_alert, AlertTrust, TrustedKeys};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
@@ -545,11 +545,16 @@ pub enum SensorState {
     Expired,
     /// Before the record's `valid_from`.
     NotYetValid,
+    /// The gateway's field health checks found the record in force `suspect`: its samples
+    /// carry `calibration_suspect` (PROTOCOL.md §3.9).
+    CalibrationSuspect,
     /// More than [`FLAGGED_ABOVE`] of the samples over the recent span carry a quality flag
     /// (calibrated sensors only: every raw sample of an uncalibrated one is flagged).
     Flagged,
     /// Within the warning period before `valid_until`.
     Expiring,
+    /// The field health checks have the sensor at `watch`.
+    HealthWatch,
     /// No batch for [`SILENT_AFTER`] by the gateway's clock.
     Silent,
     /// An alert at level `possible` or `stale`.
@@ -659,6 +664,11 @@ pub fn sensor_view(
     }
     if s.calibration_version.is_some() && flagged.is_some_and(|f| f.share > FLAGGED_ABOVE) {
         states.push(SensorState::Flagged);
+    }
+    match s.health {
+        Some(HealthVerdict::Suspect) => states.push(SensorState::CalibrationSuspect),
+        Some(HealthVerdict::Watch) => states.push(SensorState::HealthWatch),
+        Some(HealthVerdict::Ok) | None => {}
     }
     let age = s.last_seen.map(|t| reported_at - t + status_age);
     if age.is_none_or(|a| a.as_seconds_f64() > SILENT_AFTER.as_secs_f64()) {
@@ -1026,6 +1036,22 @@ mod tests {
         restarted.started_at = t(at);
         let s = h.update(&restarted)[&SensorId::new("a").unwrap()];
         assert_eq!((s.share, s.span_s), (1.0, None));
+    }
+
+    #[test]
+    fn the_gateways_health_verdict_is_a_state() {
+        let view = |h| {
+            let mut st = status(Some(1));
+            st.health = h;
+            sensor_view(&st, t(1), Duration::ZERO, t(1), WARN, None, None).states
+        };
+        assert_eq!(
+            view(Some(HealthVerdict::Suspect)),
+            [SensorState::CalibrationSuspect]
+        );
+        assert_eq!(view(Some(HealthVerdict::Watch)), [SensorState::HealthWatch]);
+        assert_eq!(view(Some(HealthVerdict::Ok)), [SensorState::Ok]);
+        assert_eq!(view(None), [SensorState::Ok]);
     }
 
     #[test]

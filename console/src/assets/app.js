@@ -12,6 +12,7 @@
     ['uncalibrated', '#b42318'], ['calibration_expired', '#d92d20'], ['outside_amplitude', '#dc6803'],
     ['outside_frequency', '#9e77ed'], ['sequence_gap', '#475467'], ['non_finite_input', '#000000'],
     ['clipped', '#f04438'], ['duplicate', '#0ba5ec'], ['outside_temperature', '#c11574'],
+    ['calibration_suspect', '#7a2e0e'],
   ];
   const AXES = ['x', 'y', 'z'];
   const AXIS_COLORS = ['#175cd3', '#1d7a3a', '#9a3412'];
