@@ -20,10 +20,12 @@ mod site;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use serde_json::json;
 use site::{free_port, now_ns, Browser};
 use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
-use triax_protocol::SensorId;
+use triax_protocol::messages::{
+    GatewayStatus, HealthVerdict, Heartbeat, HeartbeatSensor, SensorStatus,
+};
+use triax_protocol::{to_json, BuildingId, SensorId, JSON_FORMAT_VERSION};
 
 const BUILDINGS: usize = 100;
 const SENSORS: usize = 100;
@@ -37,13 +39,6 @@ impl Drop for Killed {
     }
 }
 
-fn rfc(ns: i64) -> String {
-    time::OffsetDateTime::from_unix_timestamp_nanos(i128::from(ns))
-        .expect("now is a valid time")
-        .format(&time::format_description::well_known::Rfc3339)
-        .expect("a time formats")
-}
-
 fn building(b: usize) -> String {
     format!("b{b:03}")
 }
@@ -52,44 +47,76 @@ fn sensor(s: usize) -> String {
     format!("acc-{s:03}")
 }
 
-/// The status page of building `b` at `now`.
+fn at(ns: i64) -> time::OffsetDateTime {
+    time::OffsetDateTime::from_unix_timestamp_nanos(i128::from(ns)).expect("now is a valid time")
+}
+
+/// The status page of building `b` at `now`, built from the protocol's own types so that it
+/// decodes as a gateway's does.
 fn status(b: usize, started_ns: i64, now: i64) -> Vec<u8> {
     let up_s = ((now - started_ns) / 1_000_000_000).max(1) as u64;
-    let sensors: Vec<_> = (0..SENSORS)
-        .map(|s| {
-            json!({
-                "sensor_id": sensor(s), "last_seen": rfc(now - 200_000_000),
-                "batches": up_s * 2, "samples": up_s * 100, "gaps": 0, "missing_batches": 0,
-                "duplicates": 0, "rejects": 0, "flagged_samples": 0, "keys_declared": true,
-                "calibration_version": 3, "mode": "dynamic",
-                "valid_from": rfc(now - 86_400_000_000_000),
-                "valid_until": rfc(now + 200 * 86_400_000_000_000),
-            })
+    let sensors: Vec<SensorStatus> = (0..SENSORS)
+        .map(|s| SensorStatus {
+            sensor_id: SensorId::new(sensor(s)).expect("a valid id"),
+            last_seen: Some(at(now - 200_000_000)),
+            batches: up_s * 2,
+            samples: up_s * 100,
+            gaps: 0,
+            missing_batches: 0,
+            duplicates: 0,
+            rejects: 0,
+            flagged_samples: 0,
+            keys_declared: true,
+            calibration_version: Some(3),
+            mode: Mode::Dynamic,
+            valid_from: Some(at(now - 86_400_000_000_000)),
+            valid_until: Some(at(now + 200 * 86_400_000_000_000)),
+            health: Some(HealthVerdict::Ok),
+            suspect_from_ns: None,
+            calibration_record: None,
         })
         .collect();
-    serde_json::to_vec(&json!({
-        "format_version": 1, "building": building(b), "gateway": format!("gw-{b:03}"),
-        "started_at": rfc(started_ns), "reported_at": rfc(now),
-        "malformed": 0, "dropped": 0, "pushes_accepted": 0, "pushes_refused": 0,
-        "total_sensors": SENSORS, "sensors": sensors,
-    }))
-    .expect("a status serialises")
+    to_json(&GatewayStatus {
+        format_version: JSON_FORMAT_VERSION,
+        building: BuildingId::new(building(b)).expect("a valid id"),
+        gateway: format!("gw-{b:03}"),
+        started_at: at(started_ns),
+        reported_at: at(now),
+        malformed: 0,
+        dropped: 0,
+        pushes_accepted: 0,
+        pushes_refused: 0,
+        refused_keys: Default::default(),
+        over_capacity: 0,
+        admitted_sensors: 0,
+        displaced_sensors: 0,
+        expired_sensors: 0,
+        history: None,
+        total_sensors: SENSORS as u64,
+        next_offset: None,
+        sensors,
+    })
 }
 
 fn heartbeat(b: usize, seq: u64, now: i64) -> Vec<u8> {
-    let sensors: serde_json::Map<String, serde_json::Value> = (0..SENSORS)
-        .map(|s| {
-            (
-                sensor(s),
-                json!({ "last_sequence": seq * 2, "last_timestamp_ns": now - 200_000_000 }),
-            )
-        })
-        .collect();
-    serde_json::to_vec(&json!({
-        "format_version": 1, "building": building(b), "gateway": format!("gw-{b:03}"),
-        "sequence": seq, "at": rfc(now), "sensors": sensors,
-    }))
-    .expect("a heartbeat serialises")
+    to_json(&Heartbeat {
+        format_version: JSON_FORMAT_VERSION,
+        building: BuildingId::new(building(b)).expect("a valid id"),
+        gateway: format!("gw-{b:03}"),
+        sequence: seq,
+        at: at(now),
+        sensors: (0..SENSORS)
+            .map(|s| {
+                (
+                    SensorId::new(sensor(s)).expect("a valid id"),
+                    HeartbeatSensor {
+                        last_sequence: seq * 2,
+                        last_timestamp_ns: now - 200_000_000,
+                    },
+                )
+            })
+            .collect(),
+    })
 }
 
 fn corrected(s: usize, seq: u64, now: i64) -> Vec<u8> {
