@@ -56,6 +56,8 @@ pub struct HealthFeed {
     blocks_seen: u64,
     /// The verdict last reported.
     reported: Option<HealthVerdict>,
+    /// The record in force when no monitor was found for it.
+    seedless: Option<u64>,
     quality: Quality,
 }
 
@@ -104,8 +106,16 @@ impl HealthFeed {
     ) -> Option<Vec<u8>> {
         let version = corrector?.version();
         if self.monitor.as_ref().is_none_or(|m| m.version() != version) {
+            // A record without a monitor (checks off, or it could not be judged) is looked
+            // for once, not on every batch.
+            if self.seedless == Some(version) {
+                return None;
+            }
             self.monitor = entry.take_health_seed(version);
-            self.monitor.as_ref()?;
+            if self.monitor.is_none() {
+                self.seedless = Some(version);
+                return None;
+            }
             self.blocks_seen = 0;
             self.reported = None;
             self.quality = Quality::default();
