@@ -583,7 +583,7 @@ fn spectral_peaks(axes: &mut [AxisData; 3], sample_rate_hz: f64) -> (f64, f64) {
                 None => (0.0, 0.0),
             };
         }
-        fft_in_place(&mut buf);
+        triax_client::spectrum::fft_in_place(&mut buf);
         let mut own = (0.0, -1.0);
         for (b, (p, &(re, im))) in summed.iter_mut().zip(&buf).enumerate() {
             let power = re * re + im * im;
@@ -598,41 +598,6 @@ fn spectral_peaks(axes: &mut [AxisData; 3], sample_rate_hz: f64) -> (f64, f64) {
         .max_by(|&a, &b| summed[a].total_cmp(&summed[b]))
         .unwrap_or(1);
     (bin as f64 * bin_hz, bin_hz)
-}
-
-/// Iterative radix-2 Cooley–Tukey FFT; `buf.len()` must be a power of two.
-fn fft_in_place(buf: &mut [(f64, f64)]) {
-    let n = buf.len();
-    debug_assert!(n.is_power_of_two());
-    let mut j = 0;
-    for i in 1..n {
-        let mut bit = n >> 1;
-        while j & bit != 0 {
-            j ^= bit;
-            bit >>= 1;
-        }
-        j |= bit;
-        if i < j {
-            buf.swap(i, j);
-        }
-    }
-    let mut len = 2;
-    while len <= n {
-        let angle = -2.0 * std::f64::consts::PI / len as f64;
-        let (w_im, w_re) = angle.sin_cos();
-        for start in (0..n).step_by(len) {
-            let (mut cr, mut ci) = (1.0, 0.0);
-            for k in 0..len / 2 {
-                let (ar, ai) = buf[start + k];
-                let (br, bi) = buf[start + k + len / 2];
-                let (tr, ti) = (br * cr - bi * ci, br * ci + bi * cr);
-                buf[start + k] = (ar + tr, ai + ti);
-                buf[start + k + len / 2] = (ar - tr, ai - ti);
-                (cr, ci) = (cr * w_re - ci * w_im, cr * w_im + ci * w_re);
-            }
-        }
-        len <<= 1;
-    }
 }
 
 #[cfg(test)]
@@ -854,23 +819,5 @@ mod tests {
             "RMS coverage {}",
             share(rms_covered)
         );
-    }
-
-    #[test]
-    fn fft_matches_a_direct_dft() {
-        let x: Vec<(f64, f64)> = (0..16)
-            .map(|i| ((i as f64 * 0.7).sin() + 0.1 * i as f64, 0.0))
-            .collect();
-        let mut fast = x.clone();
-        fft_in_place(&mut fast);
-        for (k, &(re, im)) in fast.iter().enumerate() {
-            let (mut dr, mut di) = (0.0, 0.0);
-            for (i, &(xr, _)) in x.iter().enumerate() {
-                let a = -2.0 * std::f64::consts::PI * (k * i) as f64 / 16.0;
-                dr += xr * a.cos();
-                di += xr * a.sin();
-            }
-            assert!((re - dr).abs() < 1e-9 && (im - di).abs() < 1e-9, "bin {k}");
-        }
     }
 }

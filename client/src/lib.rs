@@ -9,6 +9,7 @@ pub mod follow;
 pub mod history;
 pub mod mseed;
 pub mod parquet;
+pub mod spectrum;
 pub mod stationxml;
 mod whole;
 

@@ -15,6 +15,7 @@
 //! calibration's uncertainty of the amplitudes, which scales every bin alike.
 
 use serde::Serialize;
+use triax_client::spectrum::fft_in_place;
 use triax_protocol::batch::CorrectedBatch;
 
 /// Most samples the spectrum keeps (an hour at about 280 Hz).
@@ -167,15 +168,14 @@ impl Collector {
         let bins = n / 2 + 1;
         let mut sums = vec![vec![0f64; bins]; 3];
         let mut segments = 0;
-        let mut re = vec![0f64; n];
-        let mut im = vec![0f64; n];
+        let mut buf = vec![(0f64, 0f64); n];
         for r in &runs {
             let len = r.values[0].len();
             let mut start = 0;
             while start + n <= len {
                 for (axis, sum) in sums.iter_mut().enumerate() {
                     let seg = &r.values[axis][start..start + n];
-                    add_periodogram(seg, &window, fs, &mut re, &mut im, sum);
+                    add_periodogram(seg, &window, fs, &mut buf, sum);
                 }
                 segments += 1;
                 start += n / 2;
@@ -280,7 +280,7 @@ impl Collector {
         let bins = n / 2 + 1;
         let mut sums = vec![vec![0f64; bins]; columns];
         let mut counts = vec![0usize; columns];
-        let (mut re, mut im) = (vec![0f64; n], vec![0f64; n]);
+        let mut buf = vec![(0f64, 0f64); n];
         let period_ns = 1e9 / fs;
         for r in &runs {
             let values = &r.values[axis.min(2)];
@@ -294,8 +294,7 @@ impl Collector {
                         &values[start..start + n],
                         &window,
                         fs,
-                        &mut re,
-                        &mut im,
+                        &mut buf,
                         &mut sums[c],
                     );
                     counts[c] += 1;
@@ -379,61 +378,19 @@ fn hann(n: usize) -> Vec<f64> {
 
 /// Adds the one-sided periodogram `2·|X(f)|²/(fs·Σw²)` of `seg` (its mean removed, windowed)
 /// to `sum`; DC and Nyquist are not doubled, having no negative twin.
-fn add_periodogram(
-    seg: &[f32],
-    window: &[f64],
-    fs: f64,
-    re: &mut [f64],
-    im: &mut [f64],
-    sum: &mut [f64],
-) {
+fn add_periodogram(seg: &[f32], window: &[f64], fs: f64, buf: &mut [(f64, f64)], sum: &mut [f64]) {
     let n = seg.len();
     let w2: f64 = window.iter().map(|w| w * w).sum();
     let mean = seg.iter().map(|x| f64::from(*x)).sum::<f64>() / n as f64;
     for i in 0..n {
-        re[i] = (f64::from(seg[i]) - mean) * window[i];
-        im[i] = 0.0;
+        buf[i] = ((f64::from(seg[i]) - mean) * window[i], 0.0);
     }
-    fft(re, im);
+    fft_in_place(buf);
     for (k, s) in sum.iter_mut().enumerate() {
-        let p = re[k] * re[k] + im[k] * im[k];
+        let (re, im) = buf[k];
+        let p = re * re + im * im;
         let one_sided = if k == 0 || k == n / 2 { 1.0 } else { 2.0 };
         *s += one_sided * p / (fs * w2);
-    }
-}
-
-/// In-place radix-2 FFT; the length is a power of two.
-fn fft(re: &mut [f64], im: &mut [f64]) {
-    let n = re.len();
-    let mut j = 0;
-    for i in 1..n {
-        let mut bit = n >> 1;
-        while j & bit != 0 {
-            j ^= bit;
-            bit >>= 1;
-        }
-        j |= bit;
-        if i < j {
-            re.swap(i, j);
-            im.swap(i, j);
-        }
-    }
-    let mut len = 2;
-    while len <= n {
-        let ang = -2.0 * std::f64::consts::PI / len as f64;
-        for start in (0..n).step_by(len) {
-            for k in 0..len / 2 {
-                let (s, c) = (ang * k as f64).sin_cos();
-                let (a, b) = (start + k, start + k + len / 2);
-                let tr = re[b] * c - im[b] * s;
-                let ti = re[b] * s + im[b] * c;
-                re[b] = re[a] - tr;
-                im[b] = im[a] - ti;
-                re[a] += tr;
-                im[a] += ti;
-            }
-        }
-        len <<= 1;
     }
 }
 
