@@ -158,7 +158,9 @@ async fn buildings(endpoint: String) -> (zenoh::Session, Vec<zenoh::query::Query
             .declare_queryable(format!("triax/{}/status", building(b)))
             .callback(move |q| {
                 use zenoh::Wait;
-                let key = q.key_expr().as_str().to_owned();
+                // On the building's own key, as a gateway answers: the query's key may be a
+                // wildcard (`triax/*/status`).
+                let key = format!("triax/{}/status", building(b));
                 let _ = q.reply(key, status(b, started, now_ns())).wait();
             })
             .await
@@ -249,6 +251,14 @@ async fn main() {
     );
     while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
         tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // What the simulated buildings say must decode as the console decodes it.
+    let now = now_ns();
+    if let Err(e) = triax_protocol::from_json::<GatewayStatus>(&status(0, now, now)) {
+        panic!("the simulated status does not decode: {e}");
+    }
+    if let Err(e) = triax_protocol::from_json::<Heartbeat>(&heartbeat(0, 1, now)) {
+        panic!("the simulated heartbeat does not decode: {e}");
     }
     let (_site, _queryables) = buildings(endpoint.clone()).await;
     let http = free_port();
