@@ -190,6 +190,13 @@ impl HealthFeed {
                 }
             }
         }
+        // The earliest start of any suspect test's evidence, the pairs' included.
+        message.suspect_since_ns = message
+            .tests
+            .iter()
+            .filter(|t| t.verdict == HealthVerdict::Suspect)
+            .filter_map(|t| t.since_ns)
+            .min();
         self.quality.latency_min_ms = None;
         self.quality.latency_max_ms = None;
         let json = to_json(&message);

@@ -507,6 +507,10 @@ async fn a_co_located_pair_finds_a_horizontal_gain_change() {
             (d - 0.05).abs() < 5.0 * x.uncertainty.unwrap(),
             "{me}: r − 1 = {d}"
         );
+        assert_eq!(
+            r.suspect_since_ns, x.since_ns,
+            "{me}: the pair's evidence dates it"
+        );
         let flagged_from = r.flagged_from_ns.unwrap();
         assert!(batches(&corrected, me)
             .iter()
