@@ -251,7 +251,10 @@ impl Config {
     }
 
     /// A configuration for tests and embedding: defaults, the given building and store, an
-    /// embedded peer with no scouting that listens on `listen`, and no metrics endpoint.
+    /// embedded peer with no scouting that listens on `listen`, no metrics endpoint, and no
+    /// field health checks: tests stream made-up signals, often without the white noise every
+    /// real sensor has, which the checks rightly take for a dead channel (turn them on with
+    /// `health = Some(HealthSettings::default())`).
     ///
     /// # Panics
     /// If `building` is not a valid building id: callers pass literals.
@@ -270,6 +273,7 @@ impl Config {
         c.zenoh.listen = listen;
         c.zenoh.multicast_scouting = Some(false);
         c.metrics_listen = None;
+        c.health = None;
         c
     }
 }
@@ -403,6 +407,18 @@ pub struct HealthSettings {
 
 /// Default [`HealthSettings::clock_watch_ms`].
 pub const DEFAULT_CLOCK_WATCH_MS: f64 = 1000.0;
+
+impl Default for HealthSettings {
+    /// What an empty `[health]` gives.
+    fn default() -> Self {
+        HealthSettings {
+            checks: HealthConfig::default(),
+            publish_interval_s: DEFAULT_HEALTH_PUBLISH_INTERVAL_S,
+            clock_watch_ms: Some(DEFAULT_CLOCK_WATCH_MS),
+            colocated: Vec::new(),
+        }
+    }
+}
 
 fn colocated_settings(
     pairs: Vec<FileColocated>,
@@ -942,8 +958,7 @@ mod tests {
     #[test]
     fn health_settings_parse_and_refuse_by_field() {
         let h = parse("").unwrap().health.expect("on by default");
-        assert_eq!(h.publish_interval_s, DEFAULT_HEALTH_PUBLISH_INTERVAL_S);
-        assert_eq!(h.checks, HealthConfig::default());
+        assert_eq!(h, HealthSettings::default());
         assert!(parse("[health]\nenabled = false").unwrap().health.is_none());
         let h =
             parse("[health]\ngravity_mps2 = 9.8061\ngravity_uncertainty_mps2 = 1e-5\nstuck_s = 20")

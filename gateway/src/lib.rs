@@ -69,7 +69,8 @@ use zenoh::sample::Sample;
 
 pub use catchup::{CatchUpError, CatchUpReport};
 pub use config::{
-    CalibrationSettings, Config, ConfigArgs, ConfigError, CorrectionMode, Overload, SensorSettings,
+    CalibrationSettings, Config, ConfigArgs, ConfigError, CorrectionMode, HealthSettings, Overload,
+    SensorSettings,
 };
 pub use sensors::{GatewayCounters, SensorTable};
 

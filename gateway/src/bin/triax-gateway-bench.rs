@@ -937,6 +937,8 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
         | System::GatewayNoHealth => {
             let store = store.context("--store")?;
             let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
+            // The service's defaults: health checks on.
+            config.health = Some(triax_gateway::HealthSettings::default());
             match system {
                 System::GatewayBackpressure => config.overload = Overload::Backpressure,
                 System::GatewayNoHistory => config.history = None,

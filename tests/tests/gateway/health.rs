@@ -11,6 +11,7 @@
 use std::collections::BTreeMap;
 
 use triax_client::{history::fetch, HistoryRequest};
+use triax_gateway::HealthSettings;
 use triax_health::sim::{calibrate, field_sensor_truth, Fault, FieldConfig, FieldSensor, EPOCH_NS};
 use triax_protocol::batch::{flags, BatchHeader, CorrectedBatch, RawBatch};
 use triax_protocol::messages::{HealthVerdict, SensorHealthReport};
@@ -164,10 +165,12 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     };
     seed_store(&store, &[record(OK, 11, 1), record(STUCK, 12, 1)]);
     let mut cfg = config(BUILDING, &store);
-    let h = cfg.health.as_mut().expect("health is on by default");
-    h.publish_interval_s = 10.0;
-    // Sensor time runs far ahead of the gateway's clock here.
-    h.clock_watch_ms = None;
+    cfg.health = Some(HealthSettings {
+        publish_interval_s: 10.0,
+        // Sensor time runs far ahead of the gateway's clock here.
+        clock_watch_ms: None,
+        ..HealthSettings::default()
+    });
     let gateway = start(cfg.clone()).await;
     let session = client(&gateway.endpoint).await;
     let (_hs, health) = gather(&session, format!("triax/{BUILDING}/health/*")).await;
