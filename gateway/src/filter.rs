@@ -178,6 +178,13 @@ impl Butterworth4 {
     pub fn reset(&mut self) {
         self.sections.iter_mut().for_each(Biquad3::reset);
     }
+
+    /// Sets the state to the steady state for a constant input `x`.
+    pub fn prime(&mut self, x: [f64; 3]) {
+        self.sections[0].prime(x);
+        let g = self.sections[0].coefficients().dc;
+        self.sections[1].prime(x.map(|v| g * v));
+    }
 }
 
 /// Three axes in the first three lanes of four, so that one SIMD register holds a quantity for

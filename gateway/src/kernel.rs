@@ -80,7 +80,7 @@ const PLAUSIBLE_TEMPERATURE_C: std::ops::RangeInclusive<f64> = -273.15..=1000.0;
 pub const FREQUENCY_MARGIN: f64 = 1.25;
 
 /// Format of [`SensorKernel::checkpoint`]: changes whenever the kernel's state changes shape.
-const CHECKPOINT_FORMAT: u8 = 3;
+const CHECKPOINT_FORMAT: u8 = 4;
 
 /// Content slower than this is the constant part of the signal (gravity, offsets, drift over
 /// minutes), which every calibrated domain includes: the lower band check ignores it.
@@ -124,11 +124,36 @@ struct Detector {
 
 /// The varying content below the band: the constant part removed, then the low pass (none when
 /// its corner cannot be realised: then all varying content is below the band).
+///
+/// The constant part is learned before anything is judged. A filter primed on the first sample
+/// would take that instant's sway for the constant part and read it as slow content until it
+/// decayed, tens of seconds at 0.01 Hz: measured, a strong sway against a band from 0.5 Hz was
+/// flagged for up to 70 s after every start. So a cold detector first averages
+/// [`LEARN_PERIODS`] periods of the band's lower edge (the mean of an in-band sway over T is
+/// within `A/(π·f·T)` of the constant part), primes on that mean, and only then judges. A gap
+/// or a node restart keeps what was learned: the constant part does not change across a gap,
+/// and a filter at 0.01 Hz barely moves with a sway's phase jump. The low pass after it starts
+/// again from zero (the mean of what it is fed) after the learning and after every gap, and is
+/// judged only once its own start has faded ([`SETTLE_PERIODS`] periods of its corner): a
+/// sine switched on at a random phase rings in it for a few seconds.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct LowBand {
     constant: Biquad3,
     low: Option<Butterworth4>,
+    /// Samples the constant part is learned over.
+    learn_samples: u32,
+    /// While learning: the sum of the finite samples so far and their count.
+    learning: Option<([f64; 3], u32)>,
+    /// Samples the low pass needs after a fresh start, and those still to go.
+    settle_samples: u32,
+    settling: u32,
 }
+
+/// Periods of the low pass's corner it runs unjudged after starting from zero.
+const SETTLE_PERIODS: f64 = 2.0;
+
+/// Periods of the band's lower edge a cold detector averages before judging content below it.
+const LEARN_PERIODS: f64 = 20.0;
 
 impl LowBand {
     #[inline(always)]
@@ -140,11 +165,52 @@ impl LowBand {
         }
     }
 
-    fn reset(&mut self) {
-        self.constant.reset();
-        if let Some(l) = self.low.as_mut() {
-            l.reset();
+    /// Learns from a batch while the constant part is not known yet; true once it is (the
+    /// batch that completes the learning is not judged).
+    fn learned(&mut self, samples: impl Iterator<Item = [f64; 3]>) -> bool {
+        if self.constant.is_primed() && self.learning.is_none() {
+            return true;
         }
+        let (mut sum, mut n) = self.learning.unwrap_or(([0.0; 3], 0));
+        for v in samples {
+            for k in 0..3 {
+                sum[k] += v[k];
+            }
+            n += 1;
+        }
+        if n < self.learn_samples {
+            self.learning = Some((sum, n));
+            return false;
+        }
+        self.constant.prime(sum.map(|s| s / f64::from(n)));
+        self.learning = None;
+        self.restart_low();
+        false
+    }
+
+    /// After a gap: the low pass starts again from zero; the constant part stays.
+    fn discontinuity(&mut self) {
+        if self.learning.is_none() && self.constant.is_primed() {
+            self.restart_low();
+        }
+    }
+
+    fn restart_low(&mut self) {
+        if let Some(l) = self.low.as_mut() {
+            l.prime([0.0; 3]);
+            self.settling = self.settle_samples;
+        }
+    }
+
+    /// Filters one sample; whether it is judged (the low pass has settled).
+    #[inline(always)]
+    fn judged_step(&mut self, v: [f64; 3]) -> Option<[f64; 3]> {
+        let y = self.step(v);
+        if self.settling > 0 {
+            self.settling -= 1;
+            return None;
+        }
+        Some(y)
     }
 }
 
@@ -259,16 +325,17 @@ impl SensorKernel {
         &self.tilt
     }
 
-    /// Tells the kernel that samples were lost or the node restarted: the frequency detector
-    /// starts afresh, so the jump between the old and the new signal is not taken for
-    /// out-of-band content. (The low passes keep their state: a jump fades from them smoothly.)
+    /// Tells the kernel that samples were lost or the node restarted: the frequency detector's
+    /// high band and the low pass of its lower band start afresh, so the jump between the old
+    /// and the new signal is not taken for out-of-band content; the constant part it learned
+    /// stays ([`LowBand`]). (The low passes keep their state: a jump fades from them smoothly.)
     pub fn discontinuity(&mut self) {
         if let Some(d) = self.design.as_mut().and_then(|d| d.detector.as_mut()) {
             if let Some(h) = d.high.as_mut() {
                 h.reset();
             }
             if let Some(l) = d.low.as_mut() {
-                l.reset();
+                l.discontinuity();
             }
         }
     }
@@ -765,6 +832,16 @@ fn detector(s: &SensorSettings, c: &Corrector, sample_rate_hz: f64) -> Option<De
                 constant: Biquad3::new(Coefficients::high_pass(constant_hz, sample_rate_hz)),
                 low: realisable(low_hz, sample_rate_hz)
                     .then(|| Butterworth4::low_pass(low_hz, sample_rate_hz)),
+                learn_samples: (LEARN_PERIODS * sample_rate_hz / low_set.domain().frequency_min_hz)
+                    .ceil()
+                    .clamp(1.0, f64::from(u32::MAX)) as u32,
+                learning: None,
+                settle_samples: if realisable(low_hz, sample_rate_hz) {
+                    (SETTLE_PERIODS * sample_rate_hz / low_hz).ceil() as u32
+                } else {
+                    0
+                },
+                settling: 0,
             })
         });
     if high.is_none() && low.is_none() {
@@ -852,11 +929,17 @@ impl Detector {
             n = lanes.len();
         }
         let mut low = Moments::default();
+        let mut low_judged = false;
         if let Some(l) = self.low.as_mut() {
-            n = 0;
-            for v in finite_samples() {
-                low.add(l.step(v));
-                n += 1;
+            if l.learned(finite_samples()) {
+                n = 0;
+                for v in finite_samples() {
+                    if let Some(y) = l.judged_step(v) {
+                        low.add(y);
+                        n += 1;
+                    }
+                }
+                low_judged = n > 0;
             }
         }
         let high = Moments(
@@ -871,7 +954,7 @@ impl Detector {
             .map(f64::from),
         );
         (self.high.is_some() && high.exceeds(n, &s_inv(high_set), &self.threshold_mps2))
-            || (self.low.is_some() && low.exceeds(n, &s_inv(low_set), &self.threshold_mps2))
+            || (low_judged && low.exceeds(n, &s_inv(low_set), &self.threshold_mps2))
     }
 }
 
@@ -1224,6 +1307,8 @@ mod tests {
     fn busy_kernel() -> (SensorKernel, Corrector, triax_protocol::CalibrationRecord) {
         let mut r = sample::record("k", 1);
         r.dynamic.domain.frequency_min_hz = 0.5;
+        // Split mode judges the lower edge on the static set.
+        r.static_set.domain.frequency_min_hz = 0.5;
         let c = Corrector::from_record(&r).unwrap();
         let mut k = SensorKernel::new(SensorSettings {
             mode: CorrectionMode::Split,
@@ -1284,7 +1369,45 @@ mod tests {
     }
 
     /// Length and FNV-1a of `busy_kernel`'s checkpoint in format [`CHECKPOINT_FORMAT`].
-    const PINNED_CHECKPOINT: (usize, u64) = (664, 13_293_393_449_937_968_399);
+    const PINNED_CHECKPOINT: (usize, u64) = (988, 9_801_623_617_474_518_254);
+
+    /// A strong in-band sway against a band from 0.5 Hz, the stream starting at any phase of
+    /// it, and again after gaps: never flagged, neither while the constant part is learned
+    /// nor after (a detector primed on the first sample flagged it for up to 70 s).
+    #[test]
+    fn a_cold_start_mid_sway_is_not_content_below_the_band() {
+        let mut r = sample::record("k", 1);
+        r.dynamic.domain.frequency_min_hz = 0.5;
+        let c = Corrector::from_record(&r).unwrap();
+        for p in 0..16 {
+            let phase = f64::from(p) / 16.0 * 2.0 * PI;
+            let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
+            let mut flagged = Vec::new();
+            for seq in 0..400u64 {
+                // Batches 200 to 204 lost.
+                if (200..205).contains(&seq) {
+                    continue;
+                }
+                if seq == 205 {
+                    k.discontinuity();
+                }
+                let samples = (0..50)
+                    .map(|i| {
+                        let t = (seq as f64 * 50.0 + f64::from(i)) / 100.0;
+                        outputs_for(&r, [0.5 * (2.0 * PI * 1.3 * t + phase).sin(), 0.0, 9.81])
+                    })
+                    .collect();
+                let f = run(&mut k, Some(&c), &batch(seq, samples)).batch_flags;
+                if f & flags::OUTSIDE_FREQUENCY != 0 {
+                    flagged.push(seq);
+                }
+            }
+            assert!(
+                flagged.is_empty(),
+                "phase {p}/16: batches {flagged:?} flagged"
+            );
+        }
+    }
 
     #[test]
     fn content_below_the_band_is_flagged_and_gravity_is_not() {
@@ -1296,7 +1419,8 @@ mod tests {
             let c = Corrector::from_record(&r).unwrap();
             let mut k = SensorKernel::new(settings(CorrectionMode::Dynamic));
             let mut last = 0;
-            for seq in 0..20 {
+            // Past the constant part's learning: 20 periods of the lower edge (40 s at 0.5 Hz).
+            for seq in 0..100 {
                 let samples = (0..50)
                     .map(|i| {
                         let t = (seq as f64 * 50.0 + i as f64) / 100.0;
