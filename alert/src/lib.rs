@@ -11,7 +11,7 @@
 //! - [`config`]: the TOML file (thresholds per building and sensor, window, k, staleness).
 //! - [`decision`]: the guard-band rule, pure.
 //! - [`stats`]: window statistics and their uncertainties, pure; [`sinefit`] for a window that
-//!   is one sway, [`highpass`] for the vibration baseline, [`normal`] for the quantiles.
+//!   is one sway, [`highpass`] for the vibration baseline, `triax_client::normal` for the quantiles.
 //! - [`monitor`]: per-sensor windows, baselines, flags, rate limiting, staleness; pure and
 //!   synchronous, driven by decoded messages and a caller-supplied clock.
 //! - [`service`]: the Zenoh layer, [`run`].
@@ -27,7 +27,6 @@ pub mod config;
 pub mod decision;
 pub mod highpass;
 pub mod monitor;
-pub mod normal;
 pub mod service;
 pub mod sinefit;
 pub mod stats;

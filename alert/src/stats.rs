@@ -59,8 +59,8 @@
 //! Frequencies are not moved by amplitude errors.
 
 use crate::decision::Estimate;
-use crate::normal;
 use crate::sinefit::{self, SineFit};
+use triax_client::normal;
 
 /// How a window's per-sample uncertainties combine; see the module documentation.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -8,6 +8,7 @@ pub mod export;
 pub mod follow;
 pub mod history;
 pub mod mseed;
+pub mod normal;
 pub mod parquet;
 pub mod spectrum;
 pub mod stationxml;

@@ -1,5 +1,6 @@
-//! The standard normal distribution function and its inverse, for the quantiles of a maximum of
-//! several normal errors ([`crate::stats`]).
+//! The standard normal distribution function and its inverse, which the consumers share: the
+//! alerting service's quantiles of a maximum of several normal errors, the console's χ²
+//! bands. Tested against an independent implementation's values.
 
 /// `Φ(x)`, the standard normal distribution function; relative error below 1.2·10⁻⁷ (the
 /// Chebyshev fit of erfc in Numerical Recipes, §6.2), ample for coverage probabilities.
