@@ -118,7 +118,7 @@ impl<W: Write + Send> ParquetWriter<W> {
                     "triax.flags".to_owned(),
                     "bit 0 uncalibrated, 1 calibration_expired, 2 outside_amplitude, 3 \
                      outside_frequency, 4 sequence_gap, 5 non_finite_input, 6 clipped, 7 \
-                     duplicate, 8 outside_temperature, 9 calibration_suspect (PROTOCOL.md §2.3)"
+                     duplicate, 8 outside_temperature, 9 calibration_suspect, 10 late (PROTOCOL.md §2.3)"
                         .to_owned(),
                 ),
             ]))

@@ -110,6 +110,8 @@ fn heartbeat(b: usize, seq: u64, now: i64) -> Vec<u8> {
                 (
                     SensorId::new(sensor(s)).expect("a valid id"),
                     HeartbeatSensor {
+                        late_sequence: None,
+                        late_timestamp_ns: None,
                         last_sequence: seq * 2,
                         last_timestamp_ns: now - 200_000_000,
                     },

@@ -69,7 +69,7 @@ KIND_CORRECTED = 2
 FORMAT_VERSION = 1
 MAX_SAMPLES = 16384
 RAW_HAS_TEMPERATURE = 0x0001
-FLAGS_ALL = 0x03FF
+FLAGS_ALL = 0x07FF
 FLAG_NAMES = [
     "uncalibrated",
     "calibration_expired",
@@ -81,6 +81,7 @@ FLAG_NAMES = [
     "duplicate",
     "outside_temperature",
     "calibration_suspect",
+    "late",
 ]
 MODES = {0: "none", 1: "static", 2: "dynamic", 3: "split"}
 CORRECTED_SAMPLE = struct.Struct("<6fH")  # ax ay az ux uy uz flags: 26 bytes

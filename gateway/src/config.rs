@@ -234,6 +234,8 @@ pub struct Config {
     pub metrics_listen: Option<SocketAddr>,
     /// None: no field health checks (no `calibration_suspect`, no health reports).
     pub health: Option<HealthSettings>,
+    /// None: gaps are not filled from the nodes' buffers.
+    pub backfill: Option<crate::backfill::Settings>,
     /// Settings of sensors not listed in `sensors`.
     pub defaults: SensorSettings,
     pub sensors: BTreeMap<SensorId, SensorSettings>,
@@ -303,6 +305,8 @@ pub struct FileConfig {
     #[serde(default)]
     pub health: FileHealth,
     #[serde(default)]
+    pub backfill: FileBackfill,
+    #[serde(default)]
     pub defaults: FileSensor,
     #[serde(default)]
     pub sensors: BTreeMap<String, FileSensor>,
@@ -331,6 +335,42 @@ pub struct FileHistory {
     pub segment_mib: Option<f64>,
     pub flush_interval_ms: Option<f64>,
     pub queue_mib: Option<f64>,
+}
+
+/// `[backfill]`: gaps filled from the nodes' buffers (README, "The sensor node").
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileBackfill {
+    pub enabled: Option<bool>,
+    pub timeout_s: Option<f64>,
+    pub max_batches: Option<u64>,
+}
+
+/// Default `[backfill] timeout_s` and `max_batches` (an hour of 10-sample batches at 100 Hz,
+/// `triax-node`'s default buffer).
+pub const DEFAULT_BACKFILL_TIMEOUT_S: f64 = 60.0;
+pub const DEFAULT_BACKFILL_MAX_BATCHES: u64 = 36_000;
+
+fn backfill_settings(b: FileBackfill) -> Result<Option<crate::backfill::Settings>, ConfigError> {
+    if !b.enabled.unwrap_or(true) {
+        return Ok(None);
+    }
+    let timeout = duration_in(
+        "backfill.timeout_s",
+        b.timeout_s.unwrap_or(DEFAULT_BACKFILL_TIMEOUT_S),
+        0.1..=3600.0,
+    )?;
+    let max_batches = b.max_batches.unwrap_or(DEFAULT_BACKFILL_MAX_BATCHES);
+    if !(1..=1_000_000).contains(&max_batches) {
+        return Err(ConfigError::invalid(
+            "backfill.max_batches",
+            format!("{max_batches} is outside 1..=1000000"),
+        ));
+    }
+    Ok(Some(crate::backfill::Settings {
+        timeout,
+        max_batches,
+    }))
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -646,6 +686,7 @@ impl FileConfig {
             .unwrap_or_else(|| PathBuf::from("triax-store"));
         let history = history_settings(self.history, &store_path, &building)?;
         let health = health_settings(self.health)?;
+        let backfill = backfill_settings(self.backfill)?;
         let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
@@ -670,6 +711,7 @@ impl FileConfig {
             history,
             metrics_listen,
             health,
+            backfill,
             defaults,
             sensors,
         })

@@ -129,7 +129,9 @@ impl HealthFeed {
             .saturating_add((n as f64 * 1e9 / h.sample_rate_hz).round() as i64);
         match sequence {
             // Old signal: the checks judge the stream in time order.
-            SequenceVerdict::Duplicate => return None,
+            SequenceVerdict::Duplicate | SequenceVerdict::Late | SequenceVerdict::LateGap => {
+                return None
+            }
             SequenceVerdict::Gap | SequenceVerdict::Restart => monitor.break_stream(),
             SequenceVerdict::InOrder => {}
         }

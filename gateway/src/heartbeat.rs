@@ -32,13 +32,16 @@ pub fn heartbeat(
     let mut sensors = BTreeMap::new();
     for e in table.snapshot() {
         let c = &e.counters;
-        let at = c.last_published_ns.load(Relaxed);
-        if at != 0 && now_ns.saturating_sub(at) <= ACTIVE_WITHIN_NS {
+        let recent = |at: i64| at != 0 && now_ns.saturating_sub(at) <= ACTIVE_WITHIN_NS;
+        if recent(c.last_published_ns.load(Relaxed)) {
+            let late = recent(c.late_published_ns.load(Relaxed));
             sensors.insert(
                 e.id.clone(),
                 HeartbeatSensor {
                     last_sequence: c.last_published_sequence.load(Relaxed),
                     last_timestamp_ns: c.last_published_timestamp_ns.load(Relaxed),
+                    late_sequence: late.then(|| c.late_sequence.load(Relaxed)),
+                    late_timestamp_ns: late.then(|| c.late_timestamp_ns.load(Relaxed)),
                 },
             );
         }

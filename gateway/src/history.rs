@@ -81,6 +81,8 @@ pub struct Sink {
     capacity_bytes: usize,
     pub counters: SinkCounters,
     pub history: Arc<History>,
+    /// The arrival number of this run's first batch: what the history held before is below.
+    pub first_arrival: u64,
 }
 
 struct SinkState {
@@ -219,6 +221,7 @@ impl Recorder {
             capacity_bytes: capacity_bytes.max(1),
             counters: SinkCounters::default(),
             history: writer.history().clone(),
+            first_arrival: writer.next_arrival(),
         });
         let stop = Arc::new(AtomicBool::new(false));
         let (s, st) = (sink.clone(), stop.clone());

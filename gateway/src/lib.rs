@@ -32,6 +32,7 @@
 //! the store at start (and, later, on an accepted update) and live in [`SensorTable`]; the store
 //! is used from blocking tasks only.
 
+pub mod backfill;
 pub mod catchup;
 pub mod config;
 pub mod demo;
@@ -569,6 +570,8 @@ impl Gateway {
             );
         }
         let (trigger, shutdown) = shutdown::channel();
+        let (asker, backfill_requests) = backfill::channel();
+        let backfill_counters = asker.counters.clone();
         let shared = Arc::new(worker::Shared {
             building: config.building.clone(),
             session: session.clone(),
@@ -583,15 +586,36 @@ impl Gateway {
                 publish_interval_ns: (h.publish_interval_s * 1e9) as i64,
                 clock_watch_ms: h.clock_watch_ms,
             }),
+            backfill: config.backfill.as_ref().map(|_| asker),
         });
         let (inboxes, shards, subscriber) =
             start_intake(&config, &session, &counters, &shared).await?;
         let mut tasks = Vec::new();
+        if let Some(settings) = config.backfill.clone() {
+            let ctx = backfill::Context {
+                building: config.building.clone(),
+                session: session.clone(),
+                shared: shared.clone(),
+                shards: shards.clone(),
+                counters: backfill_counters.clone(),
+                history: shared
+                    .history
+                    .as_ref()
+                    .map(|sink| (sink.history.clone(), sink.first_arrival)),
+                settings,
+            };
+            tasks.push(tokio::spawn(backfill::run(
+                ctx,
+                backfill_requests,
+                shutdown.clone(),
+            )));
+        }
         let status_ctx = status::StatusContext {
             config: config.clone(),
             table: table.clone(),
             counters: counters.clone(),
             history: shared.history.clone(),
+            backfill: shared.backfill.as_ref().map(|a| a.counters.clone()),
             started_at,
             store: Some(store.clone()),
         };
@@ -667,6 +691,7 @@ impl Gateway {
                 table: table.clone(),
                 counters: counters.clone(),
                 history: shared.history.clone(),
+                backfill: shared.backfill.as_ref().map(|a| a.counters.clone()),
                 queued: Arc::new(move || boxes.iter().map(|b| b.len()).sum()),
             };
             let (bound, task) = serve_metrics(addr, src, shutdown.clone()).await?;

@@ -30,6 +30,7 @@ pub struct MetricsSource {
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
     pub history: Option<Arc<crate::history::Sink>>,
+    pub backfill: Option<Arc<crate::backfill::BackfillCounters>>,
     pub queued: Arc<dyn Fn() -> usize + Send + Sync>,
 }
 
@@ -64,6 +65,9 @@ pub fn render(src: &MetricsSource) -> String {
     render_intake(&mut out, src);
     if let Some(h) = &src.history {
         render_history(&mut out, &h.status());
+    }
+    if let Some(b) = &src.backfill {
+        render_backfill(&mut out, &b.status());
     }
     render_sensors(&mut out, &src.table.snapshot());
     out
@@ -169,6 +173,45 @@ fn render_intake(out: &mut String, src: &MetricsSource) {
             "triax_gateway_expired_sensors_total",
             "Uncalibrated sensors forgotten after unknown_sensor_expiry_s of silence.",
             a.expired.load(Relaxed),
+        ),
+    ];
+    for (name, help, v) in counters {
+        family(out, name, "counter", help, single(v));
+    }
+}
+
+/// Gaps filled from the nodes' buffers.
+fn render_backfill(out: &mut String, b: &triax_protocol::messages::BackfillStatus) {
+    let counters: [(&str, &str, u64); 6] = [
+        (
+            "triax_backfill_queries_total",
+            "Queries sent to nodes' buffers.",
+            b.queries,
+        ),
+        (
+            "triax_backfill_wanted_batches_total",
+            "Batches gaps and the gateway's downtime asked for.",
+            b.wanted_batches,
+        ),
+        (
+            "triax_backfill_late_batches_total",
+            "Batches fetched, corrected and published flagged late.",
+            b.late_batches,
+        ),
+        (
+            "triax_backfill_rejected_replies_total",
+            "Buffer replies that were not a batch of the hole asked for.",
+            b.rejected_replies,
+        ),
+        (
+            "triax_backfill_failed_queries_total",
+            "Buffer queries that ended in an error or timed out.",
+            b.failed_queries,
+        ),
+        (
+            "triax_backfill_refused_requests_total",
+            "Gaps not asked for: the backfill queue was full.",
+            b.refused_requests,
         ),
     ];
     for (name, help, v) in counters {

@@ -71,6 +71,12 @@ pub struct SensorCounters {
     pub last_published_sequence: AtomicU64,
     pub last_published_timestamp_ns: AtomicI64,
     pub last_published_ns: AtomicI64,
+    /// The last late batch published (a backfill): its number and first-sample time, and when
+    /// (0 before the first), for the heartbeat; and how many.
+    pub late_sequence: AtomicU64,
+    pub late_timestamp_ns: AtomicI64,
+    pub late_published_ns: AtomicI64,
+    pub late_batches: AtomicU64,
     /// Whether the worker holds the sensor's keys declared (see `worker::SensorKeys`).
     pub keys_declared: AtomicBool,
 }
@@ -161,6 +167,14 @@ impl SensorEntry {
         c.last_published_ns.store(crate::worker::now_ns(), Relaxed);
     }
 
+    pub fn note_late(&self, sequence: u64, timestamp_ns: i64) {
+        let c = &self.counters;
+        c.late_sequence.store(sequence, Relaxed);
+        c.late_timestamp_ns.store(timestamp_ns, Relaxed);
+        c.late_published_ns.store(crate::worker::now_ns(), Relaxed);
+        c.late_batches.fetch_add(1, Relaxed);
+    }
+
     /// Whether the table has forgotten this entry (see the module doc).
     pub fn is_evicted(&self) -> bool {
         self.evicted.load(Relaxed)
@@ -194,6 +208,7 @@ impl SensorEntry {
             samples: c.samples.load(Relaxed),
             gaps: c.gaps.load(Relaxed),
             missing_batches: c.missing_batches.load(Relaxed),
+            late_batches: c.late_batches.load(Relaxed),
             duplicates: c.duplicates.load(Relaxed),
             rejects: c.rejects.load(Relaxed),
             flagged_samples: c.flagged_samples.load(Relaxed),

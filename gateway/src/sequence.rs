@@ -57,6 +57,11 @@ pub struct SequenceTracker {
 }
 
 impl SequenceTracker {
+    /// The highest accepted batch: its number and first sample's time.
+    pub fn last(&self) -> Option<(u64, i64)> {
+        self.last.map(|l| (l.sequence, l.timestamp_ns))
+    }
+
     /// Classifies batch `s` whose first sample is at `timestamp_ns` and which lasts
     /// `duration_ns` (its sample count over its rate).
     pub fn observe(&mut self, s: u64, timestamp_ns: i64, duration_ns: i64) -> Verdict {

@@ -86,6 +86,7 @@ pub struct StatusContext {
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
     pub history: Option<Arc<crate::history::Sink>>,
+    pub backfill: Option<Arc<crate::backfill::BackfillCounters>>,
     pub started_at: OffsetDateTime,
     /// Where a one-sensor answer reads the record in force; none: answers carry no record.
     pub store: Option<Arc<Store>>,
@@ -139,6 +140,7 @@ impl StatusContext {
             displaced_sensors: self.table.admission.displaced.load(Relaxed),
             expired_sensors: self.table.admission.expired.load(Relaxed),
             history: self.history.as_ref().map(|h| h.status()),
+            backfill: self.backfill.as_ref().map(|b| b.status()),
             total_sensors: total as u64,
             next_offset,
             sensors,
@@ -178,6 +180,7 @@ mod tests {
             table,
             counters: Arc::default(),
             history: None,
+            backfill: None,
             started_at: OffsetDateTime::UNIX_EPOCH,
             store: None,
         }

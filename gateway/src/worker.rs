@@ -19,10 +19,11 @@ use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
 use zenoh::key_expr::KeyExpr;
-use zenoh::qos::CongestionControl;
+use zenoh::qos::{CongestionControl, Priority};
 use zenoh::sample::Sample;
 use zenoh::Wait;
 
+use crate::backfill::{self, LateRun, Need};
 use crate::health::{self, HealthFeed, PairSlot};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
@@ -48,6 +49,8 @@ pub struct Shared {
     pub store: Arc<Store>,
     /// None: health checks off.
     pub health: Option<health::Reporting>,
+    /// Where gaps are reported for backfill; none when it is off.
+    pub backfill: Option<backfill::Asker>,
 }
 
 /// A place in the `declared_keys_max` budget, given back when dropped.
@@ -396,6 +399,95 @@ impl Shard {
         }
     }
 
+    /// Corrects, keeps and publishes late batches of `sensor` (a backfill, in sequence order,
+    /// checked by [`backfill`]) with the run's own kernel; returns how many were handled (none
+    /// when the sensor has no state here any more). The live kernel and sequence tracking are
+    /// not touched, nor the health checks nor the tilt stream, which speak of the present; the
+    /// next live batch carries a checkpoint, since the history now holds late batches between
+    /// it and the last one.
+    pub fn correct_late(
+        &mut self,
+        shared: &Shared,
+        sensor: &SensorId,
+        run: &mut LateRun,
+        batches: &[Vec<u8>],
+    ) -> usize {
+        let Shard {
+            sensors, scratch, ..
+        } = self;
+        let Some(state) = sensors
+            .get_mut(sensor.as_str())
+            .filter(|s| !s.entry.is_evicted())
+        else {
+            return 0;
+        };
+        // The first of each chunk: live batches may be kept between two chunks.
+        run.checkpoint_due = true;
+        let mut done = 0;
+        let mut out = Vec::new();
+        for payload in batches {
+            let Ok(view) = RawBatchView::parse(payload) else {
+                continue;
+            };
+            let h = &view.header;
+            let verdict = if h.sequence == run.expected {
+                history::Verdict::Late
+            } else {
+                history::Verdict::LateGap
+            };
+            run.expected = h.sequence.saturating_add(1);
+            let checkpoint = run.checkpoint_due.then(|| {
+                let mut ck = Vec::with_capacity(512);
+                run.kernel.checkpoint(&mut ck);
+                ck
+            });
+            let corrector = state.entry.corrector();
+            let version = corrector.as_ref().map(|c| c.version());
+            let suspect = state.health.flag(version, h.timestamp_ns);
+            out.clear();
+            out.reserve(corrected_len(sensor.as_str().len(), view.len()));
+            correct_judged(
+                &mut run.kernel,
+                &view,
+                corrector.as_deref(),
+                verdict,
+                suspect,
+                scratch,
+                &mut out,
+            );
+            run.checkpoint_due = false;
+            if let Some(sink) = &shared.history {
+                let kept = sink.offer(
+                    &state.entry,
+                    &view,
+                    verdict,
+                    version.unwrap_or(0),
+                    checkpoint.as_deref(),
+                );
+                run.checkpoint_due = !kept;
+            }
+            // Behind live data on every link; dropped, like live data, for a slow consumer.
+            match shared
+                .session
+                .put(state.keys.corrected.key_expr(), out.as_slice())
+                .congestion_control(CongestionControl::Drop)
+                .priority(Priority::DataLow)
+                .wait()
+            {
+                Ok(()) => state.entry.note_late(h.sequence, h.timestamp_ns),
+                Err(e) => {
+                    shared.counters.publish_errors.fetch_add(1, Relaxed);
+                    tracing::warn!(sensor = %sensor, cause = %e, "late batch not published");
+                }
+            }
+            done += 1;
+        }
+        if done > 0 {
+            state.owe_checkpoint();
+        }
+        done
+    }
+
     /// Drops the state of sensors the table forgot (displaced or expired), which gives back
     /// their declared keys; at most once a [`SWEEP_INTERVAL`], the clock read every
     /// [`SWEEP_CHECK_BATCHES`] batches.
@@ -543,6 +635,7 @@ impl SensorState {
         scratch: &mut Scratch,
     ) -> Corrected {
         let duration_ns = (view.len() as f64 * 1e9 / view.header.sample_rate_hz) as i64;
+        let before = self.sequence.last();
         let verdict =
             self.sequence
                 .observe(view.header.sequence, view.header.timestamp_ns, duration_ns);
@@ -552,6 +645,9 @@ impl SensorState {
             self.kernel.checkpoint(&mut ck);
             ck
         });
+        if let Some(asker) = &shared.backfill {
+            self.ask_backfill(asker, view, verdict, before, checkpoint.as_deref());
+        }
         let c = &self.entry.counters;
         match verdict {
             Verdict::Gap { missing } => {
@@ -663,6 +759,54 @@ impl SensorState {
         }
     }
 
+    /// Asks for what a gap, or the gateway's own start, cost this sensor: without waiting.
+    /// `before` is the last accepted batch before this one; `checkpoint` the kernel's state
+    /// before it, if one was taken for the history.
+    fn ask_backfill(
+        &self,
+        asker: &backfill::Asker,
+        view: &RawBatchView<'_>,
+        verdict: Verdict,
+        before: Option<(u64, i64)>,
+        checkpoint: Option<&[u8]>,
+    ) {
+        let h = &view.header;
+        let need = match (verdict, before) {
+            (Verdict::Gap { .. }, Some((last_seq, after_ns))) => {
+                // A new run whose first batches were lost is numbered from 0.
+                let from_seq = if h.sequence > last_seq {
+                    last_seq + 1
+                } else {
+                    0
+                };
+                let state = match checkpoint {
+                    Some(ck) => ck.to_vec(),
+                    None => {
+                        let mut ck = Vec::with_capacity(512);
+                        self.kernel.checkpoint(&mut ck);
+                        ck
+                    }
+                };
+                Need::Gap {
+                    from_seq,
+                    to_seq: h.sequence - 1,
+                    after_ns,
+                    before_ns: h.timestamp_ns,
+                    state,
+                }
+            }
+            (Verdict::First, _) if h.sequence > 0 => Need::First {
+                sequence: h.sequence,
+                timestamp_ns: h.timestamp_ns,
+            },
+            _ => return,
+        };
+        asker.ask(backfill::Request {
+            sensor: self.entry.id.clone(),
+            need,
+        });
+    }
+
     /// Makes the next batch carry a checkpoint, whatever the interval says.
     fn owe_checkpoint(&mut self) {
         self.next_checkpoint_ns = i64::MIN;
@@ -720,6 +864,11 @@ pub fn correct_judged(
         }
         history::Verdict::Duplicate => flags::DUPLICATE,
         history::Verdict::InOrder => 0,
+        history::Verdict::Late => flags::LATE,
+        history::Verdict::LateGap => {
+            kernel.discontinuity();
+            flags::LATE | flags::SEQUENCE_GAP
+        }
     };
     kernel.correct_batch(view, corrector, stream_flags | suspect, scratch, out)
 }

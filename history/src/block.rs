@@ -35,6 +35,10 @@ pub enum Verdict {
     Gap,
     Duplicate,
     Restart,
+    /// Fetched from the node's buffer after later batches (a backfill), next in its run.
+    Late,
+    /// Fetched from the node's buffer, with numbers missing before it in its run.
+    LateGap,
 }
 
 impl Verdict {
@@ -44,6 +48,8 @@ impl Verdict {
             Verdict::Gap => 1,
             Verdict::Duplicate => 2,
             Verdict::Restart => 3,
+            Verdict::Late => 4,
+            Verdict::LateGap => 5,
         }
     }
 
@@ -53,6 +59,8 @@ impl Verdict {
             1 => Verdict::Gap,
             2 => Verdict::Duplicate,
             3 => Verdict::Restart,
+            4 => Verdict::Late,
+            5 => Verdict::LateGap,
             _ => return None,
         })
     }

@@ -429,6 +429,79 @@ impl History {
     }
 
     /// Records a block that failed its check when read.
+    /// The newest batch of `sensor` kept before arrival number `before_arrival` (by its
+    /// first sample's time): its sequence number and time. A gateway that starts asks this of
+    /// each sensor it meets, with the first arrival number of its own run, to know where the
+    /// history it inherited ends. Reads the sensor's entries in the newest segment that holds
+    /// any, and one block.
+    pub fn newest_before(
+        &self,
+        sensor: &SensorId,
+        before_arrival: u64,
+    ) -> Result<Option<(u64, i64)>, HistoryError> {
+        let hash = segment::sensor_hash(sensor.as_str());
+        let seen: Vec<(u64, PathBuf, Option<Vec<IndexEntry>>)> = self
+            .read()
+            .iter()
+            .filter(|s| !s.is_empty() && s.first_arrival < before_arrival)
+            .map(|s| {
+                let live = s.live.as_ref().map(|entries| {
+                    entries
+                        .iter()
+                        .filter(|e| e.sensor_hash == hash)
+                        .copied()
+                        .collect()
+                });
+                (s.id, s.log_path.clone(), live)
+            })
+            .collect();
+        for (id, path, live) in seen.into_iter().rev() {
+            let entries = match live {
+                Some(e) => e,
+                None => self
+                    .sensor_index(id)?
+                    .get(&hash)
+                    .cloned()
+                    .unwrap_or_default(),
+            };
+            // A late run (a backfill) is written after batches newer than it: the block that
+            // reaches furthest in time holds the newest batch.
+            let Some(entry) = entries
+                .into_iter()
+                .filter(|e| e.summary.first_arrival < before_arrival)
+                .max_by_key(|e| e.summary.max_ts)
+            else {
+                continue;
+            };
+            let offset = entry.offset;
+            let mut scan = Scan {
+                blocks: vec![(id, path.clone(), entry)],
+                next: 0,
+                open: None,
+            };
+            let Some(block) = scan.next_block() else {
+                return Ok(None);
+            };
+            let bytes = block?.bytes;
+            let block = crate::Block::decode(&bytes).map_err(|e| HistoryError::Damaged {
+                path,
+                offset,
+                reason: e.to_string(),
+            })?;
+            if &block.sensor != sensor {
+                // Another sensor whose id hashes alike: nothing to go on.
+                return Ok(None);
+            }
+            return Ok(block
+                .kept
+                .iter()
+                .filter(|k| k.arrival < before_arrival)
+                .max_by_key(|k| k.timestamp_ns)
+                .map(|k| (k.sequence, k.timestamp_ns)));
+        }
+        Ok(None)
+    }
+
     pub fn count_damaged(&self) {
         self.counters.damaged_blocks.fetch_add(1, Relaxed);
     }
@@ -672,6 +745,11 @@ impl Writer {
     }
 
     /// Batches kept in memory, not yet on disk.
+    /// The arrival number the next batch appended will get.
+    pub fn next_arrival(&self) -> u64 {
+        self.next_arrival
+    }
+
     pub fn pending_batches(&self) -> usize {
         self.pending
             .values()

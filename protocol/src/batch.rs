@@ -55,14 +55,17 @@ pub mod flags {
     /// The sensor's calibration health checks found it `suspect` under the record in use: its
     /// values may be off by more than their uncertainty says, until a new record is in force.
     pub const CALIBRATION_SUSPECT: u16 = 1 << 9;
+    /// The gateway fetched this batch from the node's buffer after a gap or an outage and
+    /// publishes it after later ones: it fills a hole behind the live stream.
+    pub const LATE: u16 = 1 << 10;
     /// Every defined bit; the others are reserved and must be zero.
-    pub const ALL: u16 = (1 << 10) - 1;
+    pub const ALL: u16 = (1 << 11) - 1;
     /// The flags that describe a batch, not its samples: set in the batch flags only.
-    pub const BATCH_ONLY: u16 = SEQUENCE_GAP | DUPLICATE;
+    pub const BATCH_ONLY: u16 = SEQUENCE_GAP | DUPLICATE | LATE;
 
     /// Names of the set bits, for logs and reports.
     pub fn names(bits: u16) -> Vec<&'static str> {
-        const NAMES: [&str; 10] = [
+        const NAMES: [&str; 11] = [
             "uncalibrated",
             "calibration_expired",
             "outside_amplitude",
@@ -73,8 +76,9 @@ pub mod flags {
             "duplicate",
             "outside_temperature",
             "calibration_suspect",
+            "late",
         ];
-        (0..10)
+        (0..11)
             .filter(|i| bits & (1 << i) != 0)
             .map(|i| NAMES[i])
             .collect()

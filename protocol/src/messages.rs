@@ -152,6 +152,9 @@ pub struct SensorStatus {
     pub gaps: u64,
     /// Sequence numbers lost in those jumps.
     pub missing_batches: u64,
+    /// Batches fetched from the node's buffer and published flagged `late` (§5.4).
+    #[serde(default)]
+    pub late_batches: u64,
     pub duplicates: u64,
     /// Malformed payloads on this sensor's key.
     pub rejects: u64,
@@ -227,6 +230,9 @@ pub struct GatewayStatus {
     /// The gateway's history of raw batches; absent when it keeps none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub history: Option<HistoryStatus>,
+    /// Gaps filled from the nodes' buffers; absent when backfill is off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backfill: Option<BackfillStatus>,
     /// Sensors the gateway knows; `sensors` is the page the query asked for.
     #[serde(default)]
     pub total_sensors: u64,
@@ -235,6 +241,23 @@ pub struct GatewayStatus {
     pub next_offset: Option<u64>,
     /// Sorted by id.
     pub sensors: Vec<SensorStatus>,
+}
+
+/// What a gateway's backfill has done since the gateway started (PROTOCOL.md §5.4).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BackfillStatus {
+    /// Queries sent to nodes' buffers.
+    pub queries: u64,
+    /// Batches the gaps (and the gateway's own downtime) asked for.
+    pub wanted_batches: u64,
+    /// Batches received, corrected and published flagged `late`.
+    pub late_batches: u64,
+    /// Replies that were not a batch of the hole asked for: counted and skipped.
+    pub rejected_replies: u64,
+    /// Queries that ended in an error or timed out.
+    pub failed_queries: u64,
+    /// Gaps not asked for: the backfill's queue was full.
+    pub refused_requests: u64,
 }
 
 /// What a gateway's history holds and has done since the gateway started.
@@ -294,6 +317,12 @@ pub struct Heartbeat {
 pub struct HeartbeatSensor {
     pub last_sequence: u64,
     pub last_timestamp_ns: i64,
+    /// The last batch published flagged `late` (a backfill), when one was in the last 10 s:
+    /// its number and first-sample time.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub late_sequence: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub late_timestamp_ns: Option<i64>,
 }
 
 impl JsonMessage for Heartbeat {

@@ -25,6 +25,8 @@
 //! - `catchup`: a registry that arrives after the gateway is caught up with within seconds.
 //! - `console`: the operators' console in headless Chromium against a demo building; what it
 //!   refuses; the one-sensor status it reads the calibration record from.
+//! - `backfill`: a link cut and the gateway's own downtime filled from the node's buffer,
+//!   published `late` with the bytes an uninterrupted gateway published, kept once, replayed.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `campaign` (ignored by default): a million hostile messages against one gateway.
 //! - `health`: a frozen channel makes its record `suspect` and flags its samples from the
@@ -41,6 +43,8 @@
 
 #[path = "gateway/alerting.rs"]
 mod alerting;
+#[path = "gateway/backfill.rs"]
+mod backfill;
 #[path = "gateway/campaign.rs"]
 mod campaign;
 #[path = "gateway/catchup.rs"]

@@ -1,0 +1,345 @@
+//! Backfill: the batches a sequence gap or the gateway's own downtime cost, fetched from the
+//! sensor node's buffer (`triax/<b>/buffer/<s>`, PROTOCOL.md §5.4), corrected as the live path
+//! would have corrected them, kept in the history and published flagged `late` (§2.3).
+//!
+//! **What asks.** A sensor's worker, without waiting: on a live batch judged a gap, for the
+//! numbers between the last accepted batch and it, with the kernel's state before the gap; and
+//! on the first batch the gateway meets of a sensor after it started, for what the history it
+//! inherited lacks before that batch (found here, off the sample path, from the history's newest
+//! batch kept before this run: [`triax_history::History::newest_before`]). A request the queue
+//! cannot take is counted (`backfill.refused`) and the hole stays as it is today.
+//!
+//! **How.** One request at a time per sensor, [`CONCURRENT`] sensors at once, each on a blocking
+//! thread: a Zenoh query at `DataLow` priority, so the replies queue behind live data, with no
+//! consolidation. Replies are checked (the sensor's key, a raw batch that parses, the sensor
+//! its header names, a number inside the range and above the last taken, a time strictly
+//! between the batches around the hole) and anything else is counted (`backfill.rejected`) and
+//! skipped. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
+//! ([`crate::worker::Shard::correct_late`]), with a kernel of their own restored from the state
+//! before the gap (a cold one after the gateway's restart, as the live path was then): the live
+//! kernel is not touched, and the live stream goes on while a hole fills.
+//!
+//! **Replays.** The first late batch of each chunk carries a checkpoint of the late kernel,
+//! and the next live batch one of the live kernel: the history holds runs of two kinds, each
+//! starting from its own state, and a replay, which restores every checkpoint it meets, gives
+//! back what was published for both (`tests/tests/gateway/backfill.rs`).
+
+use std::collections::{HashSet, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tokio::sync::mpsc;
+use triax_history::History;
+use triax_protocol::{BuildingId, Key, RawBatchView, SensorId};
+use zenoh::handlers::FifoChannel;
+use zenoh::qos::Priority;
+use zenoh::query::ConsolidationMode;
+use zenoh::Wait;
+
+use crate::kernel::SensorKernel;
+use crate::shutdown::Shutdown;
+use crate::worker::{self, Shard, Shared};
+
+/// Sensors whose holes are filled at the same time.
+pub const CONCURRENT: usize = 4;
+/// Late batches corrected per hold of the shard's lock.
+pub const CHUNK: usize = 64;
+/// Requests waiting for a free slot; more are refused and counted.
+pub const QUEUE: usize = 65_536;
+
+/// What a worker asks for.
+#[derive(Debug)]
+pub enum Need {
+    /// A live batch numbered past the next: `from_seq..=to_seq` are missing, between the
+    /// batches starting at `after_ns` and at `before_ns`; `state` is the sensor's kernel
+    /// before the gap.
+    Gap {
+        from_seq: u64,
+        to_seq: u64,
+        after_ns: i64,
+        before_ns: i64,
+        state: Vec<u8>,
+    },
+    /// The first batch of the sensor since the gateway started: what the history lacks
+    /// before it.
+    First { sequence: u64, timestamp_ns: i64 },
+}
+
+#[derive(Debug)]
+pub struct Request {
+    pub sensor: SensorId,
+    pub need: Need,
+}
+
+/// The backfill's counters, for status and metrics.
+#[derive(Debug, Default)]
+pub struct BackfillCounters {
+    /// Queries sent to nodes' buffers.
+    pub queries: AtomicU64,
+    /// Batches the gaps and restarts asked for.
+    pub wanted_batches: AtomicU64,
+    /// Late batches corrected and published.
+    pub late_batches: AtomicU64,
+    /// Replies that were not a batch of the hole asked for (or came for a forgotten sensor).
+    pub rejected: AtomicU64,
+    /// Queries that ended in an error or timed out (what they brought is kept).
+    pub failed_queries: AtomicU64,
+    /// Requests the queue could not take.
+    pub refused: AtomicU64,
+}
+
+impl BackfillCounters {
+    pub fn status(&self) -> triax_protocol::messages::BackfillStatus {
+        triax_protocol::messages::BackfillStatus {
+            queries: self.queries.load(Relaxed),
+            wanted_batches: self.wanted_batches.load(Relaxed),
+            late_batches: self.late_batches.load(Relaxed),
+            rejected_replies: self.rejected.load(Relaxed),
+            failed_queries: self.failed_queries.load(Relaxed),
+            refused_requests: self.refused.load(Relaxed),
+        }
+    }
+}
+
+/// The worker's end: never waits.
+#[derive(Debug, Clone)]
+pub struct Asker {
+    tx: mpsc::Sender<Request>,
+    pub counters: Arc<BackfillCounters>,
+}
+
+impl Asker {
+    pub fn ask(&self, request: Request) {
+        if self.tx.try_send(request).is_err() {
+            self.counters.refused.fetch_add(1, Relaxed);
+        }
+    }
+}
+
+/// Settings of [`run`] (`[backfill]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// Longest one query may take.
+    pub timeout: Duration,
+    /// Most batches asked for one hole: the newest of a longer one.
+    pub max_batches: u64,
+}
+
+pub fn channel() -> (Asker, mpsc::Receiver<Request>) {
+    let (tx, rx) = mpsc::channel(QUEUE);
+    let counters = Arc::new(BackfillCounters::default());
+    (Asker { tx, counters }, rx)
+}
+
+/// What [`run`] needs.
+pub struct Context {
+    pub building: BuildingId,
+    pub session: zenoh::Session,
+    pub shared: Arc<Shared>,
+    pub shards: Arc<Vec<Arc<Mutex<Shard>>>>,
+    pub counters: Arc<BackfillCounters>,
+    /// The history and the first arrival number of this run, for [`Need::First`].
+    pub history: Option<(Arc<History>, u64)>,
+    pub settings: Settings,
+}
+
+/// Serves requests until shutdown: at most one per sensor and [`CONCURRENT`] in all at a time.
+pub async fn run(ctx: Context, mut rx: mpsc::Receiver<Request>, mut shutdown: Shutdown) {
+    let ctx = Arc::new(ctx);
+    let mut waiting: VecDeque<Request> = VecDeque::new();
+    let mut busy: HashSet<SensorId> = HashSet::new();
+    let mut running = tokio::task::JoinSet::new();
+    loop {
+        // Start what can start, in order of asking; a sensor's requests keep their order.
+        let mut i = 0;
+        while running.len() < CONCURRENT && i < waiting.len() {
+            if busy.contains(&waiting[i].sensor) {
+                i += 1;
+                continue;
+            }
+            let Some(request) = waiting.remove(i) else {
+                break;
+            };
+            busy.insert(request.sensor.clone());
+            let ctx = ctx.clone();
+            running.spawn_blocking(move || {
+                let sensor = request.sensor.clone();
+                fill(&ctx, request);
+                sensor
+            });
+        }
+        tokio::select! {
+            r = rx.recv() => match r {
+                Some(r) => waiting.push_back(r),
+                None => break,
+            },
+            Some(done) = running.join_next(), if !running.is_empty() => {
+                match done {
+                    Ok(sensor) => { busy.remove(&sensor); }
+                    Err(e) => {
+                        // A panic in a fill (a bug): its sensor stays busy, the others go on.
+                        tracing::error!(cause = %e, "backfill task failed");
+                    }
+                }
+            }
+            _ = shutdown.recv() => break,
+        }
+    }
+    // Fills under way end with their query's timeout at worst; they hold no lock across it.
+    running.detach_all();
+}
+
+/// One hole: what to ask, and the state its batches start from.
+struct Hole {
+    from_seq: u64,
+    to_seq: u64,
+    after_ns: i64,
+    before_ns: i64,
+    /// None: a fresh kernel.
+    state: Option<Vec<u8>>,
+}
+
+/// Where a request's hole is, if it has one.
+fn hole_of(ctx: &Context, sensor: &SensorId, need: Need) -> Option<Hole> {
+    let hole = match need {
+        Need::Gap {
+            from_seq,
+            to_seq,
+            after_ns,
+            before_ns,
+            state,
+        } => Hole {
+            from_seq,
+            to_seq,
+            after_ns,
+            before_ns,
+            state: Some(state),
+        },
+        Need::First {
+            sequence,
+            timestamp_ns,
+        } => {
+            let (history, first_arrival) = ctx.history.as_ref()?;
+            let (last_seq, last_ns) = match history.newest_before(sensor, *first_arrival) {
+                Ok(Some(last)) => last,
+                Ok(None) => return None,
+                Err(e) => {
+                    tracing::warn!(sensor = %sensor, cause = %e, "backfill: history unreadable; the hole stays");
+                    return None;
+                }
+            };
+            // A node that numbered afresh (not a `triax-node`) has nothing to match by number.
+            if last_seq.checked_add(1)? >= sequence || last_ns >= timestamp_ns {
+                return None;
+            }
+            Hole {
+                from_seq: last_seq + 1,
+                to_seq: sequence - 1,
+                after_ns: last_ns,
+                before_ns: timestamp_ns,
+                state: None,
+            }
+        }
+    };
+    Some(hole)
+}
+
+/// Fills one hole: query, check, correct in chunks. Runs on a blocking thread.
+fn fill(ctx: &Context, request: Request) {
+    let Request { sensor, need } = request;
+    let Some(mut hole) = hole_of(ctx, &sensor, need) else {
+        return;
+    };
+    let c = &ctx.counters;
+    let wanted = hole.to_seq - hole.from_seq + 1;
+    if wanted > ctx.settings.max_batches {
+        hole.from_seq = hole.to_seq + 1 - ctx.settings.max_batches;
+    }
+    c.wanted_batches
+        .fetch_add(hole.to_seq - hole.from_seq + 1, Relaxed);
+    let key = Key::Buffer(ctx.building.clone(), sensor.clone()).to_string();
+    let selector = format!("{key}?from_seq={};to_seq={}", hole.from_seq, hole.to_seq);
+    c.queries.fetch_add(1, Relaxed);
+    let replies = match ctx
+        .session
+        .get(&selector)
+        .consolidation(ConsolidationMode::None)
+        .priority(Priority::DataLow)
+        .timeout(ctx.settings.timeout)
+        .with(FifoChannel::new(CHUNK * 4))
+        .wait()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            c.failed_queries.fetch_add(1, Relaxed);
+            tracing::warn!(sensor = %sensor, cause = %e, "backfill query not sent");
+            return;
+        }
+    };
+    let settings = ctx.shared.table.settings_of(&sensor);
+    let kernel = match hole.state.as_deref() {
+        Some(bytes) => SensorKernel::restore(bytes).unwrap_or_else(|| SensorKernel::new(settings)),
+        None => SensorKernel::new(settings),
+    };
+    let mut run = LateRun {
+        kernel,
+        expected: hole.from_seq,
+        checkpoint_due: true,
+    };
+    let mut chunk: Vec<Vec<u8>> = Vec::with_capacity(CHUNK);
+    let mut next_seq = hole.from_seq;
+    let mut errors = 0u64;
+    let shard = &ctx.shards[worker::shard(sensor.as_str(), ctx.shards.len())];
+    let flush = |chunk: &mut Vec<Vec<u8>>, run: &mut LateRun| {
+        if chunk.is_empty() {
+            return;
+        }
+        let done = worker::lock_shard(shard).correct_late(&ctx.shared, &sensor, run, chunk);
+        c.late_batches.fetch_add(done as u64, Relaxed);
+        c.rejected.fetch_add((chunk.len() - done) as u64, Relaxed);
+        chunk.clear();
+    };
+    while let Ok(reply) = replies.recv() {
+        let sample = match reply.result() {
+            Ok(s) => s,
+            Err(e) => {
+                errors += 1;
+                tracing::warn!(sensor = %sensor, cause = %String::from_utf8_lossy(&e.payload().to_bytes()), "backfill: the buffer answered an error");
+                continue;
+            }
+        };
+        let payload = sample.payload().to_bytes();
+        let fits = sample.key_expr().as_str() == key
+            && RawBatchView::parse(&payload).is_ok_and(|v| {
+                let h = &v.header;
+                h.sensor_id == sensor
+                    && (next_seq..=hole.to_seq).contains(&h.sequence)
+                    && h.timestamp_ns > hole.after_ns
+                    && h.timestamp_ns < hole.before_ns
+            });
+        if !fits {
+            c.rejected.fetch_add(1, Relaxed);
+            continue;
+        }
+        // Checked just above.
+        next_seq = RawBatchView::parse(&payload).map_or(next_seq, |v| v.header.sequence + 1);
+        chunk.push(payload.into_owned());
+        if chunk.len() == CHUNK {
+            flush(&mut chunk, &mut run);
+        }
+    }
+    flush(&mut chunk, &mut run);
+    if errors > 0 {
+        c.failed_queries.fetch_add(1, Relaxed);
+    }
+    tracing::debug!(sensor = %sensor, from_seq = hole.from_seq, to_seq = hole.to_seq, got = next_seq - hole.from_seq, "backfill done");
+}
+
+/// A hole being filled: its own kernel, the number expected next, and whether the next late
+/// batch kept owes the history a checkpoint.
+pub struct LateRun {
+    pub kernel: SensorKernel,
+    pub expected: u64,
+    pub checkpoint_due: bool,
+}

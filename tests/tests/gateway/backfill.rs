@@ -1,0 +1,409 @@
+//! Backfill from the node's buffer (PROTOCOL.md §2.3 `late`, §5.4): batches a link cut or the
+//! gateway's own downtime cost are fetched, corrected as the live path would have corrected
+//! them, kept in the history and published flagged `late`.
+//!
+//! The node here is the test's own session: it publishes raw batches and answers
+//! `triax/<b>/buffer/<s>?from_seq;to_seq` from what it sent, as §5.4 says (`triax-node`'s own
+//! buffer is tested in `node/tests/node.rs`). Not publishing a stretch is a link cut, exactly.
+//!
+//! - `a_cut_link_is_filled_late_as_live_and_replays_exactly`: a split-mode and a dynamic sensor
+//!   lose 30 batches each on the link; the gateway fetches them, publishes them `late` with the
+//!   bytes an uninterrupted gateway published (but for the flag), the history holds every batch
+//!   once, and a replay gives back every published byte, late and live.
+//! - `what_a_gateway_missed_while_down_is_fetched_when_it_starts`: batches sent while the
+//!   gateway was stopped reach its history after the restart, once each, and replay exactly.
+
+use std::collections::BTreeMap;
+use std::f64::consts::PI;
+use std::sync::{Arc, Mutex};
+
+use triax_client::{history::fetch, HistoryRequest};
+use triax_gateway::{CorrectionMode, SensorSettings};
+use triax_protocol::batch::{flags, CorrectedBatch};
+use triax_protocol::record::sample;
+use triax_protocol::{BuildingId, SensorId};
+
+use super::status;
+use super::util::*;
+
+const SPLIT: &str = "bf-split";
+const DYNAMIC: &str = "bf-dyn";
+const BATCH: usize = 10;
+
+/// Batch `seq`: sway in band, a slow tilt and gravity, a function of time alone.
+fn signal(sensor: &str, seq: u64) -> Vec<u8> {
+    let samples = (0..BATCH)
+        .map(|i| {
+            let t = (seq as usize * BATCH + i) as f64 / 100.0;
+            [
+                (0.2 * (2.0 * PI * 1.3 * t).sin()) as f32,
+                (0.05 * (2.0 * PI * 0.07 * t).sin()) as f32,
+                (0.981 + 0.01 * (2.0 * PI * 0.2 * t).sin()) as f32,
+            ]
+        })
+        .collect();
+    raw(sensor, seq, samples)
+}
+
+/// The node's side: every batch it made, by sensor and number, answered on its buffer key.
+#[derive(Default, Clone)]
+struct Buffer(Arc<Mutex<BTreeMap<(String, u64), Vec<u8>>>>);
+
+impl Buffer {
+    fn keep(&self, sensor: &str, seq: u64, payload: &[u8]) {
+        self.0
+            .lock()
+            .unwrap()
+            .insert((sensor.to_owned(), seq), payload.to_vec());
+    }
+
+    /// Answers §5.4 batch queries for `building` (no status, no error cases: the gateway asks
+    /// well-formed ranges).
+    async fn serve(&self, session: &zenoh::Session, building: &str) -> zenoh::query::Queryable<()> {
+        let held = self.0.clone();
+        session
+            .declare_queryable(format!("triax/{building}/buffer/*"))
+            .callback(move |q| {
+                let sensor = q.key_expr().as_str().rsplit('/').next().unwrap().to_owned();
+                let p = q.parameters();
+                let from: u64 = p.get("from_seq").unwrap().parse().unwrap();
+                let to: u64 = p.get("to_seq").unwrap().parse().unwrap();
+                let batches: Vec<Vec<u8>> = held
+                    .lock()
+                    .unwrap()
+                    .range((sensor.clone(), from)..=(sensor.clone(), to))
+                    .map(|(_, b)| b.clone())
+                    .collect();
+                let key = q.key_expr().clone();
+                // Replies in order, from a thread of its own: Zenoh's callback must not block.
+                std::thread::spawn(move || {
+                    use zenoh::Wait;
+                    for b in batches {
+                        q.reply(key.clone(), b).wait().unwrap();
+                    }
+                });
+            })
+            .await
+            .unwrap()
+    }
+}
+
+/// Every corrected payload published on `building`'s corrected keys, in arrival order.
+type Published = Arc<Mutex<Vec<Vec<u8>>>>;
+
+async fn subscribe(
+    session: &zenoh::Session,
+    building: &str,
+) -> (Published, zenoh::pubsub::Subscriber<()>) {
+    let out: Published = Default::default();
+    let o = out.clone();
+    let sub = session
+        .declare_subscriber(format!("triax/{building}/corrected/*"))
+        .callback(move |s| o.lock().unwrap().push(s.payload().to_bytes().to_vec()))
+        .await
+        .unwrap();
+    (out, sub)
+}
+
+fn decoded(p: &Published) -> Vec<(Vec<u8>, CorrectedBatch)> {
+    p.lock()
+        .unwrap()
+        .iter()
+        .map(|b| (b.clone(), CorrectedBatch::decode(b).unwrap()))
+        .collect()
+}
+
+/// The history's replay (record in force) of `sensor`, payloads in the history's order.
+async fn replay(session: &zenoh::Session, building: &str, sensor: &str) -> Vec<Vec<u8>> {
+    let request = HistoryRequest::sensor(
+        &BuildingId::new(building).unwrap(),
+        &SensorId::new(sensor).unwrap(),
+    );
+    let mut out = Vec::new();
+    fetch(session, &request, TIMEOUT, &mut |b| {
+        out.push(b.payload.clone())
+    })
+    .await
+    .unwrap();
+    out
+}
+
+/// A peer session connected to every one of `endpoints`.
+async fn client_of(endpoints: &[&str]) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    let list = endpoints
+        .iter()
+        .map(|e| format!("\"{e}\""))
+        .collect::<Vec<_>>()
+        .join(",");
+    for (k, v) in [
+        ("mode", "\"peer\"".to_owned()),
+        ("connect/endpoints", format!("[{list}]")),
+        ("listen/endpoints", "[]".to_owned()),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        c.insert_json5(k, &v).unwrap();
+    }
+    zenoh::open(c).await.unwrap()
+}
+
+fn settings(config: &mut triax_gateway::Config) {
+    config.sensors.insert(
+        SensorId::new(SPLIT).unwrap(),
+        SensorSettings {
+            mode: CorrectionMode::Split,
+            ..SensorSettings::default()
+        },
+    );
+}
+
+/// Waits until `n` batches of `sensor` flagged `late` were published.
+async fn wait_late(published: &Published, sensor: &str, n: usize) {
+    wait_until(&format!("{n} late batches of {sensor}"), || {
+        decoded(published)
+            .iter()
+            .filter(|(_, b)| {
+                b.header.sensor_id.as_str() == sensor && b.batch_flags & flags::LATE != 0
+            })
+            .count()
+            >= n
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cut_link_is_filled_late_as_live_and_replays_exactly() {
+    const TOTAL: u64 = 100;
+    const CUT: std::ops::RangeInclusive<u64> = 30..=59;
+    let dir = tempfile::tempdir().unwrap();
+    // The gateway under test, and a reference gateway that receives everything.
+    let (store, reference_store) = (dir.path().join("s1"), dir.path().join("s2"));
+    for s in [&store, &reference_store] {
+        seed_store(s, &[sample::record(SPLIT, 1), sample::record(DYNAMIC, 1)]);
+    }
+    let mut c = config("hbf", &store);
+    settings(&mut c);
+    let gw = start(c).await;
+    let mut c = config("hbfref", &reference_store);
+    c.backfill = None;
+    settings(&mut c);
+    let reference = start(c).await;
+
+    let endpoints = [gw.endpoint.as_str(), reference.endpoint.as_str()];
+    let node = client_of(&endpoints).await;
+    let buffer = Buffer::default();
+    let _queryable = buffer.serve(&node, "hbf").await;
+    let watcher = client_of(&endpoints).await;
+    let (published, _s1) = subscribe(&watcher, "hbf").await;
+    let (uninterrupted, _s2) = subscribe(&watcher, "hbfref").await;
+    let mut publishers = Vec::new();
+    for b in ["hbf", "hbfref"] {
+        for id in [SPLIT, DYNAMIC] {
+            let p = node
+                .declare_publisher(key_raw(b, id))
+                .congestion_control(zenoh::qos::CongestionControl::Block)
+                .await
+                .unwrap();
+            wait_matching(&p).await;
+            publishers.push((b, id, p));
+        }
+    }
+    for seq in 0..TOTAL {
+        for (b, id, p) in &publishers {
+            let payload = signal(id, seq);
+            if *b == "hbf" {
+                buffer.keep(id, seq, &payload);
+                if CUT.contains(&seq) {
+                    continue;
+                }
+            }
+            p.put(payload).await.unwrap();
+        }
+    }
+    let cut = CUT.count();
+    for id in [SPLIT, DYNAMIC] {
+        wait_late(&published, id, cut).await;
+        wait_history_holds(&watcher, "hbf", id, TOTAL - 1).await;
+        wait_history_holds(&watcher, "hbfref", id, TOTAL - 1).await;
+    }
+    let (got, all) = (decoded(&published), decoded(&uninterrupted));
+    for id in [SPLIT, DYNAMIC] {
+        let ours: Vec<_> = got
+            .iter()
+            .filter(|(_, b)| b.header.sensor_id.as_str() == id)
+            .collect();
+        let late: Vec<_> = ours
+            .iter()
+            .filter(|(_, b)| b.batch_flags & flags::LATE != 0)
+            .collect();
+        // Every batch once; the late ones in order, the cut's numbers exactly.
+        assert_eq!(ours.len() as u64, TOTAL, "{id}: every batch published once");
+        assert_eq!(
+            late.iter()
+                .map(|(_, b)| b.header.sequence)
+                .collect::<Vec<_>>(),
+            CUT.collect::<Vec<_>>(),
+            "{id}: late batches"
+        );
+        let after_cut = ours
+            .iter()
+            .find(|(_, b)| b.header.sequence == CUT.end() + 1)
+            .unwrap();
+        assert_ne!(
+            after_cut.1.batch_flags & flags::SEQUENCE_GAP,
+            0,
+            "{id}: the live batch after the cut shows the gap"
+        );
+        // A late batch is what the uninterrupted gateway published, but for the flag.
+        for (_, b) in &late {
+            assert_eq!(
+                b.batch_flags & flags::SEQUENCE_GAP,
+                0,
+                "{id} #{}",
+                b.header.sequence
+            );
+            let (_, r) = all
+                .iter()
+                .find(|(_, r)| {
+                    r.header.sensor_id.as_str() == id && r.header.sequence == b.header.sequence
+                })
+                .unwrap();
+            assert_eq!(
+                b.samples, r.samples,
+                "{id} #{}: samples as live",
+                b.header.sequence
+            );
+            assert_eq!(
+                b.batch_flags & !flags::LATE,
+                r.batch_flags,
+                "{id} #{}",
+                b.header.sequence
+            );
+        }
+        // The history: every batch once, each replayed to the bytes published.
+        let replayed = replay(&watcher, "hbf", id).await;
+        assert_eq!(
+            replayed.len() as u64,
+            TOTAL,
+            "{id}: the history holds every batch once"
+        );
+        let mut by_bytes: Vec<&Vec<u8>> = ours.iter().map(|(p, _)| p).collect();
+        let mut replayed_sorted: Vec<&Vec<u8>> = replayed.iter().collect();
+        by_bytes.sort();
+        replayed_sorted.sort();
+        assert!(
+            by_bytes == replayed_sorted,
+            "{id}: the replay is the published stream, late batches included"
+        );
+    }
+    let st = status(&watcher, "hbf").await;
+    let b = st.backfill.expect("backfill reported");
+    assert_eq!(b.late_batches, 2 * cut as u64, "{b:?}");
+    assert_eq!(b.rejected_replies, 0, "{b:?}");
+    for s in &st.sensors {
+        assert_eq!(s.late_batches, cut as u64, "{}", s.sensor_id);
+    }
+    reference.stop().await;
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn what_a_gateway_missed_while_down_is_fetched_when_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &[sample::record(SPLIT, 1), sample::record(DYNAMIC, 1)],
+    );
+    // The node listens, so that it outlives the gateway.
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let mut zc = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\"".to_owned()),
+        ("listen/endpoints", format!("[\"{endpoint}\"]")),
+        ("scouting/multicast/enabled", "false".to_owned()),
+    ] {
+        zc.insert_json5(k, &v).unwrap();
+    }
+    let node = zenoh::open(zc).await.unwrap();
+    let buffer = Buffer::default();
+    let _queryable = buffer.serve(&node, "hbd").await;
+    let (published, _sub) = subscribe(&node, "hbd").await;
+    let gateway = || {
+        let mut c = config("hbd", &store);
+        c.zenoh.listen.clear();
+        c.zenoh.connect = vec![endpoint.clone()];
+        settings(&mut c);
+        c
+    };
+    let mut publishers = Vec::new();
+    for id in [SPLIT, DYNAMIC] {
+        let p = node
+            .declare_publisher(key_raw("hbd", id))
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .await
+            .unwrap();
+        publishers.push((id, p));
+    }
+    let send = |seqs: std::ops::Range<u64>, live: bool| {
+        let (buffer, publishers) = (&buffer, &publishers);
+        async move {
+            for seq in seqs {
+                for (id, p) in publishers {
+                    let payload = signal(id, seq);
+                    buffer.keep(id, seq, &payload);
+                    if live {
+                        p.put(payload).await.unwrap();
+                    }
+                }
+            }
+        }
+    };
+    let gw = start(gateway()).await;
+    for (_, p) in &publishers {
+        wait_matching(p).await;
+    }
+    send(0..80, true).await;
+    for id in [SPLIT, DYNAMIC] {
+        wait_history_holds(&node, "hbd", id, 79).await;
+    }
+    gw.stop().await;
+    // Made while no gateway runs: in the node's buffer only.
+    send(80..120, false).await;
+    let gw = start(gateway()).await;
+    for (_, p) in &publishers {
+        wait_matching(p).await;
+    }
+    send(120..150, true).await;
+    for id in [SPLIT, DYNAMIC] {
+        wait_late(&published, id, 40).await;
+        wait_history_holds(&node, "hbd", id, 149).await;
+    }
+    for id in [SPLIT, DYNAMIC] {
+        let replayed = replay(&node, "hbd", id).await;
+        let mut seqs: Vec<u64> = replayed
+            .iter()
+            .map(|p| CorrectedBatch::decode(p).unwrap().header.sequence)
+            .collect();
+        seqs.sort_unstable();
+        assert_eq!(
+            seqs,
+            (0..150).collect::<Vec<_>>(),
+            "{id}: every batch kept once"
+        );
+        let ours: Vec<Vec<u8>> = decoded(&published)
+            .into_iter()
+            .filter(|(_, b)| b.header.sensor_id.as_str() == id)
+            .map(|(p, _)| p)
+            .collect();
+        let mut a: Vec<&Vec<u8>> = ours.iter().collect();
+        let mut b: Vec<&Vec<u8>> = replayed.iter().collect();
+        a.sort();
+        b.sort();
+        assert!(
+            a == b,
+            "{id}: the replay is what was published, live and late"
+        );
+    }
+    gw.stop().await;
+}
