@@ -27,6 +27,15 @@
 //!
 //! What the history does not hold (lost before the gateway, or past retention) cannot be
 //! recovered: where the numbering shows it, it is counted ([`FollowerCounters::unrecoverable`]).
+//!
+//! **Late batches.** A gateway fills a hole from the node's buffer after later batches went
+//! out (PROTOCOL.md §2.3 `late`, §5.4), and keeps the late batches in its history after them.
+//! So history answers are taken in time order, and the follower remembers, per sensor, the
+//! holes the numbering showed (at most [`MAX_HOLES`], the oldest forgotten first): a live
+//! batch flagged `late` inside one is handed over (`late` batches go out after later ones),
+//! the history read for any late batch lost before it, and the hole shrinks; one outside every
+//! hole was handed over already. A heartbeat's `late_timestamp_ns` inside a hole reads the
+//! history up to it: late batches lost on the link, the last ones of a hole included.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -121,6 +130,8 @@ impl Delivery {
 pub struct FollowerCounters {
     pub live: AtomicU64,
     pub recovered: AtomicU64,
+    /// Batches flagged `late` handed over, live or from the history.
+    pub late: AtomicU64,
     /// Batches the numbering said were missing that the history did not have.
     pub unrecoverable: AtomicU64,
     pub history_queries: AtomicU64,
@@ -233,6 +244,7 @@ impl Fleet {
                 .map(|(s, p)| (s.clone(), Mark::at(*p)))
                 .collect(),
             beats: HashMap::new(),
+            holes: HashMap::new(),
             options,
             tx,
             counters: counters.clone(),
@@ -338,6 +350,34 @@ fn is_duplicate(batch: &CorrectedBatch) -> bool {
     batch.batch_flags & flags::DUPLICATE != 0
 }
 
+fn is_late(batch: &CorrectedBatch) -> bool {
+    batch.batch_flags & flags::LATE != 0
+}
+
+/// Holes remembered per sensor.
+pub const MAX_HOLES: usize = 64;
+
+/// Batches the numbering says are missing between two handed over: a gateway may still fill
+/// them late. `after` is the last handed over below the hole, `before` the first above.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Hole {
+    after: Position,
+    before: Position,
+}
+
+impl Hole {
+    /// The hole between two batches handed over one after the other, if numbers lie between.
+    fn between(after: Position, before: Position) -> Option<Hole> {
+        (before.sequence > after.sequence.saturating_add(1)
+            && before.timestamp_ns > after.timestamp_ns)
+            .then_some(Hole { after, before })
+    }
+
+    fn holds(&self, timestamp_ns: i64) -> bool {
+        self.after.timestamp_ns < timestamp_ns && timestamp_ns < self.before.timestamp_ns
+    }
+}
+
 /// What to do with a live batch.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Next {
@@ -424,6 +464,8 @@ struct State {
     new_sensors_from_ns: i64,
     /// Per sensor, the last batch handed over.
     marks: HashMap<SensorId, Mark>,
+    /// Per sensor, the holes behind its mark that a gateway may fill late, oldest first.
+    holes: HashMap<SensorId, Vec<Hole>>,
     /// The last heartbeat number seen, per gateway.
     beats: HashMap<String, u64>,
     tx: mpsc::Sender<Delivery>,
@@ -433,11 +475,32 @@ struct State {
 impl State {
     /// Hands one batch over; false once the consumer has gone.
     async fn deliver(&mut self, payload: Vec<u8>, batch: CorrectedBatch, recovered: bool) -> bool {
-        if !is_duplicate(&batch) {
+        if is_late(&batch) {
+            self.counters.late.fetch_add(1, Relaxed);
+        }
+        let behind = self
+            .marks
+            .get(&batch.header.sensor_id)
+            .is_some_and(|m| batch.header.timestamp_ns <= m.position.timestamp_ns);
+        if is_late(&batch) && behind {
+            self.fill(&batch);
+        } else if !is_duplicate(&batch) {
             let mark = Mark::of(&batch);
             // In place for a known sensor: no id to copy per batch.
             match self.marks.get_mut(&batch.header.sensor_id) {
-                Some(m) => *m = mark,
+                Some(m) => {
+                    if let Some(hole) = Hole::between(m.position, mark.position) {
+                        let holes = self
+                            .holes
+                            .entry(batch.header.sensor_id.clone())
+                            .or_default();
+                        if holes.len() >= MAX_HOLES {
+                            holes.remove(0);
+                        }
+                        holes.push(hole);
+                    }
+                    *m = mark;
+                }
                 None => {
                     self.marks.insert(batch.header.sensor_id.clone(), mark);
                 }
@@ -504,6 +567,9 @@ impl State {
             tracing::warn!("a corrected batch that does not decode skipped");
             return true;
         };
+        if is_late(&batch) {
+            return self.late(payload, batch).await;
+        }
         let sensor = batch.header.sensor_id.clone();
         match judge(self.marks.get(&sensor), self.new_sensors_from_ns, &batch) {
             Next::Skip => true,
@@ -523,6 +589,75 @@ impl State {
         }
     }
 
+    /// A late batch handed over: its hole now starts after it (and is gone once full).
+    fn fill(&mut self, batch: &CorrectedBatch) {
+        let p = Position::of(batch);
+        let Some(holes) = self.holes.get_mut(&batch.header.sensor_id) else {
+            return;
+        };
+        if let Some(i) = holes.iter().position(|h| h.holds(p.timestamp_ns)) {
+            holes[i].after = p;
+            if Hole::between(p, holes[i].before).is_none() {
+                holes.remove(i);
+            }
+        }
+    }
+
+    /// The hole of `sensor` that `timestamp_ns` falls in.
+    fn hole_of(&self, sensor: &SensorId, timestamp_ns: i64) -> Option<Hole> {
+        self.holes
+            .get(sensor)?
+            .iter()
+            .find(|h| h.holds(timestamp_ns))
+            .copied()
+    }
+
+    /// A live batch flagged `late`: handed over if it fills a hole, after any late batch of
+    /// that hole lost before it (read from the history).
+    async fn late(&mut self, payload: Vec<u8>, batch: CorrectedBatch) -> bool {
+        let sensor = batch.header.sensor_id.clone();
+        let p = Position::of(&batch);
+        let Some(hole) = self.hole_of(&sensor, p.timestamp_ns) else {
+            return true;
+        };
+        if p.sequence != hole.after.sequence.wrapping_add(1)
+            && !self.fill_hole(&sensor, hole, Until::Before(p)).await
+        {
+            return false;
+        }
+        // Unless the history handed it over already.
+        if self.hole_of(&sensor, p.timestamp_ns).is_none() {
+            return true;
+        }
+        self.deliver(payload, batch, false).await
+    }
+
+    /// Reads the history inside `hole`, up to `until`, and hands over the late batches found.
+    async fn fill_hole(&mut self, sensor: &SensorId, hole: Hole, until: Until) -> bool {
+        let mut request = HistoryRequest::sensor(&self.options.building, sensor);
+        request.from_ns = Some(hole.after.timestamp_ns.saturating_add(1));
+        request.to_ns = Some(match until {
+            Until::Through(p) | Until::Before(p) => p.timestamp_ns.saturating_add(1),
+            Until::End => hole.before.timestamp_ns,
+        });
+        for r in self.read(sensor, &request).await {
+            let p = Position::of(&r.batch);
+            if until == Until::Before(p) {
+                break;
+            }
+            if is_late(&r.batch)
+                && self.hole_of(sensor, p.timestamp_ns).is_some()
+                && !self.deliver(r.payload, r.batch, true).await
+            {
+                return false;
+            }
+            if until == Until::Through(p) {
+                break;
+            }
+        }
+        true
+    }
+
     async fn heartbeat(&mut self, payload: &[u8]) -> bool {
         let Ok(beat) = from_json::<Heartbeat>(payload) else {
             tracing::warn!("a heartbeat that does not decode skipped");
@@ -537,6 +672,17 @@ impl State {
             None => true,
         };
         for (sensor, s) in &beat.sensors {
+            if let (Some(sequence), Some(timestamp_ns)) = (s.late_sequence, s.late_timestamp_ns) {
+                let late = Position {
+                    sequence,
+                    timestamp_ns,
+                };
+                if let Some(hole) = self.hole_of(sensor, timestamp_ns) {
+                    if !self.fill_hole(sensor, hole, Until::Through(late)).await {
+                        return false;
+                    }
+                }
+            }
             let last = Position {
                 sequence: s.last_sequence,
                 timestamp_ns: s.last_timestamp_ns,
@@ -589,7 +735,10 @@ impl State {
         request: HistoryRequest,
         until: Until,
     ) -> bool {
-        let got = self.read(sensor, &request).await;
+        let mut got = self.read(sensor, &request).await;
+        // Late batches are kept after later ones: in time order, each fits where it belongs.
+        // (Stable: a node whose clock went back keeps the order it was received in.)
+        got.sort_by_key(|r| r.batch.header.timestamp_ns);
         let start = self.marks.get(sensor).copied();
         let mut found = 0u64;
         for r in got {

@@ -17,6 +17,7 @@ use std::collections::BTreeMap;
 use std::f64::consts::PI;
 use std::sync::{Arc, Mutex};
 
+use triax_client::follow::{FollowOptions, Follower};
 use triax_client::{history::fetch, HistoryRequest};
 use triax_gateway::{CorrectionMode, SensorSettings};
 use triax_protocol::batch::{flags, CorrectedBatch};
@@ -195,6 +196,10 @@ async fn a_cut_link_is_filled_late_as_live_and_replays_exactly() {
     let _queryable = buffer.serve(&node, "hbf").await;
     let watcher = client_of(&endpoints).await;
     let (published, _s1) = subscribe(&watcher, "hbf").await;
+    // A consumer following §5.2 from the first batch on.
+    let mut options = FollowOptions::new(BuildingId::new("hbf").unwrap());
+    options.new_sensors_from_ns = Some(i64::MIN);
+    let mut follower = Follower::start(&watcher, options).await.unwrap();
     let (uninterrupted, _s2) = subscribe(&watcher, "hbfref").await;
     let mut publishers = Vec::new();
     for b in ["hbf", "hbfref"] {
@@ -296,6 +301,29 @@ async fn a_cut_link_is_filled_late_as_live_and_replays_exactly() {
             "{id}: the replay is the published stream, late batches included"
         );
     }
+    // The follower hands over every batch once, late ones included, as published.
+    let mut handed: Vec<Vec<u8>> = Vec::new();
+    while handed.len() < 2 * TOTAL as usize {
+        let d = tokio::time::timeout(TIMEOUT, follower.next())
+            .await
+            .unwrap_or_else(|_| panic!("the follower handed over {} batches", handed.len()))
+            .unwrap();
+        handed.push(d.payload);
+    }
+    let mut expected: Vec<Vec<u8>> = got.iter().map(|(p, _)| p.clone()).collect();
+    expected.sort();
+    handed.sort();
+    assert!(
+        handed == expected,
+        "the follower's batches are the published ones, each once"
+    );
+    assert_eq!(
+        follower
+            .counters()
+            .late
+            .load(std::sync::atomic::Ordering::Relaxed),
+        2 * cut as u64
+    );
     let st = status(&watcher, "hbf").await;
     let b = st.backfill.expect("backfill reported");
     assert_eq!(b.late_batches, 2 * cut as u64, "{b:?}");
