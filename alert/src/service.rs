@@ -214,6 +214,8 @@ fn follow(
 ) -> tokio::task::JoinHandle<()> {
     let mut options = FollowOptions::new(building.clone());
     options.resume_after = resume;
+    // Alerts judge the present: a hole filled late is in the history for review.
+    options.late_batches = false;
     let mut follower = fleet.follow(options);
     tracing::info!(building = %building, "following corrected streams");
     tokio::spawn(async move {

@@ -94,6 +94,10 @@ pub struct FollowOptions {
     /// beyond that live batches are dropped, and read back from the history when the next
     /// batch or heartbeat shows what is missing.
     pub buffer_batches: usize,
+    /// Whether batches flagged `late` (holes a gateway filled from a node's buffer, after later
+    /// batches) are handed over. True by default; a consumer that judges the present (alerting,
+    /// a window of the live stream) turns it off and reads them from the history when it wants.
+    pub late_batches: bool,
 }
 
 impl FollowOptions {
@@ -105,6 +109,7 @@ impl FollowOptions {
             new_sensors_from_ns: None,
             query_timeout: Duration::from_secs(10),
             buffer_batches: 4096,
+            late_batches: true,
         }
     }
 }
@@ -568,6 +573,9 @@ impl State {
             return true;
         };
         if is_late(&batch) {
+            if !self.options.late_batches {
+                return true;
+            }
             return self.late(payload, batch).await;
         }
         let sensor = batch.header.sensor_id.clone();
@@ -742,7 +750,7 @@ impl State {
         let start = self.marks.get(sensor).copied();
         let mut found = 0u64;
         for r in got {
-            if is_duplicate(&r.batch) {
+            if is_duplicate(&r.batch) || (is_late(&r.batch) && !self.options.late_batches) {
                 continue;
             }
             let p = Position::of(&r.batch);

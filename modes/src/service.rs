@@ -135,6 +135,8 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         }
         tracing::info!(building = %id, resume = ?state.as_ref().and_then(|s| s.next_index),
             "following corrected streams");
+        // Windows are cut from the stream in time order; a hole filled late stays a hole.
+        options.late_batches = false;
         let mut follower = fleet.follow(options);
         let (tx_f, b) = (tx.clone(), id.clone());
         followers.push(tokio::spawn(async move {
