@@ -4,9 +4,10 @@
 //!
 //! **What asks.** A sensor's worker, without waiting: on a live batch judged a gap, for the
 //! numbers between the last accepted batch and it, with the kernel's state before the gap; and
-//! on the first batch the gateway meets of a sensor after it started, for what the history it
-//! inherited lacks before that batch (found here, off the sample path, from the history's newest
-//! batch kept before this run: [`triax_history::History::newest_before`]). A request the queue
+//! on the first batch the gateway meets of a sensor after it started, for every hole the history
+//! it inherited has in the span a buffer can fill (found here, off the sample path, from the
+//! runs of numbers it kept before this run: [`triax_history::History::kept_runs`]): what the
+//! downtime cost, and what a kill cost a fill under way. A request the queue
 //! cannot take is counted (`backfill.refused`) and the hole stays as it is today.
 //!
 //! **How.** One request at a time per sensor, [`CONCURRENT`] sensors at once, each on a blocking
@@ -200,57 +201,71 @@ struct Hole {
     state: Option<Vec<u8>>,
 }
 
-/// Where a request's hole is, if it has one.
-fn hole_of(ctx: &Context, sensor: &SensorId, need: Need) -> Option<Hole> {
-    let hole = match need {
+/// The holes a request asks to fill, oldest first.
+fn holes_of(ctx: &Context, sensor: &SensorId, need: Need) -> Vec<Hole> {
+    match need {
         Need::Gap {
             from_seq,
             to_seq,
             after_ns,
             before_ns,
             state,
-        } => Hole {
+        } => vec![Hole {
             from_seq,
             to_seq,
             after_ns,
             before_ns,
             state: Some(state),
-        },
+        }],
         Need::First {
             sequence,
             timestamp_ns,
         } => {
-            let (history, first_arrival) = ctx.history.as_ref()?;
-            let (last_seq, last_ns) = match history.newest_before(sensor, *first_arrival) {
-                Ok(Some(last)) => last,
-                Ok(None) => return None,
+            let Some((history, first_arrival)) = ctx.history.as_ref() else {
+                return Vec::new();
+            };
+            let from_seq = sequence.saturating_sub(ctx.settings.max_batches);
+            let runs = match history.kept_runs(sensor, *first_arrival, from_seq, timestamp_ns) {
+                Ok(runs) => runs,
                 Err(e) => {
-                    tracing::warn!(sensor = %sensor, cause = %e, "backfill: history unreadable; the hole stays");
-                    return None;
+                    tracing::warn!(sensor = %sensor, cause = %e, "backfill: history unreadable; the holes stay");
+                    return Vec::new();
                 }
             };
-            // A node that numbered afresh (not a `triax-node`) has nothing to match by number.
-            if last_seq.checked_add(1)? >= sequence || last_ns >= timestamp_ns {
-                return None;
+            // Between the runs the history holds, and from the last to this batch: what the
+            // gateway's downtime cost, and what a kill cost a fill under way. Nothing before
+            // the first run: where the sensor's history began is not a hole. A node that
+            // numbered afresh (not a `triax-node`) holds nothing below this batch's number.
+            let mut holes = Vec::new();
+            for (i, run) in runs.iter().enumerate() {
+                let (to_seq, before_ns) = match runs.get(i + 1) {
+                    Some(next) => (next.first_seq - 1, next.first_ns),
+                    None => (sequence.saturating_sub(1), timestamp_ns),
+                };
+                if run.last_seq < to_seq && run.last_seq < sequence && run.last_ns < before_ns {
+                    holes.push(Hole {
+                        from_seq: run.last_seq + 1,
+                        to_seq,
+                        after_ns: run.last_ns,
+                        before_ns,
+                        state: None,
+                    });
+                }
             }
-            Hole {
-                from_seq: last_seq + 1,
-                to_seq: sequence - 1,
-                after_ns: last_ns,
-                before_ns: timestamp_ns,
-                state: None,
-            }
+            holes
         }
-    };
-    Some(hole)
+    }
 }
 
 /// Fills one hole: query, check, correct in chunks. Runs on a blocking thread.
 fn fill(ctx: &Context, request: Request) {
     let Request { sensor, need } = request;
-    let Some(mut hole) = hole_of(ctx, &sensor, need) else {
-        return;
-    };
+    for hole in holes_of(ctx, &sensor, need) {
+        fill_hole(ctx, &sensor, hole);
+    }
+}
+
+fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
     let c = &ctx.counters;
     let wanted = hole.to_seq - hole.from_seq + 1;
     if wanted > ctx.settings.max_batches {
@@ -313,7 +328,7 @@ fn fill(ctx: &Context, request: Request) {
         let fits = sample.key_expr().as_str() == key
             && RawBatchView::parse(&payload).is_ok_and(|v| {
                 let h = &v.header;
-                h.sensor_id == sensor
+                &h.sensor_id == sensor
                     && (next_seq..=hole.to_seq).contains(&h.sequence)
                     && h.timestamp_ns > hole.after_ns
                     && h.timestamp_ns < hole.before_ns

@@ -42,7 +42,7 @@ pub use owner::{read_owner, Owner, OwnerCheck, OWNER_FILE};
 pub use segment::IndexEntry;
 pub use store::{
     History, HistoryConfig, HistoryCounters, HistoryStats, Opened, Query, Scan, ScannedBlock,
-    Writer,
+    SeqRun, Writer,
 };
 
 use std::path::PathBuf;

@@ -428,17 +428,22 @@ impl History {
         })
     }
 
-    /// Records a block that failed its check when read.
-    /// The newest batch of `sensor` kept before arrival number `before_arrival` (by its
-    /// first sample's time): its sequence number and time. A gateway that starts asks this of
-    /// each sensor it meets, with the first arrival number of its own run, to know where the
-    /// history it inherited ends. Reads the sensor's entries in the newest segment that holds
-    /// any, and one block.
-    pub fn newest_before(
+    /// The runs of sequence numbers of `sensor` kept before arrival number `before_arrival`,
+    /// among its batches numbered at least `from_seq` and stamped before `before_ns`: sorted,
+    /// merged, each with the first sample's time of its first and last batch. A gateway that
+    /// starts asks this of each sensor it meets (with the first arrival number of its own run)
+    /// to find every hole its history has in the span a node's buffer can still fill: the one
+    /// its downtime left, and any a kill left (batches fetched late, not yet flushed).
+    ///
+    /// Reads index entries back from the newest segment until one holds nothing numbered at or
+    /// above `from_seq`, and only the blocks whose numbers are not one run already.
+    pub fn kept_runs(
         &self,
         sensor: &SensorId,
         before_arrival: u64,
-    ) -> Result<Option<(u64, i64)>, HistoryError> {
+        from_seq: u64,
+        before_ns: i64,
+    ) -> Result<Vec<SeqRun>, HistoryError> {
         let hash = segment::sensor_hash(sensor.as_str());
         let seen: Vec<(u64, PathBuf, Option<Vec<IndexEntry>>)> = self
             .read()
@@ -455,6 +460,7 @@ impl History {
                 (s.id, s.log_path.clone(), live)
             })
             .collect();
+        let mut runs: Vec<SeqRun> = Vec::new();
         for (id, path, live) in seen.into_iter().rev() {
             let entries = match live {
                 Some(e) => e,
@@ -464,44 +470,86 @@ impl History {
                     .cloned()
                     .unwrap_or_default(),
             };
-            // A late run (a backfill) is written after batches newer than it: the block that
-            // reaches furthest in time holds the newest batch.
-            let Some(entry) = entries
-                .into_iter()
-                .filter(|e| e.summary.first_arrival < before_arrival)
-                .max_by_key(|e| e.summary.max_ts)
-            else {
-                continue;
-            };
-            let offset = entry.offset;
-            let mut scan = Scan {
-                blocks: vec![(id, path.clone(), entry)],
-                next: 0,
-                open: None,
-            };
-            let Some(block) = scan.next_block() else {
-                return Ok(None);
-            };
-            let bytes = block?.bytes;
-            let block = crate::Block::decode(&bytes).map_err(|e| HistoryError::Damaged {
-                path,
-                offset,
-                reason: e.to_string(),
-            })?;
-            if &block.sensor != sensor {
-                // Another sensor whose id hashes alike: nothing to go on.
-                return Ok(None);
+            let mut any = false;
+            for e in entries {
+                let b = &e.summary;
+                if b.first_arrival >= before_arrival
+                    || b.max_seq < from_seq
+                    || b.min_ts >= before_ns
+                {
+                    continue;
+                }
+                any = true;
+                let whole = b.max_seq - b.min_seq + 1 == u64::from(b.n_records)
+                    && b.last_arrival < before_arrival
+                    && b.max_ts < before_ns;
+                if whole {
+                    // One run in order: its ends are its first and last batch.
+                    runs.push(SeqRun {
+                        first_seq: b.min_seq,
+                        first_ns: b.min_ts,
+                        last_seq: b.max_seq,
+                        last_ns: b.max_ts,
+                    });
+                    continue;
+                }
+                let offset = e.offset;
+                let mut scan = Scan {
+                    blocks: vec![(id, path.clone(), e)],
+                    next: 0,
+                    open: None,
+                };
+                let Some(block) = scan.next_block() else {
+                    continue;
+                };
+                let bytes = block?.bytes;
+                let block = crate::Block::decode(&bytes).map_err(|e| HistoryError::Damaged {
+                    path: path.clone(),
+                    offset,
+                    reason: e.to_string(),
+                })?;
+                if &block.sensor != sensor {
+                    // Another sensor whose id hashes alike.
+                    continue;
+                }
+                runs.extend(
+                    block
+                        .kept
+                        .iter()
+                        .filter(|k| {
+                            k.arrival < before_arrival
+                                && k.sequence >= from_seq
+                                && k.timestamp_ns < before_ns
+                        })
+                        .map(|k| SeqRun {
+                            first_seq: k.sequence,
+                            first_ns: k.timestamp_ns,
+                            last_seq: k.sequence,
+                            last_ns: k.timestamp_ns,
+                        }),
+                );
             }
-            return Ok(block
-                .kept
-                .iter()
-                .filter(|k| k.arrival < before_arrival)
-                .max_by_key(|k| k.timestamp_ns)
-                .map(|k| (k.sequence, k.timestamp_ns)));
+            if !any {
+                break;
+            }
         }
-        Ok(None)
+        runs.sort_by_key(|r| r.first_seq);
+        let mut merged: Vec<SeqRun> = Vec::with_capacity(runs.len());
+        for r in runs {
+            match merged.last_mut() {
+                Some(m) if r.first_seq <= m.last_seq.saturating_add(1) => {
+                    if r.last_seq > m.last_seq {
+                        m.last_seq = r.last_seq;
+                        m.last_ns = r.last_ns;
+                    }
+                }
+                _ => merged.push(r),
+            }
+        }
+        Ok(merged)
     }
 
+    /// Records a block that failed its check when read.
     pub fn count_damaged(&self) {
         self.counters.damaged_blocks.fetch_add(1, Relaxed);
     }
@@ -549,6 +597,16 @@ impl History {
         }
         deleted
     }
+}
+
+/// Consecutive sequence numbers a history holds of one sensor ([`History::kept_runs`]), with
+/// the first sample's time of the first and of the last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SeqRun {
+    pub first_seq: u64,
+    pub first_ns: i64,
+    pub last_seq: u64,
+    pub last_ns: i64,
 }
 
 /// Which batches of one sensor a reader wants.
@@ -744,12 +802,12 @@ impl Writer {
         kept.arrival
     }
 
-    /// Batches kept in memory, not yet on disk.
     /// The arrival number the next batch appended will get.
     pub fn next_arrival(&self) -> u64 {
         self.next_arrival
     }
 
+    /// Batches kept in memory, not yet on disk.
     pub fn pending_batches(&self) -> usize {
         self.pending
             .values()

@@ -27,6 +27,8 @@
 //!   refuses; the one-sensor status it reads the calibration record from.
 //! - `backfill`: a link cut and the gateway's own downtime filled from the node's buffer,
 //!   published `late` with the bytes an uninterrupted gateway published, kept once, replayed.
+//! - `faults`: real nodes behind a link that is cut, a gateway killed, a router restarted:
+//!   every batch in the history once and in a §5.2 consumer once.
 //! - `hardening`: wildcard keys, numbering jumps, floods of new ids.
 //! - `campaign` (ignored by default): a million hostile messages against one gateway.
 //! - `health`: a frozen channel makes its record `suspect` and flags its samples from the
@@ -51,6 +53,8 @@ mod campaign;
 mod catchup;
 #[path = "gateway/console.rs"]
 mod console;
+#[path = "gateway/faults.rs"]
+mod faults;
 #[path = "gateway/hardening.rs"]
 mod hardening;
 #[path = "gateway/health.rs"]
