@@ -94,11 +94,28 @@ pub struct Mode {
 }
 
 impl Mode {
-    /// The shape's values (real + i·imag) in channel order.
+    /// The shape's values (real + i·imag) in channel order: the identified complex shape,
+    /// quadrature part included.
     pub fn shape_values(&self) -> Vec<Complex<f64>> {
         self.shape
             .iter()
             .map(|c| Complex::new(c.real.value, c.imag.value))
+            .collect()
+    }
+
+    /// The mode shape: each component's in-phase part relative to the reference component
+    /// (`real`), as complex numbers with zero imaginary part so that [`crate::ssi::mac`]
+    /// takes them. This is the shape the mode is compared, tracked and reported by: a
+    /// building's damping is close to classical, so its true shapes are real (every point
+    /// moves in or against phase), and a quadrature part in an estimate is error, most of
+    /// it, for two close modes, each one's leakage into the other (their mixing comes with
+    /// a complex coefficient; ARCHITECTURE.md, "Building modes"). `imag` stays reported
+    /// with its uncertainty: a quadrature part well beyond it says the building is not
+    /// classically damped, or a node's time stamps are off.
+    pub fn shape_in_phase(&self) -> Vec<Complex<f64>> {
+        self.shape
+            .iter()
+            .map(|c| Complex::new(c.real.value, 0.0))
             .collect()
     }
 }

@@ -33,6 +33,7 @@
 pub mod error;
 pub mod identify;
 pub mod model;
+pub mod pool;
 pub mod sim;
 pub mod ssi;
 pub mod stabilisation;
@@ -43,6 +44,7 @@ pub mod window;
 pub use error::ModalError;
 pub use identify::{identify, Identification, Mode, ShapeComponent, SsiConfig, UnquantifiedMode};
 pub use model::{BuildingModel, Direction, ModelError, SensorPlacement};
+pub use pool::{PooledComponent, PooledShape, ShapePool};
 pub use track::{ModeObservation, ModeTracker, ShiftVerdict, TrackUpdate, TrackerConfig};
 pub use uncertainty::Estimate;
 pub use window::{ChainUncertainty, ChannelId, ChannelOptions, SensorSeries, Window};

@@ -113,7 +113,7 @@ impl From<&Mode> for ModeObservation {
     fn from(mode: &Mode) -> Self {
         ModeObservation {
             frequency_hz: mode.frequency_hz,
-            shape: mode.shape_values(),
+            shape: mode.shape_in_phase(),
             direction: mode.direction,
         }
     }

@@ -13,5 +13,7 @@
 mod closed_form;
 mod identification;
 mod monte_carlo;
+mod pyoma2;
+mod shapes;
 mod tracking;
 mod util;

@@ -30,7 +30,7 @@ pub fn find<'a>(
         .modes
         .iter()
         .filter(|m| (m.frequency_hz.value - truth.frequency_hz).abs() < 0.03 * truth.frequency_hz)
-        .map(|m| (m, mac(&m.shape_values(), &shape)))
+        .map(|m| (m, mac(&m.shape_in_phase(), &shape)))
         .filter(|(_, mac)| *mac > 0.5)
         .max_by(|a, b| a.1.total_cmp(&b.1))
 }
@@ -81,14 +81,14 @@ pub fn summary(
     out
 }
 
-/// The 1 − MAC a shape's stated standard uncertainties lead one to expect: the components'
-/// variances over the shape's squared norm.
+/// The 1 − MAC a shape's stated standard uncertainties lead one to expect: the in-phase
+/// components' variances over the shape's squared norm.
 pub fn expected_mac_loss(mode: &Mode) -> f64 {
     let variance: f64 = mode
         .shape
         .iter()
-        .map(|c| c.real.standard_uncertainty.powi(2) + c.imag.standard_uncertainty.powi(2))
+        .map(|c| c.real.standard_uncertainty.powi(2))
         .sum();
-    let norm: f64 = mode.shape_values().iter().map(|v| v.norm_sqr()).sum();
+    let norm: f64 = mode.shape_in_phase().iter().map(|v| v.norm_sqr()).sum();
     variance / norm
 }
