@@ -7,6 +7,7 @@
 pub mod export;
 pub mod follow;
 pub mod history;
+pub mod modes_parquet;
 pub mod mseed;
 pub mod normal;
 pub mod parquet;
