@@ -18,13 +18,15 @@
 //!
 //! Module map: [`server`] (routes), [`http`] (requests, responses, events), [`fleet`] (what is
 //! known of the buildings, gateways, sensors and alerts), [`live`] (the streams being watched),
-//! [`buckets`] (decimation); the page itself is in `src/assets/`.
+//! [`buckets`] (decimation), [`modes`] (the buildings' modes heard); the page itself is in
+//! `src/assets/`.
 
 pub mod alertlog;
 pub mod buckets;
 pub mod fleet;
 pub mod http;
 pub mod live;
+pub mod modes;
 pub mod server;
 pub mod spectrum;
 pub mod trend;
@@ -221,6 +223,13 @@ pub async fn serve(
             action: "subscribe to heartbeats and alerts",
             message: e.to_string(),
         })?;
+    let modes = Arc::new(std::sync::Mutex::new(modes::ModesBook::default()));
+    let _modes_watch = modes::watch(&session, &modes)
+        .await
+        .map_err(|e| ConsoleError::Zenoh {
+            action: "subscribe to the buildings' modes",
+            message: e.to_string(),
+        })?;
     let (stop_tx, stop_rx) = watch::channel(false);
     let poller = tokio::spawn(fleet::poll_status(
         session.clone(),
@@ -241,6 +250,7 @@ pub async fn serve(
         history_queries: Arc::new(Semaphore::new(options.max_history_queries)),
         stop: stop_rx,
         trends: tokio::sync::Mutex::new(trend::TrendCache::default()),
+        modes,
         options,
     });
     tracing::info!(url = %url(addr), "console serving");

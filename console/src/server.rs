@@ -8,6 +8,7 @@
 //! | `/api/alerts[?id=&building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
 //! | `/api/silences` | the silences kept, newest first |
 //! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body) |
+//! | `/api/modes?building=` | the building's modes heard since the console started: per track its frequency trend with its band, the latest window's modes and shapes ([`crate::modes`]) |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
 //! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
 //! | `/api/trend?building=&sensor=&from_ns=&to_ns=` | per-minute aggregates, up to 7 days ([`crate::trend`]) |
@@ -71,6 +72,8 @@ pub struct Context {
     pub history_queries: Arc<Semaphore>,
     pub stop: watch::Receiver<bool>,
     pub trends: tokio::sync::Mutex<crate::trend::TrendCache>,
+    /// The buildings' modes heard on `triax/*/modes`.
+    pub modes: Arc<std::sync::Mutex<crate::modes::ModesBook>>,
 }
 
 /// How long a connection over the limit gets to send its request before its 503.
@@ -204,6 +207,13 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
                 head_only,
             )
             .await
+        }
+        "/api/modes" => {
+            p.only(&["building"])?;
+            let b = p.building()?;
+            // A poisoned lock means a panic mid-update: what is there is still worth showing.
+            let body = ctx.modes.lock().unwrap_or_else(|e| e.into_inner()).view(&b);
+            ok(stream, JSON, json(&body), head_only).await
         }
         "/api/sensor" => {
             p.only(&["building", "sensor"])?;

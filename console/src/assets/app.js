@@ -1,5 +1,5 @@
-// Triax console, the page: three views chosen by the URL fragment (#/ fleet, #/alerts,
-// #/sensor/<building>/<sensor>[?at=<ns>&span=<s>]), fed by one Server-Sent Events stream and a
+// Triax console, the page: views chosen by the URL fragment (#/ fleet, #/alerts,
+// #/sensor/<building>/<sensor>[?at=<ns>&span=<s>], #/building/<building>, #/modes/<building>), fed by one Server-Sent Events stream and a
 // few JSON requests to the console's own server. Plots are plain canvas over data the server
 // has already decimated (one bucket per pixel column).
 //
@@ -95,6 +95,7 @@
     const params = new URLSearchParams(query || '');
     const parts = path.split('/').filter(Boolean);
     if (parts[0] === 'alerts') return { view: 'alerts', params };
+    if (parts[0] === 'modes' && parts.length === 2) return { view: 'modes', building: parts[1] };
     if (parts[0] === 'building' && parts.length === 2) {
       const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null };
       const at = params.get('at');
@@ -241,7 +242,8 @@
     const worst = b.worst_state;
     return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state, 'data-worst': worst ?? 'none' },
       el('h2', {}, `Building ${b.building} `, worst ? badge(worst, worst.replace(/_/g, ' '), 'the worst state of its sensors') : null,
-        badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer')),
+        badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer'),
+        ' ', el('a', { class: 'to-modes', href: `#/modes/${encodeURIComponent(b.building)}`, title: 'its modal frequencies, damping and shapes (triax-modes)' }, 'modes')),
       meta, table, more);
   }
 
@@ -1282,11 +1284,167 @@
     }
   }
 
+  // ---- Modes view: a building's modal frequencies, damping and shapes (triax-modes) --------
+  // Per track (a mode followed across windows) its frequency trend with the stated interval
+  // ±k·u as a band and the environmental baseline dashed; the latest window's modes in a table
+  // and their shapes as bars with their intervals. From what the console heard on
+  // triax/<building>/modes since it started (PROTOCOL.md §3.10).
+  let modesView = null;
+  const TRACK_COLORS = ['#175cd3', '#1d7a3a', '#9a3412', '#6941c6', '#c11574', '#0e7090', '#b54708', '#475467'];
+  const fmtPct = (x) => Number.isFinite(x) ? `${(100 * x).toFixed(2)} %` : '—';
+  function renderModes() {
+    const r = route;
+    modesView = null;
+    if (!source || source.url.includes('sensor=')) connect('');
+    $('view').replaceChildren(el('section', { class: 'card', id: 'modes-view', 'data-building': r.building },
+      el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / building ', r.building, ' / modes'),
+      el('div', { id: 'modes-status', class: 'meta' }, 'Loading…'),
+      el('h3', {}, 'Frequency per track'),
+      el('div', { id: 'modes-trends' }),
+      el('h3', {}, 'Latest window'),
+      el('div', { id: 'modes-latest' }),
+      el('div', { id: 'modes-shapes', class: 'shapes' })));
+    loadModes(r);
+  }
+
+  async function loadModes(r) {
+    const body = await getJson('/api/modes?' + new URLSearchParams({ building: r.building }));
+    if (route !== r) return;
+    if (body.error) { $('modes-status').textContent = body.error; return; }
+    const changed = !modesView || modesView.windows !== body.windows || modesView.last_end_ns !== body.last_end_ns;
+    modesView = body;
+    if (changed) drawModes();
+  }
+
+  function drawModes() {
+    if (!route || route.view !== 'modes' || !modesView) return;
+    const m = modesView;
+    const status = $('modes-status');
+    status.dataset.windows = m.windows;
+    if (!m.windows) {
+      status.textContent = 'No modes heard for this building since the console started (triax-modes publishes one window every 30 minutes by default).';
+      $('modes-trends').replaceChildren(); $('modes-latest').replaceChildren(); $('modes-shapes').replaceChildren();
+      return;
+    }
+    const refusal = m.last_refusal ? ` Last refused window ${fmtTime(nsToMs(m.last_refusal.start_ns))}: ${m.last_refusal.reason}.` : '';
+    status.textContent = `${m.windows} windows heard, ${fmtTime(nsToMs(m.first_start_ns))} – ${fmtTime(nsToMs(m.last_end_ns))}; ${m.tracks.length} tracks.` +
+      (m.refused_since_latest ? ` ${m.refused_since_latest} refused since the latest identified one.` : '') + refusal;
+    const x0 = nsToMs(m.first_start_ns), x1 = nsToMs(m.last_end_ns);
+    $('modes-trends').replaceChildren(...m.tracks.map((t, i) => {
+      const f = t.points[t.points.length - 1];
+      return el('div', { class: 'plot', 'data-track': t.track },
+        el('canvas', { id: `mcanvas-${t.track}`, class: 'mode-trend', width: 1000, height: 120 }),
+        el('span', { class: 'title' }, `track ${t.track} (${t.direction}) ${fmtNum(f.frequency_hz, 5)} Hz ±${fmtNum(f.expanded_hz, 2)}, Hz: the band is ±k·u, dashed the environmental baseline, red a shift`));
+    }));
+    m.tracks.forEach((t, i) => drawTrack($(`mcanvas-${t.track}`), t, x0, x1, TRACK_COLORS[i % TRACK_COLORS.length]));
+    const l = m.latest;
+    if (!l) { $('modes-latest').replaceChildren(el('p', { class: 'notice' }, 'Every window heard was refused.')); $('modes-shapes').replaceChildren(); return; }
+    $('modes-latest').replaceChildren(
+      el('p', { class: 'meta' }, `${fmtTime(nsToMs(l.start_ns))} – ${fmtTime(nsToMs(l.end_ns))}` + (l.temperature_c === null ? '' : `, ${l.temperature_c.toFixed(1)} °C`) + `; intervals at ${Math.round(100 * (l.modes[0] ? l.modes[0].coverage_probability : 0.95))} %.`),
+      el('table', { id: 'modes-table' },
+        el('thead', {}, el('tr', {}, ['Track', 'Direction', 'Frequency, Hz', 'Damping', 'Verdict'].map((h) => el('th', {}, h)))),
+        el('tbody', {}, l.modes.map((md) => el('tr', { 'data-track': md.track ?? '' },
+          el('td', {}, md.track ?? '—'), el('td', {}, md.direction),
+          el('td', { class: 'num' }, `${fmtNum(md.frequency_hz, 5)} ± ${fmtNum(md.frequency_expanded_hz, 2)}`),
+          el('td', { class: 'num' }, `${fmtPct(md.damping_ratio)} ± ${fmtPct(md.damping_expanded)}`),
+          el('td', {}, md.verdict ? badge(md.verdict === 'shift' ? 'exceeded' : md.verdict === 'possible' ? 'possible' : 'ok', md.verdict) : '—'))))));
+    $('modes-shapes').replaceChildren(...l.modes.map((md, i) => el('div', { class: 'plot shape', 'data-track': md.track ?? '' },
+      el('canvas', { id: `shape-${i}`, class: 'mode-shape', width: 480, height: 200 }),
+      el('span', { class: 'title' }, `${md.direction} ${fmtNum(md.frequency_hz, 4)} Hz: in-phase amplitude per sensor and direction, ±k·u`))));
+    l.modes.forEach((md, i) => drawShape($(`shape-${i}`), md));
+  }
+
+  function canvasContext(canvas, hDefault) {
+    const dpr = window.devicePixelRatio || 1;
+    const w = Math.max(50, canvas.clientWidth), h = canvas.clientHeight || hDefault;
+    if (canvas.width !== Math.round(w * dpr)) { canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr); }
+    const g = canvas.getContext('2d');
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    const c = colors();
+    g.fillStyle = c.bg; g.fillRect(0, 0, w, h);
+    g.font = '11px system-ui, sans-serif';
+    return { g, w, h, c };
+  }
+
+  function drawTrack(canvas, t, x0, x1, color) {
+    if (!canvas) return;
+    const { g, w, h, c } = canvasContext(canvas, 120);
+    const L = 60, R = 10, T = 20, B = 18;
+    const pts = t.points;
+    let lo = Infinity, hi = -Infinity;
+    for (const p of pts) {
+      const e = Number.isFinite(p.expanded_hz) ? p.expanded_hz : 0;
+      lo = Math.min(lo, p.frequency_hz - e, p.predicted_hz ?? Infinity); hi = Math.max(hi, p.frequency_hz + e, p.predicted_hz ?? -Infinity);
+    }
+    if (hi - lo < 1e-6) { lo -= 0.001; hi += 0.001; }
+    const pad = 0.08 * (hi - lo); lo -= pad; hi += pad;
+    const X = (ms) => L + (w - L - R) * (x1 > x0 ? (ms - x0) / (x1 - x0) : 0.5);
+    const Y = (f) => T + (h - T - B) * (hi - f) / (hi - lo);
+    g.strokeStyle = c.grid; g.fillStyle = c.muted; g.textAlign = 'right'; g.textBaseline = 'middle';
+    for (const tk of niceTicks(lo, hi, 3)) { g.beginPath(); g.moveTo(L, Y(tk.v)); g.lineTo(w - R, Y(tk.v)); g.stroke(); g.fillText(tk.label, L - 4, Y(tk.v)); }
+    const mid = (p) => nsToMs(p.start_ns) / 2 + nsToMs(p.end_ns) / 2;
+    // The band: each window's interval as a bar, joined where windows follow each other.
+    g.fillStyle = color + '33';
+    g.beginPath();
+    pts.forEach((p, i) => { const x = X(mid(p)), e = Number.isFinite(p.expanded_hz) ? p.expanded_hz : 0; if (i === 0) g.moveTo(x, Y(p.frequency_hz + e)); else g.lineTo(x, Y(p.frequency_hz + e)); });
+    for (let i = pts.length - 1; i >= 0; i--) { const p = pts[i], e = Number.isFinite(p.expanded_hz) ? p.expanded_hz : 0; g.lineTo(X(mid(p)), Y(p.frequency_hz - e)); }
+    g.closePath(); g.fill();
+    for (const p of pts) { const x = X(mid(p)), e = Number.isFinite(p.expanded_hz) ? p.expanded_hz : 0; g.strokeStyle = color + '88'; g.beginPath(); g.moveTo(x, Y(p.frequency_hz - e)); g.lineTo(x, Y(p.frequency_hz + e)); g.stroke(); }
+    const withBaseline = pts.filter((p) => p.predicted_hz !== null);
+    if (withBaseline.length) {
+      g.setLineDash([4, 3]); g.strokeStyle = c.muted; g.beginPath();
+      withBaseline.forEach((p, i) => { const x = X(mid(p)), y = Y(p.predicted_hz); if (i === 0) g.moveTo(x, y); else g.lineTo(x, y); });
+      g.stroke(); g.setLineDash([]);
+    }
+    g.strokeStyle = color; g.lineWidth = 1.5; g.beginPath();
+    pts.forEach((p, i) => { const x = X(mid(p)), y = Y(p.frequency_hz); if (i === 0) g.moveTo(x, y); else g.lineTo(x, y); });
+    g.stroke(); g.lineWidth = 1;
+    let shifts = 0;
+    for (const p of pts) {
+      const shift = p.verdict === 'shift' || p.block_verdict === 'shift';
+      shifts += shift ? 1 : 0;
+      g.fillStyle = shift ? '#d92d20' : color;
+      g.beginPath(); g.arc(X(mid(p)), Y(p.frequency_hz), shift ? 4 : 2, 0, 2 * Math.PI); g.fill();
+    }
+    g.fillStyle = c.muted; g.textAlign = 'left'; g.textBaseline = 'alphabetic';
+    g.fillText(fmtTime(x0), L, h - 4); g.textAlign = 'right'; g.fillText(fmtTime(x1), w - R, h - 4);
+    canvas.dataset.points = pts.length; canvas.dataset.shifts = shifts; canvas.dataset.drawn = '1';
+  }
+
+  function drawShape(canvas, md) {
+    if (!canvas) return;
+    const { g, w, h, c } = canvasContext(canvas, 200);
+    const L = 36, R = 8, T = 20, B = 42;
+    const comps = md.shape;
+    let lo = 0, hi = 0;
+    for (const s of comps) { const e = Number.isFinite(s.expanded) ? s.expanded : 0; lo = Math.min(lo, s.real - e); hi = Math.max(hi, s.real + e); }
+    if (hi - lo < 1e-9) hi = lo + 1;
+    const Y = (v) => T + (h - T - B) * (hi - v) / (hi - lo);
+    const slot = (w - L - R) / Math.max(1, comps.length);
+    g.strokeStyle = c.grid; g.fillStyle = c.muted; g.textAlign = 'right'; g.textBaseline = 'middle';
+    for (const tk of niceTicks(lo, hi, 4)) { g.beginPath(); g.moveTo(L, Y(tk.v)); g.lineTo(w - R, Y(tk.v)); g.stroke(); g.fillText(tk.label, L - 3, Y(tk.v)); }
+    comps.forEach((s, i) => {
+      const x = L + slot * (i + 0.5), bw = Math.max(2, slot * 0.6);
+      g.fillStyle = AXIS_COLORS[AXES.indexOf(s.direction)] + (i === md.reference_component ? '' : 'bb');
+      const y0 = Y(0), y1 = Y(s.real);
+      g.fillRect(x - bw / 2, Math.min(y0, y1), bw, Math.max(1, Math.abs(y1 - y0)));
+      if (Number.isFinite(s.expanded) && s.expanded > 0) {
+        g.strokeStyle = c.muted; g.beginPath(); g.moveTo(x, Y(s.real - s.expanded)); g.lineTo(x, Y(s.real + s.expanded));
+        g.moveTo(x - bw / 4, Y(s.real - s.expanded)); g.lineTo(x + bw / 4, Y(s.real - s.expanded));
+        g.moveTo(x - bw / 4, Y(s.real + s.expanded)); g.lineTo(x + bw / 4, Y(s.real + s.expanded)); g.stroke();
+      }
+      g.save(); g.translate(x, h - B + 4); g.rotate(-Math.PI / 4); g.fillStyle = c.muted; g.textAlign = 'right'; g.textBaseline = 'middle';
+      g.fillText(`${s.sensor_id} ${s.direction}`, 0, 0); g.restore();
+    });
+    canvas.dataset.components = comps.length; canvas.dataset.drawn = '1';
+  }
+
   // ---- Routing ----------------------------------------------------------------------------
   function render() {
     route = parseRoute();
     if (route.view === 'sensor') { renderSensor(); return; }
     if (route.view === 'building') { renderBuildingView(); return; }
+    if (route.view === 'modes') { renderModes(); return; }
     if (!source || source.url.includes('sensor=')) connect('');
     if (route.view === 'alerts') renderAlerts(); else renderFleet();
   }
@@ -1296,7 +1454,9 @@
   window.addEventListener('error', (e) => pageError(e.message));
   window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
-  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); });
+  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); drawModes(); });
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
+  // A window of modes comes every half hour or so: a look every 10 s is plenty.
+  setInterval(() => { if (route && route.view === 'modes') loadModes(route); }, 10000);
   render();
 })();
