@@ -891,6 +891,7 @@ mod tests {
             samples: 500,
             gaps: 0,
             missing_batches: 0,
+            late_batches: 0,
             duplicates: 0,
             rejects: 0,
             flagged_samples: 0,
