@@ -13,7 +13,10 @@
 //! - [`uncertainty`]: the delete-one-block jackknife (statistical part, `nb − 1` degrees of
 //!   freedom, Student's `t`) and the measurement chain (gain, cross-axis, time stamps) into the
 //!   shapes;
-//! - [`identify()`]: all of it for one window, the service's one call;
+//! - [`identify()`]: all of it for one window, the service's one call; a mode's shape is its
+//!   in-phase part ([`Mode::shape_in_phase`]);
+//! - [`pool`]: a mode's shape pooled over windows, for modes too close for one window to
+//!   split their shapes;
 //! - [`track`]: modes matched across windows by MAC and frequency, an environmental baseline
 //!   (temperature and any other regressor), and a guard-band rule for a shift with a stated
 //!   false-alarm rate;
@@ -26,7 +29,9 @@
 //! release): over 600 windows the true frequency is inside the stated 95 % interval in
 //! 94.5–96.3 % of windows for each of the first three modes of each direction, damping in
 //! 93.2–95.8 %, shape components in 94.4–99.8 %; frequency error at most 0.51 %; a window
-//! costs 0.40 s on one core. ARCHITECTURE.md, "Building modes", has the details.
+//! costs 0.40 s on one core. Shapes (192 windows): MAC with the truth 0.995 in the median
+//! window for the close fundamentals (0.998 for the other modes), 0.83 in the worst; pooled
+//! over 24 windows, 0.998 or above. ARCHITECTURE.md, "Building modes", has the details.
 //!
 //! Architecture invariant: pure. No I/O, no async, no clock: a window carries its own times.
 
