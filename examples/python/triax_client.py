@@ -284,8 +284,11 @@ def cmd_subscribe(args):
 
 HISTORY_PAGE = 10000
 FLAG_DUPLICATE = 0x0080
+FLAG_LATE = 0x0400
 # Live batches and heartbeats a follower holds while it reads the history or writes its output.
 LIVE_QUEUE = 4096
+# Holes remembered per sensor (§5.2 step 6).
+MAX_HOLES = 64
 BEATS_QUEUE = 64
 
 
@@ -328,6 +331,11 @@ def is_duplicate(batch):
     return bool(batch["batch_flags"] & FLAG_DUPLICATE)
 
 
+def is_late(batch):
+    """Fetched by the gateway from the node's buffer after later batches (§2.3, §5.4)."""
+    return bool(batch["batch_flags"] & FLAG_LATE)
+
+
 def position(batch):
     """Where a sensor's stream is left after `batch`: (sequence, timestamp_ns). The time orders
     a sensor's batches across restarts of its node, where sequence numbers start again."""
@@ -343,7 +351,8 @@ class Follower:
 
     Per sensor it keeps a mark: the position of the last batch handed over (duplicates aside)
     and where that batch ended. The history is always asked by time, never by sequence number
-    alone, since a restarted node numbers a new run from 0 again."""
+    alone, since a restarted node numbers a new run from 0 again. Batches flagged `late` fill the
+    holes the numbering showed (§5.2 step 6): per sensor it remembers them, at most MAX_HOLES."""
 
     def __init__(self, session, building, resume=None, new_sensors_from_ns=None):
         self.session = session
@@ -364,6 +373,9 @@ class Follower:
             f"{ROOT}/{check_id('building', building)}/heartbeat", zenoh.handlers.RingChannel(BEATS_QUEUE))
         self.ready = []
         self.recovered = 0
+        self.late = 0
+        # sensor -> list of [after, before] positions around batches still missing.
+        self.holes = {}
         for sensor, mark in list(self.marks.items()):
             self.recover(sensor, mark[1] + 1)
 
@@ -373,7 +385,10 @@ class Follower:
         over itself), or all. Duplicates stay out: repeats of what was handed over."""
         target = through or before
         to_ns = None if target is None else target[1] + 1
-        for payload, b in fetch_history(self.session, self.building, sensor, from_ns=from_ns, to_ns=to_ns):
+        got = fetch_history(self.session, self.building, sensor, from_ns=from_ns, to_ns=to_ns)
+        # Late batches are kept after later ones: in time order each fits where it belongs.
+        got.sort(key=lambda pb: pb[1]["timestamp_ns"])
+        for payload, b in got:
             if is_duplicate(b):
                 continue
             p = position(b)
@@ -387,14 +402,70 @@ class Follower:
                 break
 
     def hand_over(self, payload, batch):
-        if not is_duplicate(batch):
-            self.marks[batch["sensor_id"]] = (*position(batch), batch["timestamp_ns"] + duration_ns(batch))
+        sensor = batch["sensor_id"]
+        mark = self.marks.get(sensor)
+        p = position(batch)
+        if is_late(batch):
+            self.late += 1
+        if is_late(batch) and mark is not None and p[1] <= mark[1]:
+            self.fill(sensor, p)
+        elif not is_duplicate(batch):
+            if mark is not None and p[0] > mark[0] + 1 and p[1] > mark[1]:
+                holes = self.holes.setdefault(sensor, [])
+                if len(holes) >= MAX_HOLES:
+                    holes.pop(0)
+                holes.append([mark[:2], p])
+            self.marks[sensor] = (*p, batch["timestamp_ns"] + duration_ns(batch))
         self.ready.append((payload, batch))
+
+    def hole_of(self, sensor, ts):
+        for hole in self.holes.get(sensor, []):
+            if hole[0][1] < ts < hole[1][1]:
+                return hole
+        return None
+
+    def fill(self, sensor, p):
+        """A late batch handed over: its hole now starts after it, and is gone once full."""
+        hole = self.hole_of(sensor, p[1])
+        if hole is not None:
+            hole[0] = p
+            if hole[1][0] <= p[0] + 1:
+                self.holes[sensor].remove(hole)
+
+    def fill_hole(self, sensor, hole, through=None, before=None):
+        """Hands over the late batches the history holds inside `hole`, up to a position."""
+        target = through or before
+        for payload, b in sorted(
+                fetch_history(self.session, self.building, sensor, from_ns=hole[0][1] + 1,
+                              to_ns=target[1] + 1),
+                key=lambda pb: pb[1]["timestamp_ns"]):
+            p = position(b)
+            if before is not None and p == before:
+                break
+            if is_late(b) and self.hole_of(sensor, p[1]) is not None:
+                self.recovered += 1
+                self.hand_over(payload, b)
+            if through is not None and p == through:
+                break
+
+    def on_late(self, payload, batch):
+        sensor = batch["sensor_id"]
+        p = position(batch)
+        hole = self.hole_of(sensor, p[1])
+        if hole is None:
+            return  # one we have
+        if p[0] != hole[0][0] + 1:
+            self.fill_hole(sensor, hole, before=p)  # late batches lost before it
+        if self.hole_of(sensor, p[1]) is not None:
+            self.hand_over(payload, batch)
 
     def on_live(self, payload):
         batch = decode_corrected(payload)
         sensor = batch["sensor_id"]
         seq, ts = position(batch)
+        if is_late(batch):
+            self.on_late(payload, batch)
+            return
         if is_duplicate(batch):
             self.hand_over(payload, batch)  # a repeat, passed on as the live stream carries it
             return
@@ -422,6 +493,11 @@ class Follower:
         lost_beats = previous is None or beat["sequence"] != previous + 1
         listed = beat.get("sensors", {})
         for sensor, s in listed.items():
+            if "late_timestamp_ns" in s:
+                late = (s["late_sequence"], s["late_timestamp_ns"])
+                hole = self.hole_of(sensor, late[1])
+                if hole is not None:
+                    self.fill_hole(sensor, hole, through=late)
             last = (s["last_sequence"], s["last_timestamp_ns"])
             mark = self.marks.get(sensor)
             if mark is not None and last[1] > mark[1]:
@@ -470,7 +546,7 @@ def resume_state(path):
             f.truncate(len(whole))
     for line in whole.splitlines():
         b = json.loads(line)
-        if not is_duplicate(b):
+        if not is_duplicate(b) and not is_late(b):
             last[b["sensor_id"]] = position(b)
     return last
 

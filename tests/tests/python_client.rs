@@ -430,7 +430,21 @@ impl FollowSite {
 
     /// Round `seq`: one 100 ms batch of every sensor.
     async fn put_round(&self, seq: u64) {
-        for (id, p) in self.ids.iter().zip(&self.publishers) {
+        for ((_, payload), p) in self.round(seq).into_iter().zip(&self.publishers) {
+            p.put(payload).await.unwrap();
+        }
+    }
+
+    /// The publisher of sensor `id`.
+    fn publisher(&self, id: &str) -> &zenoh::pubsub::Publisher<'static> {
+        let i = self.ids.iter().position(|s| s == id).unwrap();
+        &self.publishers[i]
+    }
+
+    /// Round `seq`'s raw batches, by sensor.
+    fn round(&self, seq: u64) -> Vec<(String, Vec<u8>)> {
+        let mut out = Vec::new();
+        for id in &self.ids {
             let batch = RawBatch {
                 header: triax_protocol::batch::BatchHeader {
                     sensor_id: SensorId::new(id.as_str()).unwrap(),
@@ -443,8 +457,9 @@ impl FollowSite {
                     .map(|i| [0.01 * i as f32, seq as f32 * 1e-3, 0.981])
                     .collect(),
             };
-            p.put(batch.encode()).await.unwrap();
+            out.push((id.clone(), batch.encode()));
         }
+        out
     }
 
     /// Whether a follower's file holds a batch of every sensor.
@@ -546,6 +561,76 @@ async fn a_killed_python_follower_resumes_and_loses_nothing() {
     let what = format!("resumed (killed at {killed_at:?})");
     site.assert_followed_alike(&steady_file, &away_file, rounds, &what);
     drop((steady, away));
+    site.close().await;
+}
+
+/// Holes a link cut left, filled by the gateway from the node's buffer after later batches
+/// (PROTOCOL.md §5.2 step 6): the Python follower writes every batch once, the late ones too.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_python_follower_takes_late_batches_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut site = FollowSite::start(dir.path(), "pfl", "pl").await;
+    let buffer = util::Buffer::default();
+    let _queryable = buffer.serve(&site.node, "pfl").await;
+    buffer.pause();
+    let file = dir.path().join("follow.jsonl");
+    let follower = site.follow(&file);
+    site.begin();
+    const ROUNDS: u64 = 100;
+    let cut = 30..60u64;
+    let started = tokio::time::Instant::now();
+    for seq in 0..ROUNDS {
+        for (id, payload) in site.round(seq) {
+            buffer.keep(&id, seq, &payload);
+            if !cut.contains(&seq) {
+                site.publisher(&id).put(payload).await.unwrap();
+            }
+        }
+        tokio::time::sleep_until(started + Duration::from_millis(100 * (seq + 1))).await;
+    }
+    // The follower has met the hole (written a batch after it) before the gateway can fill
+    // it: the late batches reach it live, or through the heartbeat's late_timestamp_ns.
+    util::wait_until("the follower to write past the hole", || {
+        let written = followed(&file);
+        site.ids.iter().all(|id| {
+            written
+                .get(id)
+                .is_some_and(|v| v.iter().any(|(s, _)| *s >= cut.end))
+        })
+    })
+    .await;
+    buffer.answer();
+    let total = site.ids.len() * ROUNDS as usize;
+    util::wait_until("the follower to write every batch", || {
+        followed(&file).values().map(Vec::len).sum::<usize>() >= total
+    })
+    .await;
+    let written = followed(&file);
+    for id in &site.ids {
+        let mut seqs: Vec<u64> = written[id].iter().map(|(s, _)| *s).collect();
+        // The hole's batches are the gateway's late ones (whichever way they reached the
+        // follower: live, or from the history when it read past them).
+        for (seq, hex) in &written[id] {
+            let bytes: Vec<u8> = (0..hex.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+                .collect();
+            let batch = triax_protocol::batch::CorrectedBatch::decode(&bytes).unwrap();
+            let late = batch.batch_flags & triax_protocol::batch::flags::LATE != 0;
+            assert_eq!(
+                late,
+                cut.contains(seq),
+                "{id} #{seq}: flagged late exactly in the hole"
+            );
+        }
+        seqs.sort_unstable();
+        assert_eq!(
+            seqs,
+            (0..ROUNDS).collect::<Vec<_>>(),
+            "{id}: every batch once"
+        );
+    }
+    drop(follower);
     site.close().await;
 }
 

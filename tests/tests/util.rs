@@ -2,8 +2,10 @@
 //! Zenoh client sessions, simulated raw batches.
 #![allow(dead_code)] // Each test binary that includes this module uses a different subset.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use tokio::sync::oneshot;
@@ -307,4 +309,73 @@ pub async fn wait_history_holds(
         },
     )
     .await;
+}
+
+/// A sensor node's buffer (PROTOCOL.md §5.4) as a test plays it: every batch it made, by sensor
+/// and number, answered on its buffer key. Not publishing a kept batch is a link cut, exactly.
+#[derive(Default, Clone)]
+pub struct Buffer {
+    held: Arc<Mutex<BTreeMap<(String, u64), Vec<u8>>>>,
+    /// While true, answers wait (a node slow to answer, or the test ordering events).
+    paused: Arc<(Mutex<bool>, std::sync::Condvar)>,
+}
+
+impl Buffer {
+    /// Answers wait from now until [`Buffer::answer`].
+    pub fn pause(&self) {
+        *self.paused.0.lock().unwrap() = true;
+    }
+
+    pub fn answer(&self) {
+        *self.paused.0.lock().unwrap() = false;
+        self.paused.1.notify_all();
+    }
+
+    pub fn keep(&self, sensor: &str, seq: u64, payload: &[u8]) {
+        self.held
+            .lock()
+            .unwrap()
+            .insert((sensor.to_owned(), seq), payload.to_vec());
+    }
+
+    /// Answers §5.4 batch queries for `building` (no status, no error cases: the gateway asks
+    /// well-formed ranges).
+    pub async fn serve(
+        &self,
+        session: &zenoh::Session,
+        building: &str,
+    ) -> zenoh::query::Queryable<()> {
+        let (held, paused) = (self.held.clone(), self.paused.clone());
+        session
+            .declare_queryable(format!("triax/{building}/buffer/*"))
+            .callback(move |q| {
+                let sensor = q.key_expr().as_str().rsplit('/').next().unwrap().to_owned();
+                let p = q.parameters();
+                let from: u64 = p.get("from_seq").unwrap().parse().unwrap();
+                let to: u64 = p.get("to_seq").unwrap().parse().unwrap();
+                let batches: Vec<Vec<u8>> = held
+                    .lock()
+                    .unwrap()
+                    .range((sensor.clone(), from)..=(sensor.clone(), to))
+                    .map(|(_, b)| b.clone())
+                    .collect();
+                let key = q.key_expr().clone();
+                // Replies in order, from a thread of its own: Zenoh's callback must not block.
+                let paused = paused.clone();
+                std::thread::spawn(move || {
+                    use zenoh::Wait;
+                    let (lock, answer) = &*paused;
+                    let mut p = lock.lock().unwrap();
+                    while *p {
+                        p = answer.wait(p).unwrap();
+                    }
+                    drop(p);
+                    for b in batches {
+                        q.reply(key.clone(), b).wait().unwrap();
+                    }
+                });
+            })
+            .await
+            .unwrap()
+    }
 }

@@ -13,7 +13,6 @@
 //! - `what_a_gateway_missed_while_down_is_fetched_when_it_starts`: batches sent while the
 //!   gateway was stopped reach its history after the restart, once each, and replay exactly.
 
-use std::collections::BTreeMap;
 use std::f64::consts::PI;
 use std::sync::{Arc, Mutex};
 
@@ -44,49 +43,6 @@ fn signal(sensor: &str, seq: u64) -> Vec<u8> {
         })
         .collect();
     raw(sensor, seq, samples)
-}
-
-/// The node's side: every batch it made, by sensor and number, answered on its buffer key.
-#[derive(Default, Clone)]
-struct Buffer(Arc<Mutex<BTreeMap<(String, u64), Vec<u8>>>>);
-
-impl Buffer {
-    fn keep(&self, sensor: &str, seq: u64, payload: &[u8]) {
-        self.0
-            .lock()
-            .unwrap()
-            .insert((sensor.to_owned(), seq), payload.to_vec());
-    }
-
-    /// Answers §5.4 batch queries for `building` (no status, no error cases: the gateway asks
-    /// well-formed ranges).
-    async fn serve(&self, session: &zenoh::Session, building: &str) -> zenoh::query::Queryable<()> {
-        let held = self.0.clone();
-        session
-            .declare_queryable(format!("triax/{building}/buffer/*"))
-            .callback(move |q| {
-                let sensor = q.key_expr().as_str().rsplit('/').next().unwrap().to_owned();
-                let p = q.parameters();
-                let from: u64 = p.get("from_seq").unwrap().parse().unwrap();
-                let to: u64 = p.get("to_seq").unwrap().parse().unwrap();
-                let batches: Vec<Vec<u8>> = held
-                    .lock()
-                    .unwrap()
-                    .range((sensor.clone(), from)..=(sensor.clone(), to))
-                    .map(|(_, b)| b.clone())
-                    .collect();
-                let key = q.key_expr().clone();
-                // Replies in order, from a thread of its own: Zenoh's callback must not block.
-                std::thread::spawn(move || {
-                    use zenoh::Wait;
-                    for b in batches {
-                        q.reply(key.clone(), b).wait().unwrap();
-                    }
-                });
-            })
-            .await
-            .unwrap()
-    }
 }
 
 /// Every corrected payload published on `building`'s corrected keys, in arrival order.
