@@ -12,6 +12,10 @@
 //! started again on its file. Both files end holding every batch once, in order, byte for byte
 //! the same.
 //!
+//! `a_python_follower_takes_late_batches_once`: a link cut of 30 batches per sensor, filled by
+//! the gateway from the node's buffer once the follower has met the hole: the follower's file
+//! holds every batch once, the hole's flagged `late`.
+//!
 //! `a_parquet_export_reads_back_identically_in_pandas`: a gateway's history, fetched and
 //! written by `triax_client::parquet` (what `triax-export parquet` does), read by pandas with
 //! pyarrow: every row, bit for bit, and the units in the file's metadata.
