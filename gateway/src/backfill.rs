@@ -16,7 +16,8 @@
 //! its header names, a number inside the range and above the last taken, a time strictly
 //! between the batches around the hole) and anything else is counted (`backfill.rejected`) and
 //! skipped. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
-//! ([`crate::worker::Shard::correct_late`]), with a kernel of their own restored from the state
+//! ([`crate::worker::Shard::correct_late`]) and published after it, so that a live batch waits
+//! for at most one chunk's correction, with a kernel of their own restored from the state
 //! before the gap (a cold one after the gateway's restart, as the live path was then): the live
 //! kernel is not touched, and the live stream goes on while a hole fills.
 //!
@@ -45,7 +46,7 @@ use crate::worker::{self, Shard, Shared};
 /// Sensors whose holes are filled at the same time.
 pub const CONCURRENT: usize = 4;
 /// Late batches corrected per hold of the shard's lock.
-pub const CHUNK: usize = 64;
+pub const CHUNK: usize = 16;
 /// Requests waiting for a free slot; more are refused and counted.
 pub const QUEUE: usize = 65_536;
 
@@ -310,9 +311,17 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
         if chunk.is_empty() {
             return;
         }
-        let done = worker::lock_shard(shard).correct_late(&ctx.shared, &sensor, run, chunk);
-        c.late_batches.fetch_add(done as u64, Relaxed);
-        c.rejected.fetch_add((chunk.len() - done) as u64, Relaxed);
+        let corrected = worker::lock_shard(shard).correct_late(&ctx.shared, sensor, run, chunk);
+        match corrected {
+            Some(late) => {
+                let published = worker::publish_late(&ctx.shared, late);
+                c.late_batches.fetch_add(published as u64, Relaxed);
+            }
+            // The sensor was forgotten meanwhile.
+            None => {
+                c.rejected.fetch_add(chunk.len() as u64, Relaxed);
+            }
+        }
         chunk.clear();
     };
     while let Ok(reply) = replies.recv() {

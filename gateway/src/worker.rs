@@ -399,32 +399,28 @@ impl Shard {
         }
     }
 
-    /// Corrects, keeps and publishes late batches of `sensor` (a backfill, in sequence order,
-    /// checked by [`backfill`]) with the run's own kernel; returns how many were handled (none
-    /// when the sensor has no state here any more). The live kernel and sequence tracking are
-    /// not touched, nor the health checks nor the tilt stream, which speak of the present; the
-    /// next live batch carries a checkpoint, since the history now holds late batches between
-    /// it and the last one.
+    /// Corrects and keeps late batches of `sensor` (a backfill, in sequence order, checked by
+    /// [`backfill`]) with the run's own kernel; returns them corrected, to be published
+    /// ([`publish_late`]) once the shard is free again, or none when the sensor has no state
+    /// here any more. The live kernel and sequence tracking are not touched, nor the health
+    /// checks nor the tilt stream, which speak of the present; the next live batch carries a
+    /// checkpoint, since the history now holds late batches between it and the last one.
     pub fn correct_late(
         &mut self,
         shared: &Shared,
         sensor: &SensorId,
         run: &mut LateRun,
         batches: &[Vec<u8>],
-    ) -> usize {
+    ) -> Option<LateOut> {
         let Shard {
             sensors, scratch, ..
         } = self;
-        let Some(state) = sensors
+        let state = sensors
             .get_mut(sensor.as_str())
-            .filter(|s| !s.entry.is_evicted())
-        else {
-            return 0;
-        };
+            .filter(|s| !s.entry.is_evicted())?;
         // The first of each chunk: live batches may be kept between two chunks.
         run.checkpoint_due = true;
-        let mut done = 0;
-        let mut out = Vec::new();
+        let mut corrected = Vec::with_capacity(batches.len());
         for payload in batches {
             let Ok(view) = RawBatchView::parse(payload) else {
                 continue;
@@ -444,8 +440,7 @@ impl Shard {
             let corrector = state.entry.corrector();
             let version = corrector.as_ref().map(|c| c.version());
             let suspect = state.health.flag(version, h.timestamp_ns);
-            out.clear();
-            out.reserve(corrected_len(sensor.as_str().len(), view.len()));
+            let mut out = Vec::with_capacity(corrected_len(sensor.as_str().len(), view.len()));
             correct_judged(
                 &mut run.kernel,
                 &view,
@@ -466,26 +461,16 @@ impl Shard {
                 );
                 run.checkpoint_due = !kept;
             }
-            // Behind live data on every link; dropped, like live data, for a slow consumer.
-            match shared
-                .session
-                .put(state.keys.corrected.key_expr(), out.as_slice())
-                .congestion_control(CongestionControl::Drop)
-                .priority(Priority::DataLow)
-                .wait()
-            {
-                Ok(()) => state.entry.note_late(h.sequence, h.timestamp_ns),
-                Err(e) => {
-                    shared.counters.publish_errors.fetch_add(1, Relaxed);
-                    tracing::warn!(sensor = %sensor, cause = %e, "late batch not published");
-                }
-            }
-            done += 1;
+            corrected.push((h.sequence, h.timestamp_ns, out));
         }
-        if done > 0 {
+        if !corrected.is_empty() {
             state.owe_checkpoint();
         }
-        done
+        Some(LateOut {
+            entry: state.entry.clone(),
+            key: state.keys.corrected.key_expr().clone(),
+            batches: corrected,
+        })
     }
 
     /// Drops the state of sensors the table forgot (displaced or expired), which gives back
@@ -827,6 +812,40 @@ impl SensorState {
         }
         due
     }
+}
+
+/// Late batches corrected under the shard's lock, to publish after it.
+pub struct LateOut {
+    entry: Arc<SensorEntry>,
+    key: KeyExpr<'static>,
+    /// Sequence number, first sample's time, corrected payload.
+    batches: Vec<(u64, i64, Vec<u8>)>,
+}
+
+/// Publishes late batches on the sensor's corrected key, behind live data on every link
+/// (`DataLow`), dropped like live data for a slow consumer; returns how many were published.
+/// Outside the shard's lock: a live batch waits for no late one.
+pub fn publish_late(shared: &Shared, late: LateOut) -> usize {
+    let mut published = 0;
+    for (sequence, timestamp_ns, payload) in late.batches {
+        match shared
+            .session
+            .put(&late.key, payload)
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::DataLow)
+            .wait()
+        {
+            Ok(()) => {
+                late.entry.note_late(sequence, timestamp_ns);
+                published += 1;
+            }
+            Err(e) => {
+                shared.counters.publish_errors.fetch_add(1, Relaxed);
+                tracing::warn!(sensor = %late.entry.id, cause = %e, "late batch not published");
+            }
+        }
+    }
+    published
 }
 
 /// A batch corrected, with what the history keeps of it.

@@ -13,8 +13,10 @@
 //! - `what_a_gateway_missed_while_down_is_fetched_when_it_starts`: batches sent while the
 //!   gateway was stopped reach its history after the restart, once each, and replay exactly.
 
+use std::collections::HashMap;
 use std::f64::consts::PI;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use triax_client::follow::{FollowOptions, Follower};
 use triax_client::{history::fetch, HistoryRequest};
@@ -389,5 +391,150 @@ async fn what_a_gateway_missed_while_down_is_fetched_when_it_starts() {
             "{id}: the replay is what was published, live and late"
         );
     }
+    gw.stop().await;
+}
+
+/// Backfill of an outage at a building's pace, in real time: `TRIAX_BACKFILL_SENSORS` sensors
+/// (100) at 100 Hz in 10-sample batches, the node's link cut for `TRIAX_BACKFILL_OUTAGE_S`
+/// (60 s) between two stretches of 20 s. Prints how long after the link's return the last late
+/// batch was published, and the live stream's latency (node put to corrected batch received)
+/// before the outage and while the hole filled. BENCHMARKS.md quotes it:
+/// `cargo test --release -p triax-tests --test gateway -- --ignored backfill_of_an_outage
+/// --nocapture`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "minutes, in real time; BENCHMARKS.md quotes it"]
+async fn backfill_of_an_outage() {
+    let env = |k: &str, default: u64| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
+    };
+    let (n_sensors, outage_s) = (
+        env("TRIAX_BACKFILL_SENSORS", 100) as usize,
+        env("TRIAX_BACKFILL_OUTAGE_S", 60),
+    );
+    let ids: Vec<String> = (0..n_sensors).map(|i| format!("bo-{i:03}")).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(
+        &store,
+        &ids.iter().map(|s| sample::record(s, 1)).collect::<Vec<_>>(),
+    );
+    let gw = start(config("hbo", &store)).await;
+    let node = client(&gw.endpoint).await;
+    let buffer = Buffer::default();
+    let _queryable = buffer.serve(&node, "hbo").await;
+    let watcher = client(&gw.endpoint).await;
+    // Per received corrected batch: sensor, number, late, when.
+    type Seen = Arc<Mutex<Vec<(String, u64, bool, std::time::Instant)>>>;
+    let seen: Seen = Arc::default();
+    let s2 = seen.clone();
+    let _sub = watcher
+        .declare_subscriber("triax/hbo/corrected/*")
+        .callback(move |s| {
+            let at = std::time::Instant::now();
+            if let Ok(b) = CorrectedBatch::decode(&s.payload().to_bytes()) {
+                s2.lock().unwrap().push((
+                    b.header.sensor_id.to_string(),
+                    b.header.sequence,
+                    b.batch_flags & flags::LATE != 0,
+                    at,
+                ));
+            }
+        })
+        .await
+        .unwrap();
+    let mut publishers = Vec::new();
+    for id in &ids {
+        let p = node
+            .declare_publisher(key_raw("hbo", id))
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .await
+            .unwrap();
+        wait_matching(&p).await;
+        publishers.push(p);
+    }
+    let phases = [(20u64, true), (outage_s, false), (20, true)];
+    let total: u64 = phases.iter().map(|(s, _)| s * 10).sum();
+    let mut put_at: HashMap<(usize, u64), std::time::Instant> = HashMap::new();
+    let started = std::time::Instant::now();
+    let (mut seq, mut link_back, mut cut_from) = (0u64, None, 0u64);
+    for (seconds, live) in phases {
+        if live && seq > 0 {
+            link_back = Some(std::time::Instant::now());
+        } else if !live {
+            cut_from = seq;
+        }
+        for _ in 0..seconds * 10 {
+            for (i, (id, p)) in ids.iter().zip(&publishers).enumerate() {
+                let payload = signal(id, seq);
+                buffer.keep(id, seq, &payload);
+                if live {
+                    put_at.insert((i, seq), std::time::Instant::now());
+                    p.put(payload).await.unwrap();
+                }
+            }
+            seq += 1;
+            tokio::time::sleep_until((started + Duration::from_millis(100 * seq)).into()).await;
+        }
+    }
+    let cut = cut_from..cut_from + outage_s * 10;
+    let want_late = cut.clone().count() * n_sensors;
+    wait_until("every late batch", || {
+        seen.lock()
+            .unwrap()
+            .iter()
+            .filter(|(_, _, late, _)| *late)
+            .count()
+            >= want_late
+    })
+    .await;
+    let link_back = link_back.unwrap();
+    let seen = seen.lock().unwrap().clone();
+    let last_late = seen
+        .iter()
+        .filter(|(_, _, late, _)| *late)
+        .map(|(_, _, _, at)| *at)
+        .max()
+        .unwrap();
+    let index: HashMap<&str, usize> = ids
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.as_str(), i))
+        .collect();
+    let latency_ms = |from: u64, to: u64| {
+        let mut l: Vec<f64> = seen
+            .iter()
+            .filter(|(_, s, late, _)| !late && (from..to).contains(s))
+            .filter_map(|(id, s, _, at)| {
+                let put = put_at.get(&(index[id.as_str()], *s))?;
+                Some(at.duration_since(*put).as_secs_f64() * 1e3)
+            })
+            .collect();
+        l.sort_by(f64::total_cmp);
+        let q = |p: f64| l[((l.len() - 1) as f64 * p) as usize];
+        (q(0.5), q(0.99), l.len())
+    };
+    let back_seq = cut.end;
+    let filled_s = last_late.duration_since(link_back).as_secs_f64();
+    // Live batches while the hole filled: from the link's return to the last late batch.
+    let during = seen
+        .iter()
+        .filter(|(_, s, late, at)| !late && *s >= back_seq && *at <= last_late)
+        .map(|(_, s, _, _)| *s)
+        .max()
+        .unwrap_or(back_seq)
+        + 1;
+    let before = latency_ms(50, cut.start);
+    let filling = latency_ms(back_seq, during.max(back_seq + 10));
+    println!(
+        "{n_sensors} sensors, {outage_s} s outage ({want_late} batches): last late batch {filled_s:.2} s \
+         after the link's return; live latency p50/p99 {:.2}/{:.2} ms before ({} batches), \
+         {:.2}/{:.2} ms while filling ({} batches); {total} rounds",
+        before.0, before.1, before.2, filling.0, filling.1, filling.2
+    );
+    let st = status(&watcher, "hbo").await;
+    println!("{:?}", st.backfill);
     gw.stop().await;
 }
