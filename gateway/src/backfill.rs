@@ -293,7 +293,7 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
             return;
         }
     };
-    let settings = ctx.shared.table.settings_of(&sensor);
+    let settings = ctx.shared.table.settings_of(sensor);
     let kernel = match hole.state.as_deref() {
         Some(bytes) => SensorKernel::restore(bytes).unwrap_or_else(|| SensorKernel::new(settings)),
         None => SensorKernel::new(settings),

@@ -850,6 +850,14 @@ mod tests {
             admitted_sensors: 5,
             displaced_sensors: 6,
             expired_sensors: 7,
+            backfill: Some(BackfillStatus {
+                queries: 2,
+                wanted_batches: 30,
+                late_batches: 28,
+                rejected_replies: 1,
+                failed_queries: 0,
+                refused_requests: 0,
+            }),
             history: Some(HistoryStatus {
                 bytes: 1,
                 max_bytes: 2,
@@ -874,6 +882,7 @@ mod tests {
                 samples: 1000,
                 gaps: 1,
                 missing_batches: 3,
+                late_batches: 2,
                 duplicates: 0,
                 rejects: 1,
                 flagged_samples: 100,

@@ -313,9 +313,12 @@ pub async fn wait_history_holds(
 
 /// A sensor node's buffer (PROTOCOL.md §5.4) as a test plays it: every batch it made, by sensor
 /// and number, answered on its buffer key. Not publishing a kept batch is a link cut, exactly.
+/// A buffer's batches, by sensor and number.
+type Held = BTreeMap<(String, u64), Vec<u8>>;
+
 #[derive(Default, Clone)]
 pub struct Buffer {
-    held: Arc<Mutex<BTreeMap<(String, u64), Vec<u8>>>>,
+    held: Arc<Mutex<Held>>,
     /// While true, answers wait (a node slow to answer, or the test ordering events).
     paused: Arc<(Mutex<bool>, std::sync::Condvar)>,
 }
