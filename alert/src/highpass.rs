@@ -32,6 +32,35 @@ pub fn gain(cutoff_hz: f64, frequency_hz: f64) -> f64 {
     1.0 / (1.0 + (cutoff_hz / frequency_hz).powi(4)).sqrt()
 }
 
+/// The filter's complex response, for carrying a sinusoid fitted to the unfiltered
+/// acceleration through it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Response {
+    b0: f64,
+    a1: f64,
+    a2: f64,
+}
+
+impl Response {
+    /// `H(e^{iω}) = b0·(1 − e^{−iω})² / (1 + a1·e^{−iω} + a2·e^{−2iω})` at ω (rad per
+    /// sample), as (gain, phase in rad): a steady sinusoid at ω leaves the filter scaled by the
+    /// gain and advanced by the phase. Exact for the digital filter, not its analogue
+    /// prototype.
+    pub fn at(&self, omega: f64) -> (f64, f64) {
+        let (s1, c1) = (-omega).sin_cos();
+        let (s2, c2) = (-2.0 * omega).sin_cos();
+        // Numerator b0·(1 − 2z⁻¹ + z⁻²), denominator 1 + a1·z⁻¹ + a2·z⁻², z⁻¹ = e^{−iω}.
+        let (nr, ni) = (self.b0 * (1.0 - 2.0 * c1 + c2), self.b0 * (-2.0 * s1 + s2));
+        let (dr, di) = (
+            1.0 + self.a1 * c1 + self.a2 * c2,
+            self.a1 * s1 + self.a2 * s2,
+        );
+        let d2 = dr * dr + di * di;
+        let (re, im) = ((nr * dr + ni * di) / d2, (ni * dr - nr * di) / d2);
+        (re.hypot(im), im.atan2(re))
+    }
+}
+
 /// Three axes of the high pass, in transposed direct form II.
 #[derive(Debug, Clone)]
 pub struct HighPass {
@@ -57,6 +86,15 @@ impl HighPass {
             state: None,
             samples: 0,
             settle_samples: (settle_s(fc) * rate_hz).ceil() as u64,
+        }
+    }
+
+    /// The filter's response.
+    pub fn response(&self) -> Response {
+        Response {
+            b0: self.b0,
+            a1: self.a1,
+            a2: self.a2,
         }
     }
 
@@ -129,6 +167,30 @@ mod tests {
         }
         assert!(gain(0.1, 0.48) > 0.999 && gain(0.1, 0.85) > 0.9999);
         assert!(gain(0.1, 0.45) < 0.999);
+    }
+
+    /// The response carries a sinusoid through the filter: the filtered stream, once settled,
+    /// is the input's sinusoid scaled by the gain and advanced by the phase.
+    #[test]
+    fn the_response_is_the_filters() {
+        let rate = 100.0;
+        for (cutoff, freq) in [(0.1, 0.5), (1.0, 1.3), (1.0, 2.0), (0.3, 7.0)] {
+            let mut hp = HighPass::new(cutoff, rate);
+            let omega = 2.0 * std::f64::consts::PI * freq / rate;
+            let (g, phase) = hp.response().at(omega);
+            let n = ((settle_s(cutoff) * 4.0 + 10.0) * rate) as usize;
+            let mut worst = 0.0f64;
+            for m in 0..n {
+                let x = 9.81 + 0.7 * (omega * m as f64 + 0.4).sin();
+                let y = hp.apply([x; 3])[0];
+                if m > n - 500 {
+                    let expected = 0.7 * g * (omega * m as f64 + 0.4 + phase).sin();
+                    worst = worst.max((y - expected).abs());
+                }
+            }
+            assert!(worst < 1e-6, "{cutoff} Hz at {freq} Hz: {worst}");
+            assert!((g - gain(cutoff, freq)).abs() < 2e-3, "{g}");
+        }
     }
 
     #[test]

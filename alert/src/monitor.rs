@@ -29,6 +29,7 @@ use crate::decision::{decide, rule_text, severity, Direction, Estimate, Limit};
 use crate::highpass::HighPass;
 use crate::stats::{window_stats, Method, Point, Propagation, Request, WindowStats, AXIS_NAMES};
 use bounds::{SlidingMax, WindowBounds};
+use sway::SwayTracker;
 
 /// Most samples one sensor's window holds; a longer window is shortened to its newest samples.
 /// About 7 MB a sensor, four minutes at 1 kHz.
@@ -110,6 +111,8 @@ struct SensorState {
     /// Running bounds of the window's usable samples: a quiet window is seen to be quiet
     /// without looking at it again.
     bounds: WindowBounds,
+    /// The single-sway fit of the window, kept up to date while the window is near a limit.
+    sway: SwayTracker,
     /// Largest coverage factor of the batches in the window, by each batch's last sample.
     k_max: SlidingMax,
     /// First sample time and sequence number of each batch with samples in the window, oldest
@@ -170,6 +173,7 @@ impl SensorState {
             highpass: None,
             calibration_version: None,
             bounds: WindowBounds::default(),
+            sway: SwayTracker::default(),
             k_max: SlidingMax::default(),
             batches: VecDeque::new(),
             last_data: None,
@@ -183,9 +187,15 @@ impl SensorState {
 
     /// Drops the window's oldest sample, and it from the running bounds.
     fn forget_oldest(&mut self) {
+        self.sway.on_pop(&self.window);
         if let Some(old) = self.window.pop_front() {
             if old.usable {
-                self.bounds.pop(old.t_ns, old.vibration, old.flags != 0);
+                self.bounds.pop(
+                    old.t_ns,
+                    old.vibration,
+                    old.uncertainty_mps2,
+                    old.flags != 0,
+                );
             }
             self.k_max.evict_through(old.t_ns);
         }
@@ -507,6 +517,7 @@ impl Monitor {
             }
             state.window.clear();
             state.bounds.clear();
+            state.sway = SwayTracker::default();
             state.k_max = SlidingMax::default();
             state.batches.clear();
             state.highpass = None;
@@ -552,6 +563,7 @@ impl Monitor {
                 usable: is_usable,
                 settled: state.highpass.as_ref().is_some_and(HighPass::settled),
             });
+            state.sway.on_push(&state.window, period_ns);
         }
         let window_ns = (settings.window_s * 1e9) as i64;
         if let Some(newest) = state.window.back().map(|s| s.t_ns) {
@@ -867,7 +879,7 @@ fn tilt_means(set: &[TiltSample]) -> (Estimate, Estimate) {
 /// and what the window came to.
 fn evaluate_window(
     key: &SensorKey,
-    state: &SensorState,
+    state: &mut SensorState,
     settings: &Settings,
     now: OffsetDateTime,
 ) -> Evaluation {
@@ -908,6 +920,9 @@ fn evaluate_window(
             .is_some_and(|l| state.bounds.rms_bound(k) >= l.threshold)
         || limits.frequency().next().is_some();
     if !wanted {
+        // Far from every limit: the sway fit is not kept up to date (it is rebuilt once the
+        // window comes near one again).
+        state.sway.disarm();
         // Judged all the same: no estimate the window allows can reach a limit.
         let levels = [
             (AlertKind::PeakAcceleration, limits.pga().is_some()),
@@ -927,25 +942,6 @@ fn evaluate_window(
         };
     }
     let grid_len = (span_ns / period_ns).round() as u32;
-    let point = |t: &TimedSample| Point {
-        index: (((t.t_ns - first.t_ns) as f64 / period_ns).round() as u32).min(grid_len - 1),
-        accel_mps2: t.accel_mps2,
-        vibration_mps2: t.vibration,
-        uncertainty_mps2: t.uncertainty_mps2,
-    };
-    let all: Vec<Point> = state
-        .window
-        .iter()
-        .filter(|t| t.usable)
-        .map(point)
-        .collect();
-    let clean: Vec<Point> = state
-        .window
-        .iter()
-        .filter(|t| t.flags == 0 && t.usable)
-        .map(point)
-        .collect();
-    let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.flags);
     let rate = state.sample_rate_hz;
     let request = Request {
         sample_rate_hz: rate,
@@ -957,13 +953,45 @@ fn evaluate_window(
         peak_threshold: state.limits.pga().map(|l| l.threshold),
         rms_threshold: state.limits.rms().map(|l| l.threshold),
         frequency: state.limits.frequency().next().is_some(),
+        highpass: state.highpass.as_ref().map(HighPass::response),
     };
-    let clean_stats = window_stats(&clean, &request);
-    // Only worth a second look when flagged samples add something to the clean ones.
-    let flagged_stats = if all.len() > clean.len() {
-        window_stats(&all, &request)
-    } else {
-        None
+    // A window near a limit that is one clean sway is judged from the tracked fit, at the cost
+    // of the batch; anything else from all its samples.
+    let summaries = state.bounds.summaries();
+    let tracked = state.sway.stats(&state.window, &summaries, &request);
+    let (clean_stats, flagged_stats, n_clean, flag_bits) = match tracked {
+        // Tracked only while every sample is clean.
+        Some(stats) => (Some(stats), None, n, 0),
+        None => {
+            let first_ns = first.t_ns;
+            let point = |t: &TimedSample| Point {
+                index: (((t.t_ns - first_ns) as f64 / period_ns).round() as u32).min(grid_len - 1),
+                accel_mps2: t.accel_mps2,
+                vibration_mps2: t.vibration,
+                uncertainty_mps2: t.uncertainty_mps2,
+            };
+            let all: Vec<Point> = state
+                .window
+                .iter()
+                .filter(|t| t.usable)
+                .map(point)
+                .collect();
+            let clean: Vec<Point> = state
+                .window
+                .iter()
+                .filter(|t| t.flags == 0 && t.usable)
+                .map(point)
+                .collect();
+            let clean_stats = window_stats(&clean, &request);
+            // Only worth a second look when flagged samples add something to the clean ones.
+            let flagged_stats = if all.len() > clean.len() {
+                window_stats(&all, &request)
+            } else {
+                None
+            };
+            let flag_bits = state.window.iter().fold(0, |acc, t| acc | t.flags);
+            (clean_stats, flagged_stats, clean.len(), flag_bits)
+        }
     };
     let ctx = Context {
         key,
@@ -971,7 +999,7 @@ fn evaluate_window(
         window_s: f64::from(grid_len) / rate,
         window_ns,
         sequences,
-        flagged_fraction: (n - clean.len()) as f64 / n as f64,
+        flagged_fraction: (n - n_clean) as f64 / n as f64,
         flag_bits,
         now,
     };
@@ -1052,9 +1080,9 @@ fn evaluate_window(
     // A flagged sample left out of the clean set leaves a hole that distorts the spectrum.
     let clean_frequency = clean_stats
         .as_ref()
-        .filter(|_| clean.len() == n)
+        .filter(|_| n_clean == n)
         .and_then(frequency_of);
-    let flagged_frequency = if clean.len() == n {
+    let flagged_frequency = if n_clean == n {
         None
     } else {
         flagged_stats.as_ref().and_then(frequency_of)
@@ -1149,5 +1177,6 @@ fn method_detail(what: &str, n_samples: usize, axis: usize, method: Method) -> S
 mod bounds;
 #[cfg(test)]
 mod monte_carlo;
+mod sway;
 #[cfg(test)]
 mod tests;

@@ -2,21 +2,33 @@
 //! the four-parameter sine fit of IEEE Std 1057 with a trend term, for windows whose motion is
 //! a single sway.
 //!
-//! Model, with `t` the sample's index from the window's centre:
-//! `y(t) = a·cos ωt + b·sin ωt + c + d·t/n`. For a given ω the model is linear in `(a, b, c, d)`;
-//! ω is found by a golden-section search of the residual sum of squares within one spectral bin
-//! either side of the spectrum's peak, then refined by Gauss–Newton steps on the variable
-//! projection. The offset and trend absorb gravity, offsets and slow drift, so the fit needs no
-//! baseline and is independent of where the window cuts the cycles.
+//! Model, with `m` the sample's grid index and `τ = (m − o)/N` (o an origin, N a scale: the
+//! window's first index and its length for a window fitted afresh):
+//! `y(m) = a·cos ω(m − o) + b·sin ω(m − o) + c + d·τ`. For a given ω the model is linear in
+//! `(a, b, c, d)`; ω is found by a golden-section search of the residual sum of squares within
+//! one spectral bin either side of the spectrum's peak, then refined by Gauss–Newton steps on
+//! the variable projection. The offset and trend absorb what is left of the baseline, so the
+//! fit is independent of where the window cuts the cycles.
+//!
+//! **Moments.** Everything the fit needs at one ω is a sum over the samples: with the features
+//! `φ = (cos, sin, 1, τ, τ·cos, τ·sin, y)`, the 7 × 7 moments `Σ φφᵀ` give `XᵀX`, `Xᵀy`,
+//! `yᵀy` (so the residual sum of squares `yᵀy − βᵀXᵀy`), the derivative in ω and its
+//! projections; and over runs of five consecutive samples, the fourth difference `d` of y with
+//! `Σd², Σd·cos, Σd·sin, Σcos², Σcos·sin, Σsin²` at each run's middle sample give the
+//! residual's fourth differences (the model's trend has none, and a sinusoid's is the same
+//! sinusoid times `16·sin⁴(ω/2)`, shifted to the run's middle). [`Moments`] can be added to
+//! and taken from sample by sample, so a window sliding at a fixed ω is fitted at the cost of
+//! the samples that enter and leave it ([`crate::monitor`]'s sway tracker).
 //!
 //! Uncertainties are the least-squares covariance, with the noise variance `s²` estimated from
 //! the residuals (ν = n − 5, large for any window worth judging):
 //! `var(ω) = s² / (g⊥ᵀg⊥)`, with `g = ∂y/∂ω` and `g⊥` its part orthogonal to the linear
 //! columns `X`; `Cov(a, b, c, d) = s²·(XᵀX)⁻¹ + w·wᵀ·var(ω)`, `w = (XᵀX)⁻¹Xᵀg`. The amplitude
 //! `√(a² + b²)` does not depend on ω to first order at the optimum, so its variance is
-//! `hᵀ·Cov·h` with `h = (a, b, 0, 0)/amplitude`. A Monte Carlo of sines in white noise gives
-//! 94–97 % coverage at k = 2 for the amplitude and the frequency (module tests and the
-//! monitor's Monte Carlo).
+//! `hᵀ·Cov·h` with `h = (a, b, 0, 0)/amplitude`. At an ω that is not the optimum, the
+//! Gauss–Newton step `g⊥ᵀr / g⊥ᵀg⊥` says how far it is, and `ω + step` is the frequency
+//! reported. A Monte Carlo of sines in white noise gives 94–97 % coverage at k = 2 for the
+//! amplitude and the frequency (module tests and the monitor's Monte Carlo).
 //!
 //! **Adequacy.** The fit speaks for the motion only when the residual is noise. Noise is white
 //! sample to sample; motion the model missed is not. So the residual's variance `s²` is compared
@@ -29,7 +41,9 @@
 //! white too), so the residual must also be no larger than the sensor's noise can be: `s²` at
 //! most `(1 + 4·√(2/n))` times the square of the stated u, which bounds the noise.
 
-use nalgebra::{Matrix4, Vector4};
+use nalgebra::{Matrix2, Matrix4, Vector2, Vector4};
+
+use crate::highpass::Response;
 
 /// A fit judged adequate, in the window's units and Hz.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -56,119 +70,150 @@ const MIN_CYCLES: f64 = 1.5;
 const GOLDEN_STEPS: usize = 20;
 const NEWTON_STEPS: usize = 3;
 
-/// Sums over the samples for one ω: `XᵀX` and `Xᵀy`.
-struct Sums {
-    xtx: Matrix4<f64>,
-    xty: Vector4<f64>,
+/// Indices of the features φ.
+const COS: usize = 0;
+const SIN: usize = 1;
+const ONE: usize = 2;
+const TAU: usize = 3;
+const TAU_COS: usize = 4;
+const TAU_SIN: usize = 5;
+const Y: usize = 6;
+
+/// Sums over a window's samples at one ω; see the module documentation.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Moments {
+    /// `Σ φᵢφⱼ` for i ≤ j.
+    m: [[f64; 7]; 7],
+    /// Over runs of five consecutive samples, d the run's fourth difference and (cos, sin) at
+    /// its middle sample: `Σd², Σd·cos, Σd·sin, Σcos², Σcos·sin, Σsin²`.
+    runs: [f64; 6],
+    run_count: i64,
+    count: i64,
 }
 
-/// One axis of a window: the samples' grid indices (increasing, holes allowed), their values,
-/// and the grid's length.
-pub struct Axis<'a> {
-    pub index: &'a [u32],
-    pub value: &'a [f64],
-    pub grid_len: u32,
-}
-
-impl Axis<'_> {
-    fn centre(&self) -> f64 {
-        (f64::from(self.grid_len) - 1.0) / 2.0
+impl Moments {
+    /// Adds (`sign = 1.0`) or takes away (`−1.0`) one sample: y at `τ`, with (cos, sin) of
+    /// ω(m − o).
+    pub fn sample(&mut self, sign: f64, tau: f64, cos: f64, sin: f64, y: f64) {
+        let phi = [cos, sin, 1.0, tau, tau * cos, tau * sin, y];
+        for (i, row) in self.m.iter_mut().enumerate() {
+            let w = sign * phi[i];
+            for (mij, pj) in row.iter_mut().zip(&phi).skip(i) {
+                *mij += w * pj;
+            }
+        }
+        self.count += sign as i64;
     }
 
-    /// Calls `f(i, t, cos ωt, sin ωt)` for every sample, rotating rather than calling sin_cos
-    /// per sample (the grid is regular; holes are skipped over).
-    fn each(&self, omega: f64, mut f: impl FnMut(usize, f64, f64, f64)) {
-        let Some(&first) = self.index.first() else {
-            return;
-        };
-        let centre = self.centre();
-        let (s0, c0) = (omega * (f64::from(first) - centre)).sin_cos();
-        let (sw, cw) = omega.sin_cos();
-        let (mut c, mut s) = (c0, s0);
-        let mut at = first;
-        for (i, &k) in self.index.iter().enumerate() {
-            while at < k {
-                (c, s) = (c * cw - s * sw, s * cw + c * sw);
-                at += 1;
-            }
-            f(i, f64::from(k) - centre, c, s);
+    /// Adds or takes away one run of five consecutive samples: `d` its fourth difference,
+    /// (cos, sin) at its middle sample.
+    pub fn run(&mut self, sign: f64, d: f64, cos: f64, sin: f64) {
+        for (r, v) in
+            self.runs
+                .iter_mut()
+                .zip([d * d, d * cos, d * sin, cos * cos, cos * sin, sin * sin])
+        {
+            *r += sign * v;
+        }
+        self.run_count += sign as i64;
+    }
+
+    /// Samples summed.
+    pub fn count(&self) -> usize {
+        self.count.max(0) as usize
+    }
+
+    fn at(&self, i: usize, j: usize) -> f64 {
+        if i <= j {
+            self.m[i][j]
+        } else {
+            self.m[j][i]
         }
     }
 
-    fn sums(&self, omega: f64) -> Sums {
-        let scale = 1.0 / f64::from(self.grid_len.max(1));
-        let mut xtx = Matrix4::zeros();
-        let mut xty = Vector4::zeros();
-        self.each(omega, |i, t, c, s| {
-            let x = columns(t * scale, c, s);
-            xtx += x * x.transpose();
-            xty += x * self.value[i];
-        });
-        Sums { xtx, xty }
+    fn xtx(&self) -> Matrix4<f64> {
+        Matrix4::from_fn(|i, j| self.at(i, j))
     }
 
-    /// The linear parameters and residual sum of squares at ω; None if singular.
-    fn solve(&self, omega: f64) -> Option<(Vector4<f64>, Matrix4<f64>, f64)> {
-        let Sums { xtx, xty } = self.sums(omega);
-        let inv = xtx.cholesky()?.inverse();
+    fn xty(&self) -> Vector4<f64> {
+        Vector4::from_fn(|i, _| self.at(i, Y))
+    }
+
+    /// The linear parameters, `(XᵀX)⁻¹` and the residual sum of squares; None if singular.
+    fn solve(&self) -> Option<(Vector4<f64>, Matrix4<f64>, f64)> {
+        let inv = self.xtx().cholesky()?.inverse();
+        let xty = self.xty();
         let beta = inv * xty;
-        let scale = 1.0 / f64::from(self.grid_len.max(1));
-        let mut rss = 0.0;
-        self.each(omega, |i, t, c, s| {
-            let r = self.value[i] - model(&beta, t * scale, c, s);
-            rss += r * r;
-        });
+        let rss = (self.at(Y, Y) - beta.dot(&xty)).max(0.0);
         Some((beta, inv, rss))
     }
 
-    /// `g = ∂y/∂ω` projected: returns (gᵀr, Xᵀg, gᵀg).
-    fn omega_terms(&self, omega: f64, beta: &Vector4<f64>) -> (f64, Vector4<f64>, f64) {
-        let scale = 1.0 / f64::from(self.grid_len.max(1));
-        let (mut gr, mut xg, mut gg) = (0.0, Vector4::zeros(), 0.0);
-        self.each(omega, |i, t, c, s| {
-            let g = t * (-beta[0] * s + beta[1] * c);
-            let r = self.value[i] - model(beta, t * scale, c, s);
-            gr += g * r;
-            gg += g * g;
-            xg += columns(t * scale, c, s) * g;
-        });
-        (gr, xg, gg)
+    /// With `g = ∂y/∂ω = (m − o)·(−a·sin + b·cos)` and `scale` = N: (gᵀr, Xᵀg, gᵀg).
+    fn omega_terms(&self, beta: &Vector4<f64>, scale: f64) -> (f64, Vector4<f64>, f64) {
+        let (a, b) = (beta[0], beta[1]);
+        // Σ τ·(−a·sin + b·cos)·f for a feature f, scaled by N to (m − o).
+        let g_with = |tau_sin: f64, tau_cos: f64| scale * (-a * tau_sin + b * tau_cos);
+        let xg = Vector4::new(
+            g_with(self.at(TAU_SIN, COS), self.at(TAU_COS, COS)),
+            g_with(self.at(TAU_SIN, SIN), self.at(TAU_COS, SIN)),
+            g_with(self.at(TAU_SIN, ONE), self.at(TAU_COS, ONE)),
+            g_with(self.at(TAU_SIN, TAU), self.at(TAU_COS, TAU)),
+        );
+        let gy = g_with(self.at(TAU_SIN, Y), self.at(TAU_COS, Y));
+        let gg = scale
+            * scale
+            * (a * a * self.at(TAU_SIN, TAU_SIN) - 2.0 * a * b * self.at(TAU_COS, TAU_SIN)
+                + b * b * self.at(TAU_COS, TAU_COS));
+        (gy - xg.dot(beta), xg, gg)
     }
 
-    /// Fourth-difference estimate of the residual's white-noise variance, over runs of five
-    /// consecutive grid indices; None when there are too few.
-    fn short_scale_variance(&self, omega: f64, beta: &Vector4<f64>) -> Option<f64> {
-        let scale = 1.0 / f64::from(self.grid_len.max(1));
-        let mut last: [(u32, f64); 5] = [(u32::MAX, 0.0); 5];
-        let (mut sum, mut count) = (0.0, 0usize);
-        self.each(omega, |i, t, c, s| {
-            let r = self.value[i] - model(beta, t * scale, c, s);
-            last.rotate_left(1);
-            last[4] = (self.index[i], r);
-            let consecutive = (0..4).all(|m| last[m].0.wrapping_add(1) == last[m + 1].0);
-            if consecutive {
-                let d = last[0].1 - 4.0 * last[1].1 + 6.0 * last[2].1 - 4.0 * last[3].1 + last[4].1;
-                sum += d * d;
-                count += 1;
-            }
-        });
-        (count >= 16).then(|| sum / (70.0 * count as f64))
+    /// `mean((Δ⁴r)²)/70` from the runs, for the model `(a, b)` at ω; None with under 16 runs.
+    fn short_scale_variance(&self, omega: f64, a: f64, b: f64) -> Option<f64> {
+        if self.run_count < 16 {
+            return None;
+        }
+        let gain = 16.0 * (0.5 * omega).sin().powi(4);
+        let [dd, dc, ds, cc, cs, ss] = self.runs;
+        let sum = dd - 2.0 * gain * (a * dc + b * ds)
+            + gain * gain * (a * a * cc + 2.0 * a * b * cs + b * b * ss);
+        Some(sum.max(0.0) / (70.0 * self.run_count as f64))
+    }
+}
+
+/// Where a window's samples lie relative to the moments' origin o and scale N.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Geometry {
+    pub rate_hz: f64,
+    /// N: `τ = (m − o)/N`.
+    pub scale: f64,
+    /// The window's first sample time, `m − o` (present or not).
+    pub grid_start: f64,
+    /// Sample times in the window, present or not.
+    pub grid_len: u32,
+    /// Largest |y| of the window.
+    pub largest: f64,
+    /// A filter the fitted sinusoid is carried through (the vibration baseline's high pass);
+    /// None: the sinusoid as fitted.
+    pub highpass: Option<Response>,
+}
+
+impl Geometry {
+    /// `Σcos², Σcos·sin, Σsin²` of ω(m − o) over every sample time of the window, in closed
+    /// form: with `θ = 2ω`, `Σ e^{iθm}` over L consecutive m is
+    /// `e^{iθ(m₀ + (L−1)/2)}·sin(θL/2)/sin(θ/2)`.
+    fn grid_squares(&self, omega: f64) -> (f64, f64, f64) {
+        let l = f64::from(self.grid_len);
+        // ω is at most half the rate (π), and at least 1.5 cycles over the window: sin ω
+        // is not 0.
+        let dirichlet = (omega * l).sin() / omega.sin();
+        let phase = 2.0 * omega * (self.grid_start + 0.5 * (l - 1.0));
+        let (re, im) = (dirichlet * phase.cos(), dirichlet * phase.sin());
+        (0.5 * (l + re), 0.5 * im, 0.5 * (l - re))
     }
 
-    /// RMS of `a·cos ωt + b·sin ωt` over the whole grid, and its gradient in (a, b).
+    /// RMS of `a·cos + b·sin` over the window's sample times, and its gradient in (a, b).
     fn grid_rms(&self, omega: f64, a: f64, b: f64) -> (f64, [f64; 2]) {
-        let grid: Vec<u32> = (0..self.grid_len).collect();
-        let full = Axis {
-            index: &grid,
-            value: &[],
-            grid_len: self.grid_len,
-        };
-        let (mut cc, mut cs, mut ss) = (0.0, 0.0, 0.0);
-        full.each(omega, |_, _, c, s| {
-            cc += c * c;
-            cs += c * s;
-            ss += s * s;
-        });
+        let (cc, cs, ss) = self.grid_squares(omega);
         let n = f64::from(self.grid_len.max(1));
         let rms = ((a * a * cc + 2.0 * a * b * cs + b * b * ss) / n)
             .max(0.0)
@@ -183,14 +228,172 @@ impl Axis<'_> {
     }
 }
 
-/// The linear columns at one sample, `(cos ωt, sin ωt, 1, t/n)`, with `t_scaled` = t/n.
-fn columns(t_scaled: f64, cos: f64, sin: f64) -> Vector4<f64> {
-    Vector4::new(cos, sin, 1.0, t_scaled)
+/// The fit at one ω: how far ω is from the optimum, and the fit if it is adequate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AtOmega {
+    /// The Gauss–Newton step to the optimum (rad per sample).
+    pub step: f64,
+    /// Standard uncertainty of ω (rad per sample).
+    pub omega_u: f64,
+    /// Judged adequate and usable (see the module documentation); its frequency is ω + step.
+    pub fit: Option<SineFit>,
 }
 
-/// The model at one sample: `a·cos ωt + b·sin ωt + c + d·t/n`.
-fn model(beta: &Vector4<f64>, t_scaled: f64, cos: f64, sin: f64) -> f64 {
-    beta.dot(&columns(t_scaled, cos, sin))
+/// The fit at ω (rad per sample) from `moments`, for a window whose noise is at most
+/// `noise_bound` (the stated u). None when singular or degenerate.
+pub fn fit_at(
+    moments: &Moments,
+    omega: f64,
+    geometry: &Geometry,
+    noise_bound: f64,
+) -> Option<AtOmega> {
+    let n = moments.count();
+    if n < 32 {
+        return None;
+    }
+    let (beta, inv, rss) = moments.solve()?;
+    let (gr, xg, gg) = moments.omega_terms(&beta, geometry.scale);
+    let perp = gg - (xg.transpose() * inv * xg)[0];
+    // Not a number counts as not positive.
+    if perp.is_nan() || perp <= 0.0 {
+        return None;
+    }
+    let step = gr / perp;
+    // The residual at the optimum ω + step (the variable projection's quadratic model), so
+    // that a fit held at an ω near the optimum sees the noise a fit at the optimum sees.
+    let s2 = (rss - step * gr).max(0.0) / (n - 5) as f64;
+    let var_omega = s2 / perp;
+    let mut at = AtOmega {
+        step,
+        omega_u: var_omega.sqrt(),
+        fit: None,
+    };
+    let to_omega = std::f64::consts::TAU / geometry.rate_hz;
+    let frequency_hz = (omega + step) / to_omega;
+    let cycles = frequency_hz * f64::from(geometry.grid_len) / geometry.rate_hz;
+    if !(cycles >= MIN_CYCLES && frequency_hz < 0.5 * geometry.rate_hz && step.is_finite()) {
+        return Some(at);
+    }
+    let w = inv * xg;
+    let cov = inv * s2 + w * w.transpose() * var_omega;
+    // The sinusoid (a, b) and its covariance, carried through the filter: a steady sinusoid
+    // leaves it scaled by the gain G and advanced by the phase φ, (a', b') = T·(a, b) with
+    // T = G·[[cos φ, sin φ], [−sin φ, cos φ]]. The gain's slope in ω adds G'·A·u(ω), and its
+    // share to the RMS.
+    let (t, gain_slope) = match geometry.highpass {
+        Some(h) => {
+            let (g, phi) = h.at(omega);
+            let dw = 1e-6 * omega.max(1e-9);
+            let slope = (h.at(omega + dw).0 - h.at(omega - dw).0) / (2.0 * dw);
+            let (sin, cos) = phi.sin_cos();
+            (Matrix2::new(g * cos, g * sin, -g * sin, g * cos), slope)
+        }
+        None => (Matrix2::identity(), 0.0),
+    };
+    let ab = t * Vector2::new(beta[0], beta[1]);
+    let cov_ab = t * cov.fixed_view::<2, 2>(0, 0) * t.transpose();
+    let amplitude = ab[0].hypot(ab[1]);
+    if !(amplitude > 0.0 && amplitude.is_finite()) {
+        return Some(at);
+    }
+    let h = ab / amplitude;
+    let unfiltered = beta[0].hypot(beta[1]);
+    let amplitude_var =
+        (h.transpose() * cov_ab * h)[0] + (gain_slope * unfiltered).powi(2) * var_omega;
+
+    // Adequacy: the residual must look white; see the module documentation.
+    let sd_ratio = (3.25 / n as f64).sqrt();
+    let Some(short) = moments.short_scale_variance(omega, beta[0], beta[1]) else {
+        return Some(at);
+    };
+    // An exact sinusoid leaves only the rounding of the f32 samples (6·10⁻⁸ of the largest
+    // value), which is not white where the signal changes by less than a rounding step.
+    let exact = s2.sqrt() <= 1e-6 * geometry.largest;
+    let louder_than_noise = s2 > noise_bound * noise_bound * (1.0 + 4.0 * (2.0 / n as f64).sqrt());
+    if !exact && (s2 > short * (1.0 + 3.0 * sd_ratio) || louder_than_noise) {
+        return Some(at);
+    }
+    let unmodelled_var = (s2 - short * (1.0 + 2.0 * sd_ratio)).max(0.0);
+
+    let (rms, grad) = geometry.grid_rms(omega, ab[0], ab[1]);
+    let g = Vector2::new(grad[0], grad[1]);
+    // The RMS is proportional to the gain as the amplitude is.
+    let gain = t[(0, 0)].hypot(t[(0, 1)]);
+    let rms_var = (g.transpose() * cov_ab * g)[0]
+        + (gain_slope / gain.max(f64::MIN_POSITIVE) * rms).powi(2) * var_omega;
+    at.fit = Some(SineFit {
+        frequency_hz,
+        frequency_u_hz: var_omega.sqrt() / to_omega,
+        amplitude,
+        amplitude_u: amplitude_var.max(0.0).sqrt(),
+        rms,
+        rms_u: rms_var.max(0.0).sqrt(),
+        noise_sd: s2.sqrt(),
+        unmodelled_sd: unmodelled_var.sqrt(),
+    });
+    Some(at)
+}
+
+/// One axis of a window: the samples' grid indices (increasing, holes allowed), their values,
+/// and the grid's length.
+pub struct Axis<'a> {
+    pub index: &'a [u32],
+    pub value: &'a [f64],
+    pub grid_len: u32,
+}
+
+impl Axis<'_> {
+    /// The window's moments at ω, origin at its first sample time and scale its length; with
+    /// the runs when `runs` (only the final fit needs them).
+    pub fn moments(&self, omega: f64, runs: bool) -> Moments {
+        let mut m = Moments::default();
+        let scale = 1.0 / f64::from(self.grid_len.max(1));
+        let Some(&first) = self.index.first() else {
+            return m;
+        };
+        // Rotating rather than calling sin_cos per sample: the grid is regular; holes are
+        // skipped over.
+        let (s0, c0) = (omega * f64::from(first)).sin_cos();
+        let (sw, cw) = omega.sin_cos();
+        let (mut c, mut s) = (c0, s0);
+        let mut at = first;
+        // The last five samples: (index, y, cos, sin); None before there were five.
+        let mut last: [Option<(u32, f64, f64, f64)>; 5] = [None; 5];
+        for (&k, &y) in self.index.iter().zip(self.value) {
+            while at < k {
+                (c, s) = (c * cw - s * sw, s * cw + c * sw);
+                at += 1;
+            }
+            m.sample(1.0, f64::from(k) * scale, c, s, y);
+            if runs {
+                last.rotate_left(1);
+                last[4] = Some((k, y, c, s));
+                if let [Some(l0), Some(l1), Some(l2), Some(l3), Some(l4)] = last {
+                    if l4.0 - l0.0 == 4 {
+                        let d = fourth_difference([l0.1, l1.1, l2.1, l3.1, l4.1]);
+                        m.run(1.0, d, l2.2, l2.3);
+                    }
+                }
+            }
+        }
+        m
+    }
+
+    fn geometry(&self, rate_hz: f64, highpass: Option<Response>) -> Geometry {
+        Geometry {
+            highpass,
+            rate_hz,
+            scale: f64::from(self.grid_len.max(1)),
+            grid_start: 0.0,
+            grid_len: self.grid_len,
+            largest: self.value.iter().fold(0.0f64, |m, v| m.max(v.abs())),
+        }
+    }
+}
+
+/// `y₀ − 4y₁ + 6y₂ − 4y₃ + y₄`.
+pub fn fourth_difference(y: [f64; 5]) -> f64 {
+    y[0] - 4.0 * y[1] + 6.0 * y[2] - 4.0 * y[3] + y[4]
 }
 
 /// Fits one sinusoid near `start_hz` (the spectrum's peak; `bin_hz` its resolution) to an axis
@@ -204,17 +407,34 @@ pub fn fit(
     bin_hz: f64,
     noise_bound: f64,
 ) -> Option<SineFit> {
+    search(axis, rate_hz, start_hz, bin_hz, noise_bound, None).and_then(|(_, f)| f)
+}
+
+/// [`fit`], with the sinusoid carried through `highpass`, and the ω (rad per sample) the
+/// search ended at, adequate or not; None when there is no minimum near the start.
+pub fn search(
+    axis: &Axis<'_>,
+    rate_hz: f64,
+    start_hz: f64,
+    bin_hz: f64,
+    noise_bound: f64,
+    highpass: Option<Response>,
+) -> Option<(f64, Option<SineFit>)> {
     let n = axis.index.len();
     if n < 32 || axis.value.len() != n {
         return None;
     }
-    let to_omega = 2.0 * std::f64::consts::PI / rate_hz;
+    let to_omega = std::f64::consts::TAU / rate_hz;
     let (mut lo, mut hi) = (
         (start_hz - bin_hz).max(0.5 * start_hz) * to_omega,
         (start_hz + bin_hz).min(0.5 * rate_hz) * to_omega,
     );
     let bracket = hi - lo;
-    let rss = |omega: f64| axis.solve(omega).map_or(f64::INFINITY, |(_, _, r)| r);
+    let rss = |omega: f64| {
+        axis.moments(omega, false)
+            .solve()
+            .map_or(f64::INFINITY, |(_, _, r)| r)
+    };
     let golden = (5f64.sqrt() - 1.0) / 2.0;
     let (mut x1, mut x2) = (hi - golden * (hi - lo), lo + golden * (hi - lo));
     let (mut f1, mut f2) = (rss(x1), rss(x2));
@@ -229,67 +449,38 @@ pub fn fit(
             f2 = rss(x2);
         }
     }
-    let mut omega = 0.5 * (lo + hi);
-    for _ in 0..NEWTON_STEPS {
-        let (beta, inv, _) = axis.solve(omega)?;
-        let (gr, xg, gg) = axis.omega_terms(omega, &beta);
-        let step = gr / (gg - (xg.transpose() * inv * xg)[0]);
-        // A step beyond the searched bracket (or not a number) means no minimum near the
-        // spectrum's peak: not one sway.
-        if step.is_nan() || step.abs() > bracket {
-            return None;
-        }
-        omega += step;
-    }
-    let (beta, inv, rss) = axis.solve(omega)?;
-    let (_, xg, gg) = axis.omega_terms(omega, &beta);
-    let perp = gg - (xg.transpose() * inv * xg)[0];
-    let grid_s = f64::from(axis.grid_len) / rate_hz;
-    let frequency_hz = omega / to_omega;
-    let cycles = frequency_hz * grid_s;
-    let usable = perp > 0.0 && cycles >= MIN_CYCLES && frequency_hz < 0.5 * rate_hz;
-    if !usable {
-        return None;
-    }
-    let s2 = rss / (n - 5) as f64;
-    let var_omega = s2 / perp;
-    let w = inv * xg;
-    let cov = inv * s2 + w * w.transpose() * var_omega;
-    let amplitude = beta[0].hypot(beta[1]);
-    if !(amplitude > 0.0 && amplitude.is_finite()) {
-        return None;
-    }
-    let h = Vector4::new(beta[0] / amplitude, beta[1] / amplitude, 0.0, 0.0);
-    let amplitude_var = (h.transpose() * cov * h)[0];
-
-    // Adequacy: the residual must look white; see the module documentation.
-    let sd_ratio = (3.25 / n as f64).sqrt();
-    let short = axis.short_scale_variance(omega, &beta)?;
-    // An exact sinusoid leaves only the rounding of the f32 samples (6·10⁻⁸ of the largest
-    // value), which is not white where the signal changes by less than a rounding step.
-    let largest = axis.value.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let exact = s2.sqrt() <= 1e-6 * largest;
-    let louder_than_noise = s2 > noise_bound * noise_bound * (1.0 + 4.0 * (2.0 / n as f64).sqrt());
-    if !exact && (s2 > short * (1.0 + 3.0 * sd_ratio) || louder_than_noise) {
-        return None;
-    }
-    let unmodelled_var = (s2 - short * (1.0 + 2.0 * sd_ratio)).max(0.0);
-
-    let (rms, grad) = axis.grid_rms(omega, beta[0], beta[1]);
-    let g = Vector4::new(grad[0], grad[1], 0.0, 0.0);
-    let rms_var = (g.transpose() * cov * g)[0];
-    Some(SineFit {
-        frequency_hz,
-        frequency_u_hz: var_omega.sqrt() / to_omega,
-        amplitude,
-        amplitude_u: amplitude_var.max(0.0).sqrt(),
-        rms,
-        rms_u: rms_var.max(0.0).sqrt(),
-        noise_sd: s2.sqrt(),
-        unmodelled_sd: unmodelled_var.sqrt(),
-    })
+    let geometry = axis.geometry(rate_hz, highpass);
+    let omega = newton(
+        0.5 * (lo + hi),
+        bracket,
+        NEWTON_STEPS,
+        |omega| axis.moments(omega, false),
+        &geometry,
+        noise_bound,
+    )?;
+    let at = fit_at(&axis.moments(omega, true), omega, &geometry, noise_bound)?;
+    Some((omega, at.fit))
 }
 
+/// Gauss–Newton steps from `omega`, each on the moments at the current ω; None when a step
+/// leaves `bracket` (no minimum near: not one sway) or is not a number.
+pub fn newton(
+    mut omega: f64,
+    bracket: f64,
+    steps: usize,
+    moments_at: impl Fn(f64) -> Moments,
+    geometry: &Geometry,
+    noise_bound: f64,
+) -> Option<f64> {
+    for _ in 0..steps {
+        let at = fit_at(&moments_at(omega), omega, geometry, noise_bound)?;
+        if at.step.is_nan() || at.step.abs() > bracket {
+            return None;
+        }
+        omega += at.step;
+    }
+    Some(omega)
+}
 #[cfg(test)]
 mod tests {
     use super::*;

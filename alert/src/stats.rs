@@ -59,6 +59,7 @@
 //! Frequencies are not moved by amplitude errors.
 
 use crate::decision::Estimate;
+use crate::highpass::Response;
 use crate::sinefit::{self, SineFit};
 use triax_client::normal;
 
@@ -94,6 +95,9 @@ pub struct Request {
     pub peak_threshold: Option<f64>,
     pub rms_threshold: Option<f64>,
     pub frequency: bool,
+    /// The vibration baseline's response, which a fitted sway is carried through; None: the
+    /// values are the motion as it is.
+    pub highpass: Option<Response>,
 }
 
 /// How a statistic was estimated, for the alert's statement.
@@ -151,11 +155,12 @@ struct AxisData {
     mean_square: f64,
     mean_abs: f64,
     /// Half the range of the acceleration itself: what the sinusoid fit, which does not use the
-    /// high pass, can see.
+    /// high-passed values, can see.
     accel_half_range: f64,
     /// Spectral peak of this axis: (frequency, power).
     spectral_peak: (f64, f64),
-    fit: Option<Option<SineFit>>,
+    /// The sinusoid search: None before it ran, then its outcome.
+    fit: Option<Option<(f64, Option<SineFit>)>>,
 }
 
 impl AxisData {
@@ -202,30 +207,39 @@ impl AxisData {
         }
     }
 
-    /// The sinusoid fit of this axis, computed once; None when not adequate.
-    fn fit(&mut self, request: &Request, bin_hz: f64) -> Option<SineFit> {
+    /// The sinusoid search of this axis, computed once: the ω it ended at and the fit if
+    /// adequate. The fit is to the acceleration itself (its offset and trend take the
+    /// baseline's place, and a change of motion leaves no filter transient in it) and is then
+    /// carried through the high pass's response at its frequency, so that it describes the
+    /// motion above the baseline as the high-passed samples do.
+    fn search(&mut self, request: &Request, bin_hz: f64) -> Option<(f64, Option<SineFit>)> {
         if self.fit.is_none() {
             let start_hz = self.spectral_peak.0;
             let rate = request.sample_rate_hz;
-            let fit = (start_hz > 0.0 && start_hz <= SINE_MAX_RATE_SHARE * rate)
+            let found = (start_hz > 0.0 && start_hz <= SINE_MAX_RATE_SHARE * rate)
                 .then(|| {
                     let axis = sinefit::Axis {
                         index: &self.index,
                         value: &self.accel,
                         grid_len: request.grid_len,
                     };
-                    sinefit::fit(&axis, rate, start_hz, bin_hz, self.mean_u)
+                    sinefit::search(&axis, rate, start_hz, bin_hz, self.mean_u, request.highpass)
                 })
                 .flatten()
-                .filter(|f| f.frequency_hz <= SINE_MAX_RATE_SHARE * rate);
-            self.fit = Some(fit);
+                .map(|(omega, f)| {
+                    (
+                        omega,
+                        f.filter(|f| f.frequency_hz <= SINE_MAX_RATE_SHARE * rate),
+                    )
+                });
+            self.fit = Some(found);
         }
         self.fit.flatten()
     }
 
-    /// The common (calibration) part of u, by the noise share.
-    fn common_u(&self, p: Propagation) -> f64 {
-        (1.0 - p.noise_share.clamp(0.0, 1.0)).sqrt() * self.mean_u
+    /// The sinusoid fit of this axis, computed once; None when not adequate.
+    fn fit(&mut self, request: &Request, bin_hz: f64) -> Option<SineFit> {
+        self.search(request, bin_hz).and_then(|(_, f)| f)
     }
 
     /// Cheap upper bound on the upper end `value + k·u` of anything the peak estimators can
@@ -418,42 +432,101 @@ pub fn window_stats(points: &[Point], request: &Request) -> Option<WindowStats> 
     })
 }
 
-fn peak_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> AxisEstimate {
+/// What the estimators need of one axis besides its fit and its samples' largest value: from
+/// the window's samples, or from the monitor's running sums of them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisSummary {
+    /// Largest |high-passed value|.
+    pub peak: f64,
+    /// Half the range of the acceleration, and its largest |value|.
+    pub half_range: f64,
+    pub largest_accel: f64,
+    /// Mean stated u.
+    pub mean_u: f64,
+    /// Mean square and mean absolute high-passed value.
+    pub mean_square: f64,
+    pub mean_abs: f64,
+}
+
+impl AxisSummary {
+    /// See [`AxisData::peak_bound`].
+    fn peak_bound(&self, k: f64) -> f64 {
+        upper_bound(self.peak.max(self.half_range), k, self.mean_u)
+    }
+
+    /// See [`AxisData::rms_bound`].
+    fn rms_bound(&self, k: f64) -> f64 {
+        upper_bound(self.mean_square.sqrt().max(self.half_range), k, self.mean_u)
+    }
+
+    /// The common (calibration) part of u, by the noise share.
+    fn common_u(&self, p: Propagation) -> f64 {
+        (1.0 - p.noise_share.clamp(0.0, 1.0)).sqrt() * self.mean_u
+    }
+}
+
+impl AxisData {
+    fn summary(&self) -> AxisSummary {
+        AxisSummary {
+            peak: self.peak,
+            half_range: self.accel_half_range,
+            largest_accel: self.accel.iter().fold(0.0f64, |m, a| m.max(a.abs())),
+            mean_u: self.mean_u,
+            mean_square: self.mean_square,
+            mean_abs: self.mean_abs,
+        }
+    }
+}
+
+/// A fitted sway's peak interval, before the common part: amplitude ± k·u, u with the
+/// unmodelled motion.
+fn fit_peak_interval(f: &SineFit, k: f64) -> (f64, f64, Method) {
+    let u = f.amplitude_u.hypot(f.unmodelled_sd);
+    (
+        f.amplitude - k * u,
+        f.amplitude + k * u,
+        Method::Sine {
+            frequency_hz: f.frequency_hz,
+            noise_mps2: f.noise_sd,
+        },
+    )
+}
+
+/// A fitted sway's RMS: (value, u of the fit, the common part's scale mean|v|/RMS, method).
+fn fit_rms(f: &SineFit, s: &AxisSummary) -> (f64, f64, f64, Method) {
+    let r = f.rms;
+    let gain_like = if r > 0.0 {
+        s.mean_abs / s.mean_square.sqrt().max(r)
+    } else {
+        1.0
+    };
+    (
+        r,
+        f.rms_u,
+        gain_like,
+        Method::Sine {
+            frequency_hz: f.frequency_hz,
+            noise_mps2: f.noise_sd,
+        },
+    )
+}
+
+/// The peak over the axes, from each axis's interval before the common part (`interval`,
+/// asked only of axes that can matter); None when `interval` has none for such an axis.
+fn peak_estimate_with(
+    summaries: &[AxisSummary; 3],
+    request: &Request,
+    mut interval: impl FnMut(usize) -> Option<(f64, f64, Method)>,
+) -> Option<AxisEstimate> {
     let k = request.k;
     let mut best: Option<(f64, f64, f64, usize, Method)> = None;
-    for (j, axis) in axes.iter_mut().enumerate() {
-        // An axis whose bound is far below the others' lower ends cannot be the peak; it is
-        // still cheap enough to skip only the fit.
-        if best.is_some_and(|b| axis.peak_bound(k) < b.0) {
+    for (j, summary) in summaries.iter().enumerate() {
+        // An axis whose bound is below the others' lower ends cannot be the peak.
+        if best.is_some_and(|b| summary.peak_bound(k) < b.0) {
             continue;
         }
-        let (lower, upper, method) = match axis.fit(request, bin_hz) {
-            Some(f) => {
-                let u = f.amplitude_u.hypot(f.unmodelled_sd);
-                (
-                    f.amplitude - k * u,
-                    f.amplitude + k * u,
-                    Method::Sine {
-                        frequency_hz: f.frequency_hz,
-                        noise_mps2: f.noise_sd,
-                    },
-                )
-            }
-            None => {
-                let (lower, upper, candidates) =
-                    axis.sample_peak_interval(k, request.sample_rate_hz, request.propagation);
-                (
-                    lower,
-                    upper,
-                    Method::Samples {
-                        noise_mps2: axis.noise,
-                        candidates,
-                    },
-                )
-            }
-        };
-        let common = axis.common_u(request.propagation);
-        let e = centred(lower, upper, common, k);
+        let (lower, upper, method) = interval(j)?;
+        let e = centred(lower, upper, summary.common_u(request.propagation), k);
         let (lo, hi) = (
             e.value - k * e.standard_uncertainty,
             e.value + k * e.standard_uncertainty,
@@ -472,48 +545,82 @@ fn peak_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> Ax
             }
         });
     }
-    // Axis 0 always runs: best is set.
-    let (lo, hi, _, axis, method) = best.unwrap_or((
-        0.0,
-        0.0,
-        0.0,
-        0,
-        Method::Samples {
-            noise_mps2: 0.0,
-            candidates: 0,
-        },
-    ));
-    AxisEstimate {
+    best.map(|(lo, hi, _, axis, method)| AxisEstimate {
         estimate: centred(lo, hi, 0.0, k),
         axis,
         method,
+    })
+}
+
+/// The RMS of the axis where it is largest, from each axis's (value, u, common part's scale,
+/// method) (`rms`, asked only of axes that can be the largest); None when `rms` has none for
+/// such an axis.
+fn rms_estimate_with(
+    summaries: &[AxisSummary; 3],
+    request: &Request,
+    mut rms: impl FnMut(usize) -> Option<(f64, f64, f64, Method)>,
+) -> Option<AxisEstimate> {
+    let mut best: Option<AxisEstimate> = None;
+    for (j, summary) in summaries.iter().enumerate() {
+        // The bound is above any value this axis can have: below the best, it cannot win.
+        if best.is_some_and(|b| summary.rms_bound(request.k) < b.estimate.value) {
+            continue;
+        }
+        let (value, u, gain_like, method) = rms(j)?;
+        let common = summary.common_u(request.propagation);
+        let e = AxisEstimate {
+            estimate: Estimate {
+                value,
+                standard_uncertainty: u.hypot(common * gain_like),
+            },
+            axis: j,
+            method,
+        };
+        if best.is_none_or(|b| e.estimate.value > b.estimate.value) {
+            best = Some(e);
+        }
     }
+    best
+}
+
+fn peak_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> AxisEstimate {
+    let k = request.k;
+    let summaries = [0, 1, 2].map(|j| axes[j].summary());
+    let estimate = peak_estimate_with(&summaries, request, |j| {
+        let axis = &mut axes[j];
+        Some(match axis.fit(request, bin_hz) {
+            Some(f) => fit_peak_interval(&f, k),
+            None => {
+                let (lower, upper, candidates) =
+                    axis.sample_peak_interval(k, request.sample_rate_hz, request.propagation);
+                (
+                    lower,
+                    upper,
+                    Method::Samples {
+                        noise_mps2: axis.noise,
+                        candidates,
+                    },
+                )
+            }
+        })
+    });
+    // Every axis has an interval, and the first always runs: the estimate is there.
+    estimate.unwrap_or(AxisEstimate {
+        estimate: centred(0.0, 0.0, 0.0, k),
+        axis: 0,
+        method: Method::Samples {
+            noise_mps2: 0.0,
+            candidates: 0,
+        },
+    })
 }
 
 fn rms_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> AxisEstimate {
-    let mut best: Option<AxisEstimate> = None;
-    for (j, axis) in axes.iter_mut().enumerate() {
-        let common = axis.common_u(request.propagation);
-        let e = match axis.fit(request, bin_hz) {
-            Some(f) => {
-                let r = f.rms;
-                let gain_like = if r > 0.0 {
-                    axis.mean_abs / axis.mean_square.sqrt().max(r)
-                } else {
-                    1.0
-                };
-                AxisEstimate {
-                    estimate: Estimate {
-                        value: r,
-                        standard_uncertainty: f.rms_u.hypot(common * gain_like),
-                    },
-                    axis: j,
-                    method: Method::Sine {
-                        frequency_hz: f.frequency_hz,
-                        noise_mps2: f.noise_sd,
-                    },
-                }
-            }
+    let summaries = [0, 1, 2].map(|j| axes[j].summary());
+    let estimate = rms_estimate_with(&summaries, request, |j| {
+        let axis = &mut axes[j];
+        Some(match axis.fit(request, bin_hz) {
+            Some(f) => fit_rms(&f, &summaries[j]),
             None => {
                 let n = axis.vibration.len() as f64;
                 let s2 = axis.noise * axis.noise;
@@ -531,25 +638,20 @@ fn rms_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> Axi
                 } else {
                     1.0
                 };
-                AxisEstimate {
-                    estimate: Estimate {
-                        value: r,
-                        standard_uncertainty: u_noise.hypot(common * gain_like),
-                    },
-                    axis: j,
-                    method: Method::Samples {
+                (
+                    r,
+                    u_noise,
+                    gain_like,
+                    Method::Samples {
                         noise_mps2: axis.noise,
                         candidates: axis.vibration.len(),
                     },
-                }
+                )
             }
-        };
-        if best.is_none_or(|b| e.estimate.value > b.estimate.value) {
-            best = Some(e);
-        }
-    }
-    // Three axes always run: best is set.
-    best.unwrap_or(AxisEstimate {
+        })
+    });
+    // Every axis has a value, and the first always runs: the estimate is there.
+    estimate.unwrap_or(AxisEstimate {
         estimate: Estimate {
             value: 0.0,
             standard_uncertainty: 0.0,
@@ -559,6 +661,67 @@ fn rms_estimate(axes: &mut [AxisData; 3], request: &Request, bin_hz: f64) -> Axi
             noise_mps2: 0.0,
             candidates: 0,
         },
+    })
+}
+
+/// Peak and RMS of a window whose swaying axes are fitted already (the monitor's sway
+/// tracker): the same estimates as [`window_stats`], from the axes' `summaries` and `fit(j)`,
+/// which is asked only of axes that can reach a threshold or be the largest. None when such an
+/// axis has no adequate fit, or a frequency is wanted: then [`window_stats`] decides.
+pub fn stats_from_fits(
+    summaries: &[AxisSummary; 3],
+    n_samples: usize,
+    request: &Request,
+    mut fit: impl FnMut(usize) -> Option<SineFit>,
+) -> Option<WindowStats> {
+    let k = request.k;
+    if request.frequency && n_samples >= MIN_FREQUENCY_SAMPLES {
+        return None;
+    }
+    let wants_peak = request
+        .peak_threshold
+        .is_some_and(|t| summaries.iter().any(|a| a.peak_bound(k) >= t));
+    let wants_rms = request
+        .rms_threshold
+        .is_some_and(|t| summaries.iter().any(|a| a.rms_bound(k) >= t));
+    let peak = if wants_peak {
+        Some(peak_estimate_with(summaries, request, |j| {
+            fit(j).map(|f| fit_peak_interval(&f, k))
+        })?)
+    } else {
+        None
+    };
+    let rms = if wants_rms {
+        Some(rms_estimate_with(summaries, request, |j| {
+            fit(j).map(|f| fit_rms(&f, &summaries[j]))
+        })?)
+    } else {
+        None
+    };
+    Some(WindowStats {
+        n_samples,
+        vibration_rms_mps2: summaries
+            .iter()
+            .map(|a| a.mean_square.sqrt())
+            .fold(0.0, f64::max),
+        peak,
+        rms,
+        dominant_frequency: None,
+    })
+}
+
+/// Where the sinusoid search of each axis of `points` converged (ω in rad per sample), for
+/// axes whose fit there is adequate: the frequencies a sway tracker starts from.
+pub fn sway_frequencies(points: &[Point], request: &Request) -> [Option<f64>; 3] {
+    if points.len() < MIN_FREQUENCY_SAMPLES {
+        return [None; 3];
+    }
+    let mut axes: [AxisData; 3] = [0, 1, 2].map(|j| AxisData::gather(points, j));
+    let (_, bin_hz) = spectral_peaks(&mut axes, request.sample_rate_hz);
+    [0, 1, 2].map(|j| {
+        axes[j]
+            .search(request, bin_hz)
+            .and_then(|(omega, f)| f.map(|_| omega))
     })
 }
 
@@ -644,6 +807,7 @@ mod tests {
             peak_threshold: Some(0.0),
             rms_threshold: Some(0.0),
             frequency: true,
+            highpass: None,
         }
     }
 

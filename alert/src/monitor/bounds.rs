@@ -11,7 +11,7 @@
 
 use std::collections::VecDeque;
 
-use crate::stats::upper_bound;
+use crate::stats::{upper_bound, AxisSummary};
 
 /// Sliding maximum over samples that leave in the order they entered.
 #[derive(Debug, Default, Clone)]
@@ -47,6 +47,9 @@ struct AxisBounds {
     /// Of −a: the smallest acceleration.
     accel_min: SlidingMax,
     sum_sq_vibration: f64,
+    /// Sums of |vibration| and of u: the means the estimators use.
+    sum_abs_vibration: f64,
+    sum_u: f64,
     u_max: SlidingMax,
 }
 
@@ -78,12 +81,14 @@ impl WindowBounds {
             axis.accel_max.push(t_ns, a);
             axis.accel_min.push(t_ns, -a);
             axis.sum_sq_vibration += v * v;
+            axis.sum_abs_vibration += v.abs();
+            axis.sum_u += f64::from(u[j]);
             axis.u_max.push(t_ns, f64::from(u[j]));
         }
     }
 
     /// A usable sample, pushed before, left the window.
-    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3], flagged: bool) {
+    pub(super) fn pop(&mut self, t_ns: i64, vibration: [f32; 3], u: [f32; 3], flagged: bool) {
         self.count = self.count.saturating_sub(1);
         self.flagged = self.flagged.saturating_sub(usize::from(flagged));
         for (j, axis) in self.axes.iter_mut().enumerate() {
@@ -95,10 +100,31 @@ impl WindowBounds {
             // A sum that goes up and down by the same values drifts only by rounding; never
             // below 0.
             axis.sum_sq_vibration = (axis.sum_sq_vibration - v * v).max(0.0);
+            axis.sum_abs_vibration = (axis.sum_abs_vibration - v.abs()).max(0.0);
+            axis.sum_u = (axis.sum_u - f64::from(u[j])).max(0.0);
             if self.count == 0 {
                 axis.sum_sq_vibration = 0.0;
+                axis.sum_abs_vibration = 0.0;
+                axis.sum_u = 0.0;
             }
         }
+    }
+
+    /// What the estimators need of each axis, as [`crate::stats`] would gather it from the
+    /// same samples.
+    pub(super) fn summaries(&self) -> [AxisSummary; 3] {
+        let n = self.count.max(1) as f64;
+        self.axes.each_ref().map(|a| AxisSummary {
+            peak: a.abs_vibration.max().unwrap_or(0.0),
+            half_range: Self::half_range(a),
+            largest_accel: match (a.accel_max.max(), a.accel_min.max()) {
+                (Some(hi), Some(neg_lo)) => hi.abs().max(neg_lo.abs()),
+                _ => 0.0,
+            },
+            mean_u: a.sum_u / n,
+            mean_square: a.sum_sq_vibration / n,
+            mean_abs: a.sum_abs_vibration / n,
+        })
     }
 
     pub(super) fn clear(&mut self) {
@@ -169,7 +195,7 @@ mod tests {
             window.push_back((i, accel, vibration));
             if window.len() > len {
                 let (t, _, v) = window.pop_front().unwrap();
-                b.pop(t, v, false);
+                b.pop(t, v, u_at(t), false);
             }
             let n = window.len() as f64;
             let mut peak_expected = 0.0f64;

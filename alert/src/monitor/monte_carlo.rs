@@ -3,7 +3,9 @@
 //!
 //! Each batch is one whole window (4 s), so every judged window has noise of its own and the
 //! rates below are of independent windows. The high pass is set to 1 Hz to settle within the
-//! first batch: the sines are judged by their fit, which does not use it.
+//! first batch; the truth is the motion above it, the sine carried through the filter
+//! ([`truth_gain`]): at 0.75 Hz that is half the sine, a strong check that the fit is carried
+//! through the filter's response.
 //!
 //! With each limit set exactly at the truth, the alert a window raises tells where its interval
 //! lies: `possible` means the interval holds the truth, `exceeded` that it lies wholly above it
@@ -101,10 +103,23 @@ impl Stream {
     }
 }
 
+/// The vibration baseline of these runs.
+const HIGHPASS_HZ: f64 = 1.0;
+
+/// What the motion above the baseline is of a steady sine at `frequency_hz`: the high pass's
+/// gain there (the digital filter's own).
+fn truth_gain(frequency_hz: f64) -> f64 {
+    let omega = std::f64::consts::TAU * frequency_hz / RATE_HZ;
+    crate::highpass::HighPass::new(HIGHPASS_HZ, RATE_HZ)
+        .response()
+        .at(omega)
+        .0
+}
+
 fn monitor(noise_share: f64, limits: &str) -> Monitor {
     let config = Config::from_toml(&format!(
         "window_s = {WINDOW_S}\nstale_after_s = 1e9\nrepeat_interval_s = 0.0\n\
-         highpass_hz = 1.0\nnoise_share = {noise_share}\n\
+         highpass_hz = {HIGHPASS_HZ}\nnoise_share = {noise_share}\n\
          [buildings.hq.sensors.mc]\n{limits}\n"
     ))
     .expect("valid configuration");
@@ -166,9 +181,10 @@ fn intervals_cover_the_truth_at_the_limit() {
                     offset,
                     sigma,
                 };
+                let peak = amplitude * truth_gain(frequency_hz);
                 let limits = format!(
-                    "pga_mps2 = {amplitude}\nrms_mps2 = {}\nfrequency_above_hz = {frequency_hz}",
-                    amplitude / 2f64.sqrt()
+                    "pga_mps2 = {peak}\nrms_mps2 = {}\nfrequency_above_hz = {frequency_hz}",
+                    peak / 2f64.sqrt()
                 );
                 run(&stream, 1.0, &limits, 100, &mut rng, &mut tallies, &kinds);
             }
@@ -218,12 +234,17 @@ fn no_false_exceeded_at_or_below_the_limit() {
                     offset,
                     sigma: 0.01,
                 };
-                let at = format!("pga_mps2 = 0.97\nfrequency_above_hz = {frequency_hz}");
+                let gain = truth_gain(frequency_hz);
+                let at = format!(
+                    "pga_mps2 = {}\nfrequency_above_hz = {frequency_hz}",
+                    0.97 * gain
+                );
                 run(&stream, 1.0, &at, 1000, &mut rng, &mut at_limit, &kinds);
                 run(&stream, 0.0, &at, 100, &mut rng, &mut default_share, &kinds);
                 // u(A) = σ·√(2/n) ≈ 0.0007 here, k·u ≈ 0.0014: 0.98 is seven k·u above.
                 let above = format!(
-                    "pga_mps2 = 0.98\nfrequency_above_hz = {}",
+                    "pga_mps2 = {}\nfrequency_above_hz = {}",
+                    0.98 * gain,
                     frequency_hz * 1.01
                 );
                 run(&stream, 1.0, &above, 100, &mut rng, &mut below, &kinds);
