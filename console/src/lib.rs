@@ -223,7 +223,9 @@ pub async fn serve(
             action: "subscribe to heartbeats and alerts",
             message: e.to_string(),
         })?;
-    let modes = Arc::new(std::sync::Mutex::new(modes::ModesBook::default()));
+    let modes = Arc::new(std::sync::Mutex::new(modes::ModesBook::new(
+        options.buildings.clone(),
+    )));
     let _modes_watch = modes::watch(&session, &modes)
         .await
         .map_err(|e| ConsoleError::Zenoh {

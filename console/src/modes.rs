@@ -5,7 +5,9 @@
 //! their shapes.
 //!
 //! The modal service keeps the durable record; the console only remembers what it heard, a
-//! fortnight of 30-minute windows per building at most ([`MAX_WINDOWS`]), and says since when.
+//! fortnight of 30-minute windows per building at most ([`MAX_WINDOWS`]) and as many buildings
+//! as the fleet view ([`crate::fleet::MAX_BUILDINGS`]; only the watched ones when the console
+//! is given a list), and says since when.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex};
@@ -21,8 +23,12 @@ pub const MAX_WINDOWS: usize = 672;
 #[derive(Debug, Default)]
 pub struct ModesBook {
     buildings: BTreeMap<BuildingId, VecDeque<BuildingModes>>,
+    /// Buildings to keep; every building (up to the bound) when empty.
+    watched: Vec<BuildingId>,
     /// Messages on a modes key that did not decode, or named another building than their key.
     pub malformed: u64,
+    /// Windows of buildings beyond [`crate::fleet::MAX_BUILDINGS`], not kept.
+    pub dropped: u64,
 }
 
 fn direction(d: ModalDirection) -> &'static str {
@@ -53,6 +59,14 @@ fn number(v: f64) -> Value {
 }
 
 impl ModesBook {
+    /// A book of the `watched` buildings' modes (every building's when empty).
+    pub fn new(watched: Vec<BuildingId>) -> ModesBook {
+        ModesBook {
+            watched,
+            ..ModesBook::default()
+        }
+    }
+
     /// Takes a message heard on `key`; a repeated window (the service identified it again after
     /// a restart) replaces the one before.
     pub fn on_message(&mut self, key: &str, payload: &[u8]) {
@@ -65,6 +79,15 @@ impl ModesBook {
             self.malformed += 1;
             return;
         };
+        if !self.watched.is_empty() && !self.watched.contains(&modes.building) {
+            return;
+        }
+        if !self.buildings.contains_key(&modes.building)
+            && self.buildings.len() >= crate::fleet::MAX_BUILDINGS
+        {
+            self.dropped += 1;
+            return;
+        }
         let windows = self.buildings.entry(modes.building.clone()).or_default();
         if let Some(same) = windows
             .iter_mut()
@@ -164,6 +187,7 @@ impl ModesBook {
             "refused_since_latest": refused_after,
             "last_refusal": last_refusal.map(|(t, r)| json!({"start_ns": t, "reason": r})),
             "malformed": self.malformed,
+            "dropped": self.dropped,
         })
     }
 }
@@ -184,4 +208,55 @@ pub async fn watch(
             b.on_message(sample.key_expr().as_str(), &payload);
         })
         .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use time::OffsetDateTime;
+
+    fn window(building: &str, start_ns: i64) -> Vec<u8> {
+        triax_protocol::to_json(&BuildingModes {
+            format_version: triax_protocol::JSON_FORMAT_VERSION,
+            building: BuildingId::new(building).unwrap(),
+            window_start_ns: start_ns,
+            window_end_ns: start_ns + 10,
+            sample_rate_hz: 100.0,
+            identification_rate_hz: 0.0,
+            sensors: Vec::new(),
+            temperature_c: None,
+            regressors: Vec::new(),
+            tracked: false,
+            modes: Vec::new(),
+            unquantified: Vec::new(),
+            refused: Some("test".into()),
+            late: false,
+            identified_at: OffsetDateTime::UNIX_EPOCH,
+        })
+    }
+
+    #[test]
+    fn bounded_in_windows_and_buildings_and_watched_only_when_asked() {
+        let mut book = ModesBook::default();
+        for i in 0..(MAX_WINDOWS as i64 + 5) {
+            book.on_message("triax/a/modes", &window("a", i * 10));
+        }
+        let v = book.view(&BuildingId::new("a").unwrap());
+        assert_eq!(v["windows"], MAX_WINDOWS);
+        assert_eq!(v["first_start_ns"], 50, "the oldest go first");
+        for b in 0..crate::fleet::MAX_BUILDINGS + 3 {
+            let id = format!("b{b}");
+            book.on_message(&format!("triax/{id}/modes"), &window(&id, 0));
+        }
+        assert_eq!(book.buildings().len(), crate::fleet::MAX_BUILDINGS);
+        assert_eq!(book.dropped, 4, "a is one of the thousand");
+        book.on_message("triax/a/modes", b"not json");
+        book.on_message("triax/a/modes", &window("b", 0));
+        assert_eq!(book.malformed, 2);
+
+        let mut watched = ModesBook::new(vec![BuildingId::new("hq").unwrap()]);
+        watched.on_message("triax/other/modes", &window("other", 0));
+        watched.on_message("triax/hq/modes", &window("hq", 0));
+        assert_eq!(watched.buildings(), vec![BuildingId::new("hq").unwrap()]);
+    }
 }
