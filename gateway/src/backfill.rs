@@ -34,8 +34,7 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use triax_history::History;
 use triax_protocol::{BuildingId, Key, RawBatchView, SensorId};
-use zenoh::handlers::FifoChannel;
-use zenoh::qos::Priority;
+use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::ConsolidationMode;
 use zenoh::Wait;
 
@@ -258,41 +257,79 @@ fn holes_of(ctx: &Context, sensor: &SensorId, need: Need) -> Vec<Hole> {
     }
 }
 
-/// Fills one hole: query, check, correct in chunks. Runs on a blocking thread.
+/// Fills a request's holes: query, check, correct in chunks; then asks again, up to
+/// [`ATTEMPTS`] times in all, for numbers still missing, as long as the last round brought
+/// something (a reply lost on a busy link comes again; a number the buffer does not hold does
+/// not). Runs on a blocking thread.
 fn fill(ctx: &Context, request: Request) {
     let Request { sensor, need } = request;
-    for hole in holes_of(ctx, &sensor, need) {
-        fill_hole(ctx, &sensor, hole);
+    let mut holes = holes_of(ctx, &sensor, need);
+    for _ in 0..ATTEMPTS {
+        let mut left = Vec::new();
+        let mut got = 0;
+        for hole in holes {
+            let filled = fill_hole(ctx, &sensor, hole);
+            got += filled.received;
+            left.extend(filled.missing);
+        }
+        if left.is_empty() || got == 0 {
+            return;
+        }
+        holes = left;
     }
 }
 
-fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
+/// Queries for one hole, in all: the first and the retries of what is still missing.
+pub const ATTEMPTS: usize = 3;
+
+/// What a query for one hole brought.
+struct Filled {
+    received: usize,
+    /// Numbers still missing, as holes of their own (with no state: a retried stretch starts
+    /// its filters afresh, and its first batch carries `sequence_gap` if numbers before it
+    /// were filled already).
+    missing: Vec<Hole>,
+}
+
+fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
     let c = &ctx.counters;
     let wanted = hole.to_seq - hole.from_seq + 1;
     if wanted > ctx.settings.max_batches {
         hole.from_seq = hole.to_seq + 1 - ctx.settings.max_batches;
     }
-    c.wanted_batches
-        .fetch_add(hole.to_seq - hole.from_seq + 1, Relaxed);
+    let wanted = hole.to_seq - hole.from_seq + 1;
+    c.wanted_batches.fetch_add(wanted, Relaxed);
     let key = Key::Buffer(ctx.building.clone(), sensor.clone()).to_string();
     let selector = format!("{key}?from_seq={};to_seq={}", hole.from_seq, hole.to_seq);
     c.queries.fetch_add(1, Relaxed);
-    let replies = match ctx
+    // Zenoh's receive thread hands replies over and never waits: a full queue would stall the
+    // live stream on the same link. Room for every batch asked (at most `max_batches`) and a
+    // few errors; a node that sends more is cut off, counted.
+    let (tx, replies) = std::sync::mpsc::sync_channel(wanted as usize + 16);
+    let overflow = Arc::new(AtomicU64::new(0));
+    let o = overflow.clone();
+    let sent = ctx
         .session
         .get(&selector)
         .consolidation(ConsolidationMode::None)
         .priority(Priority::DataLow)
+        // Replies go at the query's congestion control: blocked, not dropped, on a busy link.
+        .congestion_control(CongestionControl::Block)
         .timeout(ctx.settings.timeout)
-        .with(FifoChannel::new(CHUNK * 4))
-        .wait()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            c.failed_queries.fetch_add(1, Relaxed);
-            tracing::warn!(sensor = %sensor, cause = %e, "backfill query not sent");
-            return;
-        }
-    };
+        .callback(move |reply| {
+            if tx.try_send(reply).is_err() {
+                o.fetch_add(1, Relaxed);
+            }
+        })
+        .wait();
+    if let Err(e) = sent {
+        c.failed_queries.fetch_add(1, Relaxed);
+        tracing::warn!(sensor = %sensor, cause = %e, "backfill query not sent");
+        return Filled {
+            received: 0,
+            missing: Vec::new(),
+        };
+    }
     let settings = ctx.shared.table.settings_of(sensor);
     let kernel = match hole.state.as_deref() {
         Some(bytes) => SensorKernel::restore(bytes).unwrap_or_else(|| SensorKernel::new(settings)),
@@ -304,8 +341,11 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
         checkpoint_due: true,
     };
     let mut chunk: Vec<Vec<u8>> = Vec::with_capacity(CHUNK);
-    let mut next_seq = hole.from_seq;
     let mut errors = 0u64;
+    // The last batch taken (number and time): where the next must lie beyond, and the edge of
+    // what is still missing.
+    let mut last: Option<(u64, i64)> = None;
+    let mut missing = Vec::new();
     let shard = &ctx.shards[worker::shard(sensor.as_str(), ctx.shards.len())];
     let flush = |chunk: &mut Vec<Vec<u8>>, run: &mut LateRun| {
         if chunk.is_empty() {
@@ -324,6 +364,8 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
         }
         chunk.clear();
     };
+    let mut received = 0;
+    // Ends when Zenoh drops the callback: the query's end.
     while let Ok(reply) = replies.recv() {
         let sample = match reply.result() {
             Ok(s) => s,
@@ -334,30 +376,54 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) {
             }
         };
         let payload = sample.payload().to_bytes();
-        let fits = sample.key_expr().as_str() == key
-            && RawBatchView::parse(&payload).is_ok_and(|v| {
-                let h = &v.header;
-                &h.sensor_id == sensor
-                    && (next_seq..=hole.to_seq).contains(&h.sequence)
-                    && h.timestamp_ns > hole.after_ns
-                    && h.timestamp_ns < hole.before_ns
+        let after = last.map_or((hole.from_seq, hole.after_ns), |(seq, ts)| (seq + 1, ts));
+        // The sensor's key, a raw batch of that sensor, numbered and stamped after the last
+        // one taken and inside the hole.
+        let batch = RawBatchView::parse(&payload)
+            .ok()
+            .filter(|v| &v.header.sensor_id == sensor && sample.key_expr().as_str() == key)
+            .map(|v| (v.header.sequence, v.header.timestamp_ns))
+            .filter(|&(seq, ts)| {
+                (after.0..=hole.to_seq).contains(&seq) && ts > after.1 && ts < hole.before_ns
             });
-        if !fits {
+        let Some((seq, ts)) = batch else {
             c.rejected.fetch_add(1, Relaxed);
             continue;
+        };
+        if seq > after.0 {
+            missing.push(Hole {
+                from_seq: after.0,
+                to_seq: seq - 1,
+                after_ns: after.1,
+                before_ns: ts,
+                state: None,
+            });
         }
-        // Checked just above.
-        next_seq = RawBatchView::parse(&payload).map_or(next_seq, |v| v.header.sequence + 1);
+        last = Some((seq, ts));
+        received += 1;
         chunk.push(payload.into_owned());
         if chunk.len() == CHUNK {
             flush(&mut chunk, &mut run);
         }
     }
     flush(&mut chunk, &mut run);
+    let (next_seq, after_ns) = last.map_or((hole.from_seq, hole.after_ns), |(s, t)| (s + 1, t));
+    if next_seq <= hole.to_seq {
+        missing.push(Hole {
+            from_seq: next_seq,
+            to_seq: hole.to_seq,
+            after_ns,
+            before_ns: hole.before_ns,
+            state: None,
+        });
+    }
+    let cut_off = overflow.load(Relaxed);
+    c.rejected.fetch_add(cut_off, Relaxed);
     if errors > 0 {
         c.failed_queries.fetch_add(1, Relaxed);
     }
-    tracing::debug!(sensor = %sensor, from_seq = hole.from_seq, to_seq = hole.to_seq, got = next_seq - hole.from_seq, "backfill done");
+    tracing::debug!(sensor = %sensor, from_seq = hole.from_seq, to_seq = hole.to_seq, received, cut_off, "backfill query done");
+    Filled { received, missing }
 }
 
 /// A hole being filled: its own kernel, the number expected next, and whether the next late

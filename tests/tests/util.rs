@@ -321,12 +321,19 @@ pub struct Buffer {
     held: Arc<Mutex<Held>>,
     /// While true, answers wait (a node slow to answer, or the test ordering events).
     paused: Arc<(Mutex<bool>, std::sync::Condvar)>,
+    /// Replies still to be lost (a busy link): each answer skips its middle batch while any are.
+    lose: Arc<std::sync::atomic::AtomicUsize>,
 }
 
 impl Buffer {
     /// Answers wait from now until [`Buffer::answer`].
     pub fn pause(&self) {
         *self.paused.0.lock().unwrap() = true;
+    }
+
+    /// The next `n` answers of two batches or more each lose their middle batch.
+    pub fn lose_replies(&self, n: usize) {
+        self.lose.store(n, std::sync::atomic::Ordering::Relaxed);
     }
 
     pub fn answer(&self) {
@@ -348,7 +355,7 @@ impl Buffer {
         session: &zenoh::Session,
         building: &str,
     ) -> zenoh::query::Queryable<()> {
-        let (held, paused) = (self.held.clone(), self.paused.clone());
+        let (held, paused, lose) = (self.held.clone(), self.paused.clone(), self.lose.clone());
         session
             .declare_queryable(format!("triax/{building}/buffer/*"))
             .callback(move |q| {
@@ -356,12 +363,23 @@ impl Buffer {
                 let p = q.parameters();
                 let from: u64 = p.get("from_seq").unwrap().parse().unwrap();
                 let to: u64 = p.get("to_seq").unwrap().parse().unwrap();
-                let batches: Vec<Vec<u8>> = held
+                let mut batches: Vec<Vec<u8>> = held
                     .lock()
                     .unwrap()
                     .range((sensor.clone(), from)..=(sensor.clone(), to))
                     .map(|(_, b)| b.clone())
                     .collect();
+                let lost = batches.len() >= 2
+                    && lose
+                        .fetch_update(
+                            std::sync::atomic::Ordering::Relaxed,
+                            std::sync::atomic::Ordering::Relaxed,
+                            |n| n.checked_sub(1),
+                        )
+                        .is_ok();
+                if lost {
+                    batches.remove(batches.len() / 2);
+                }
                 let key = q.key_expr().clone();
                 // Replies in order, from a thread of its own: Zenoh's callback must not block.
                 let paused = paused.clone();

@@ -10,6 +10,8 @@
 //!   lose 30 batches each on the link; the gateway fetches them, publishes them `late` with the
 //!   bytes an uninterrupted gateway published (but for the flag), the history holds every batch
 //!   once, and a replay gives back every published byte, late and live.
+//! - `replies_lost_on_the_way_are_asked_again`: an answer that lacks a batch (lost on a busy
+//!   link) is followed by a query for what is still missing.
 //! - `what_a_gateway_missed_while_down_is_fetched_when_it_starts`: batches sent while the
 //!   gateway was stopped reach its history after the restart, once each, and replay exactly.
 
@@ -391,6 +393,46 @@ async fn what_a_gateway_missed_while_down_is_fetched_when_it_starts() {
             "{id}: the replay is what was published, live and late"
         );
     }
+    gw.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replies_lost_on_the_way_are_asked_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    seed_store(&store, &[sample::record(DYNAMIC, 1)]);
+    let gw = start(config("hbl", &store)).await;
+    let node = client(&gw.endpoint).await;
+    let buffer = Buffer::default();
+    let _queryable = buffer.serve(&node, "hbl").await;
+    // The first answer loses its middle batch.
+    buffer.lose_replies(1);
+    let (published, _sub) = subscribe(&node, "hbl").await;
+    let p = node
+        .declare_publisher(key_raw("hbl", DYNAMIC))
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
+    wait_matching(&p).await;
+    for seq in 0..60 {
+        let payload = signal(DYNAMIC, seq);
+        buffer.keep(DYNAMIC, seq, &payload);
+        if !(10..40).contains(&seq) {
+            p.put(payload).await.unwrap();
+        }
+    }
+    wait_late(&published, DYNAMIC, 30).await;
+    wait_history_holds(&node, "hbl", DYNAMIC, 59).await;
+    let mut seqs: Vec<u64> = replay(&node, "hbl", DYNAMIC)
+        .await
+        .iter()
+        .map(|p| CorrectedBatch::decode(p).unwrap().header.sequence)
+        .collect();
+    seqs.sort_unstable();
+    assert_eq!(seqs, (0..60).collect::<Vec<_>>(), "every batch kept once");
+    let b = status(&node, "hbl").await.backfill.unwrap();
+    // The hole, then the one batch still missing.
+    assert_eq!((b.queries, b.wanted_batches, b.late_batches), (2, 31, 30), "{b:?}");
     gw.stop().await;
 }
 

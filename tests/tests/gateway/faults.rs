@@ -156,6 +156,70 @@ fn holds_all(handed: &Handed, sensor: &str, next: u64) -> bool {
     seen.iter().all(|s| *s)
 }
 
+/// The numbers below `next` the consumer lacks, as ranges.
+fn missing(handed: &Handed, sensor: &str, next: u64) -> Vec<std::ops::RangeInclusive<u64>> {
+    let h = handed.lock().unwrap();
+    let mut seen = vec![false; next as usize];
+    for (seq, _) in h.get(sensor).into_iter().flatten() {
+        if let Some(s) = seen.get_mut(*seq as usize) {
+            *s = true;
+        }
+    }
+    ranges((0..next).filter(|&i| !seen[i as usize]))
+}
+
+fn ranges(numbers: impl Iterator<Item = u64>) -> Vec<std::ops::RangeInclusive<u64>> {
+    let mut out: Vec<std::ops::RangeInclusive<u64>> = Vec::new();
+    for n in numbers {
+        match out.last_mut() {
+            Some(r) if *r.end() + 1 == n => *r = *r.start()..=n,
+            _ => out.push(n..=n),
+        }
+    }
+    out
+}
+
+/// The numbers below `next` the gateway's history lacks, as ranges.
+async fn missing_in_history(
+    session: &zenoh::Session,
+    sensor: &str,
+    next: u64,
+) -> Vec<std::ops::RangeInclusive<u64>> {
+    let mut request = HistoryRequest::sensor(
+        &BuildingId::new(BUILDING).unwrap(),
+        &SensorId::new(sensor).unwrap(),
+    );
+    request.to_seq = Some(next.saturating_sub(1));
+    let mut kept = vec![false; next as usize];
+    let _ = fetch(session, &request, TIMEOUT, &mut |r| {
+        if let Some(k) = kept.get_mut(r.batch.header.sequence as usize) {
+            *k = true;
+        }
+    })
+    .await;
+    ranges((0..next).filter(|&i| !kept[i as usize]))
+}
+
+/// The gateway's backfill counters and its sensors' gaps, for a failure's message.
+async fn gateway_counters(session: &zenoh::Session) -> String {
+    let Ok(replies) = session
+        .get(format!("triax/{BUILDING}/status"))
+        .timeout(Duration::from_secs(5))
+        .await
+    else {
+        return "no status".into();
+    };
+    match replies
+        .recv_async()
+        .await
+        .ok()
+        .and_then(|r| r.result().ok().cloned())
+    {
+        Some(sample) => String::from_utf8_lossy(&sample.payload().to_bytes()).into_owned(),
+        None => "no status".into(),
+    }
+}
+
 /// A node's next sequence number, from its buffer's status.
 async fn next_sequence(session: &zenoh::Session, sensor: &str) -> Option<u64> {
     let replies = session
@@ -315,10 +379,18 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
             wanted.push((s, next));
         }
         for (s, next) in wanted {
-            wait_until(&format!("the consumer to hold {s} below #{next}"), || {
-                holds_all(&handed, s, next)
-            })
-            .await;
+            let deadline = Instant::now() + TIMEOUT;
+            while !holds_all(&handed, s, next) {
+                if Instant::now() > deadline {
+                    panic!(
+                        "the consumer lacks {s} {:?} below #{next}; the history lacks {:?}; {}",
+                        missing(&handed, s, next),
+                        missing_in_history(&consumer, s, next).await,
+                        gateway_counters(&consumer).await
+                    );
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
         }
     };
     caught_up(consumer.clone(), handed.clone()).await;
