@@ -22,6 +22,9 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use rand::SeedableRng;
+use rand_distr::Distribution;
+
 use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
 use triax_protocol::messages::{AlertKind, AlertLevel, Heartbeat};
 use triax_protocol::signing::{read_alert, TrustedKeys};
@@ -90,7 +93,14 @@ fn rss_mib(pid: u32) -> f64 {
         / 1024.0
 }
 
-fn batch(sensor: &SensorId, seq: u64, t0_ns: i64, amplitude: f32) -> Vec<u8> {
+fn batch(
+    sensor: &SensorId,
+    seq: u64,
+    t0_ns: i64,
+    amplitude: f32,
+    rng: &mut rand::rngs::StdRng,
+) -> Vec<u8> {
+    let noise = rand_distr::Normal::new(0.0, 0.01).expect("finite deviation");
     CorrectedBatch {
         header: BatchHeader {
             sensor_id: sensor.clone(),
@@ -106,13 +116,15 @@ fn batch(sensor: &SensorId, seq: u64, t0_ns: i64, amplitude: f32) -> Vec<u8> {
         },
         samples: (0..10)
             .map(|i| {
-                let t = (seq * 10 + i) as f32 / 100.0;
+                // The phase in f64 from the sample's index: an f32 time loses the phase's
+                // precision within minutes, and the sway would not be one sinusoid.
+                let t = (seq * 10 + i) as f64 / 100.0;
+                let x = f64::from(amplitude) * (std::f64::consts::TAU * 1.3 * t).sin();
+                // White noise at the stated u, as a sensor has: without it the samples are a
+                // sinusoid to their rounding, which no fit judges as noise.
+                let mut e = || noise.sample(rng) as f32;
                 CorrectedSample {
-                    accel_mps2: [
-                        amplitude * (2.0 * std::f32::consts::PI * 1.3 * t).sin(),
-                        0.0,
-                        9.81,
-                    ],
+                    accel_mps2: [x as f32 + e(), e(), 9.81 + e()],
                     uncertainty_mps2: [0.01; 3],
                     flags: 0,
                 }
@@ -242,6 +254,7 @@ async fn main() {
     let mut next_event = FIRST_EVENT_S;
     let mut next_beat = 0.0;
     let mut event_sensor = 7usize;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(1);
     while start.elapsed().as_secs_f64() < a.seconds {
         let now_s = start.elapsed().as_secs_f64();
         if now_s >= next_beat {
@@ -275,7 +288,7 @@ async fn main() {
                 next_event += 1.0;
                 event_sensor = (event_sensor * 7919 + 13) % total;
             }
-            let _ = p.put(batch(s, seq[i], t0_ns, amplitude)).await;
+            let _ = p.put(batch(s, seq[i], t0_ns, amplitude, &mut rng)).await;
             seq[i] += 1;
             next += 1;
             sent += 1;
