@@ -211,8 +211,22 @@ impl Aggregator {
         self.slots.get_mut(usize::try_from(i).ok()?)
     }
 
-    /// Adds one batch: samples inside the range go into their buckets; every batch moves the
-    /// stream's position, which is what gaps are judged against.
+    /// A late batch over `[start_ns, end_ns)`: a sequence gap it starts (within half a period)
+    /// now starts after it; one it fills whole is gone.
+    fn fill_gap(&mut self, start_ns: i64, end_ns: i64, period_ns: f64) {
+        for g in &mut self.gaps {
+            let starts_it = (start_ns as f64) <= g.start_ns as f64 + 0.5 * period_ns;
+            if g.cause == GapCause::Sequence && starts_it && end_ns > g.start_ns {
+                g.start_ns = end_ns.min(g.end_ns);
+            }
+        }
+        self.gaps
+            .retain(|g| g.cause != GapCause::Sequence || g.start_ns < g.end_ns);
+    }
+
+    /// Adds one batch: samples inside the range go into their buckets; every batch but a
+    /// duplicate or a late one moves the stream's position, which is what gaps are judged
+    /// against.
     pub fn push(&mut self, batch: &CorrectedBatch) {
         let h = &batch.header;
         let period_ns = 1e9 / h.sample_rate_hz;
@@ -220,7 +234,10 @@ impl Aggregator {
         let start_ns = h.timestamp_ns;
         let end_ns = start_ns.saturating_add((n as f64 * period_ns) as i64);
         let duplicate = batch.batch_flags & flags::DUPLICATE != 0;
-        let gap = match (self.prev, duplicate) {
+        // A hole the gateway filled from the node's buffer, after later batches: it goes where
+        // its time says and closes what it fills of a gap; it is not the stream's position.
+        let late = batch.batch_flags & flags::LATE != 0;
+        let gap = match (self.prev, duplicate || late) {
             (_, true) => None,
             (Some(p), false) => {
                 let slack_ns = 1.5 * p.period_ns.max(period_ns);
@@ -242,7 +259,9 @@ impl Aggregator {
             }
             (None, false) => None,
         };
-        if !duplicate {
+        if late {
+            self.fill_gap(start_ns, end_ns, period_ns);
+        } else if !duplicate {
             self.prev = Some(Position {
                 sequence: h.sequence,
                 end_ns,
@@ -388,6 +407,33 @@ mod tests {
         let maxes: Vec<f32> = v.buckets.iter().map(|b| b.max_mps2[0]).collect();
         assert_eq!(maxes[5], 50.0, "{maxes:?}");
         assert_eq!(maxes.iter().filter(|&&m| m == 0.0).count(), 9);
+    }
+
+    #[test]
+    fn late_batches_fill_their_gap_where_their_time_says() {
+        // Batches of 50 samples (0.5 s); 1 and 2 are lost, then come late, after 3.
+        let mut a = Aggregator::new(T0, T0 + 2_000 * MS, 100 * MS).unwrap();
+        a.push(&batch(0, T0, 50, |_| 0.0));
+        let mut after = batch(3, T0 + 1500 * MS, 50, |_| 0.0);
+        after.batch_flags = flags::SEQUENCE_GAP;
+        a.push(&after);
+        let mut late = batch(1, T0 + 500 * MS, 50, |_| 1.0);
+        late.batch_flags = flags::LATE;
+        a.push(&late);
+        assert_eq!(a.gaps.len(), 1, "{:?}", a.gaps);
+        assert_eq!(
+            a.gaps[0].start_ns,
+            T0 + 1000 * MS,
+            "the gap now starts after 1"
+        );
+        late = batch(2, T0 + 1000 * MS, 50, |_| 2.0);
+        late.batch_flags = flags::LATE;
+        a.push(&late);
+        let v = a.finish();
+        assert!(v.gaps.is_empty(), "{:?}", v.gaps);
+        assert_eq!(v.buckets.len(), 20);
+        assert_eq!(v.buckets[7].max_mps2[0], 1.0);
+        assert_eq!(v.buckets[12].max_mps2[0], 2.0);
     }
 
     #[test]
