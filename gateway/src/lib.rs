@@ -488,6 +488,56 @@ async fn serve_status(
 }
 
 /// Binds the metrics endpoint and serves it until shutdown; returns the bound address.
+/// The queryables a gateway answers from its own state: status, sensor health (when the
+/// checks are on) and history (when it keeps one).
+async fn serve_queries(
+    config: &Arc<Config>,
+    session: &zenoh::Session,
+    shared: &Arc<worker::Shared>,
+    store: &Arc<Store>,
+    started_at: OffsetDateTime,
+    shutdown: &shutdown::Shutdown,
+) -> Result<Vec<JoinHandle<()>>, GatewayError> {
+    let mut tasks = Vec::new();
+    let status_ctx = status::StatusContext {
+        config: config.clone(),
+        table: shared.table.clone(),
+        counters: shared.counters.clone(),
+        history: shared.history.clone(),
+        backfill: shared.backfill.as_ref().map(|a| a.counters.clone()),
+        started_at,
+        store: Some(store.clone()),
+    };
+    tasks.push(serve_status(session, status_ctx, shutdown.clone()).await?);
+    if config.health.is_some() {
+        let serving = health::serve(
+            session,
+            config.building.clone(),
+            shared.table.clone(),
+            shutdown.clone(),
+        );
+        tasks.push(
+            serving
+                .await
+                .map_err(zenoh_err("declare the health queryable"))?,
+        );
+    }
+    if let Some(sink) = &shared.history {
+        let ctx = Arc::new(replay::ReplayContext {
+            building: config.building.clone(),
+            table: shared.table.clone(),
+            store: store.clone(),
+            sink: sink.clone(),
+        });
+        tasks.push(
+            replay::serve(session.clone(), ctx, shutdown.clone())
+                .await
+                .map_err(zenoh_err("declare the history queryable"))?,
+        );
+    }
+    Ok(tasks)
+}
+
 async fn serve_metrics(
     addr: SocketAddr,
     src: metrics::MetricsSource,
@@ -597,7 +647,7 @@ impl Gateway {
                 session: session.clone(),
                 shared: shared.clone(),
                 shards: shards.clone(),
-                counters: backfill_counters.clone(),
+                counters: backfill_counters,
                 history: shared
                     .history
                     .as_ref()
@@ -610,42 +660,9 @@ impl Gateway {
                 shutdown.clone(),
             )));
         }
-        let status_ctx = status::StatusContext {
-            config: config.clone(),
-            table: table.clone(),
-            counters: counters.clone(),
-            history: shared.history.clone(),
-            backfill: shared.backfill.as_ref().map(|a| a.counters.clone()),
-            started_at,
-            store: Some(store.clone()),
-        };
-        tasks.push(serve_status(&session, status_ctx, shutdown.clone()).await?);
-        if config.health.is_some() {
-            let serving = health::serve(
-                &session,
-                config.building.clone(),
-                table.clone(),
-                shutdown.clone(),
-            );
-            tasks.push(
-                serving
-                    .await
-                    .map_err(zenoh_err("declare the health queryable"))?,
-            );
-        }
-        if let Some(sink) = &shared.history {
-            let ctx = Arc::new(replay::ReplayContext {
-                building: config.building.clone(),
-                table: table.clone(),
-                store: store.clone(),
-                sink: sink.clone(),
-            });
-            tasks.push(
-                replay::serve(session.clone(), ctx, shutdown.clone())
-                    .await
-                    .map_err(zenoh_err("declare the history queryable"))?,
-            );
-        }
+        tasks.extend(
+            serve_queries(&config, &session, &shared, &store, started_at, &shutdown).await?,
+        );
         tasks.push(tokio::spawn(heartbeat::run(
             session.clone(),
             config.building.clone(),
