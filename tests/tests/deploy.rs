@@ -574,6 +574,51 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
     );
     drop(fake);
 
+    // The node's buffer (backfill): the node serves it and the gateway's identity gets the
+    // answer; nobody else can ask it, and a consumer cannot pose as a node's buffer.
+    let buffer_key = Key::Buffer(north.clone(), sensor.clone()).to_string();
+    let buffer = node
+        .declare_queryable(&buffer_key)
+        .callback(|q| {
+            let key = q.key_expr().clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, "a raw batch").await;
+            });
+        })
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(replies(&gateway_identity, &buffer_key, quiet).await, 1);
+    for (who, s) in [
+        ("consumer", &consumer),
+        ("alerting", &alerting),
+        ("intruder", &intruder),
+    ] {
+        assert_eq!(
+            replies(s, &buffer_key, quiet).await,
+            0,
+            "{who} asked a node's buffer"
+        );
+    }
+    drop(buffer);
+    let fake = consumer
+        .declare_queryable(&buffer_key)
+        .callback(|q| {
+            let key = q.key_expr().clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, "forged").await;
+            });
+        })
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        replies(&gateway_identity, &buffer_key, quiet).await,
+        0,
+        "a consumer served a node's buffer"
+    );
+    drop(fake);
+
     // Pushes: a valid signature from any other identity reaches no gateway.
     let v2 = Push::sign(&sample::record("n-1", 2), &lab_key);
     for (who, s) in [
