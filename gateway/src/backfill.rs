@@ -47,7 +47,10 @@ pub const CONCURRENT: usize = 4;
 /// Late batches corrected per hold of the shard's lock.
 pub const CHUNK: usize = 16;
 /// Requests waiting for a free slot; more are refused and counted.
-pub const QUEUE: usize = 65_536;
+pub const QUEUE: usize = 8192;
+/// Requests of one sensor waiting; more are refused and counted (a node whose numbering jumps
+/// at every batch must not fill the queue with its holes).
+pub const PER_SENSOR: usize = 8;
 
 /// What a worker asks for.
 #[derive(Debug)]
@@ -172,7 +175,14 @@ pub async fn run(ctx: Context, mut rx: mpsc::Receiver<Request>, mut shutdown: Sh
         }
         tokio::select! {
             r = rx.recv() => match r {
-                Some(r) => waiting.push_back(r),
+                Some(r) => {
+                    let same = waiting.iter().filter(|w| w.sensor == r.sensor).count();
+                    if same < PER_SENSOR {
+                        waiting.push_back(r);
+                    } else {
+                        ctx.counters.refused.fetch_add(1, Relaxed);
+                    }
+                }
                 None => break,
             },
             Some(done) = running.join_next(), if !running.is_empty() => {
@@ -300,7 +310,7 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
     let wanted = hole.to_seq - hole.from_seq + 1;
     c.wanted_batches.fetch_add(wanted, Relaxed);
     let key = Key::Buffer(ctx.building.clone(), sensor.clone()).to_string();
-    let selector = format!("{key}?from_seq={};to_seq={}", hole.from_seq, hole.to_seq);
+    let selector = format!("from_seq={};to_seq={}", hole.from_seq, hole.to_seq);
     c.queries.fetch_add(1, Relaxed);
     // Zenoh's receive thread hands replies over and never waits: a full queue would stall the
     // live stream on the same link. Room for every batch asked (at most `max_batches`) and a
@@ -308,20 +318,11 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
     let (tx, replies) = std::sync::mpsc::sync_channel(wanted as usize + 16);
     let overflow = Arc::new(AtomicU64::new(0));
     let o = overflow.clone();
-    let sent = ctx
-        .session
-        .get(&selector)
-        .consolidation(ConsolidationMode::None)
-        .priority(Priority::DataLow)
-        // Replies go at the query's congestion control: blocked, not dropped, on a busy link.
-        .congestion_control(CongestionControl::Block)
-        .timeout(ctx.settings.timeout)
-        .callback(move |reply| {
-            if tx.try_send(reply).is_err() {
-                o.fetch_add(1, Relaxed);
-            }
-        })
-        .wait();
+    let sent = ask(ctx, &key, &selector, move |reply| {
+        if tx.try_send(reply).is_err() {
+            o.fetch_add(1, Relaxed);
+        }
+    });
     if let Err(e) = sent {
         c.failed_queries.fetch_add(1, Relaxed);
         tracing::warn!(sensor = %sensor, cause = %e, "backfill query not sent");
@@ -424,6 +425,46 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
     }
     tracing::debug!(sensor = %sensor, from_seq = hole.from_seq, to_seq = hole.to_seq, received, cut_off, "backfill query done");
     Filled { received, missing }
+}
+
+/// Longest a fill waits for the node's buffer to be reachable: after a link comes back, the
+/// node's first batch can reach the gateway before the router has passed on its buffer's
+/// declaration, and a query sent then finds nobody to answer.
+pub const REACH_WAIT: Duration = Duration::from_secs(2);
+
+/// Sends the buffer query (`parameters` on `key`) once a queryable on the key is known, or
+/// after [`REACH_WAIT`] without one; replies go to `callback`, which Zenoh drops at the
+/// query's end.
+fn ask(
+    ctx: &Context,
+    key: &str,
+    parameters: &str,
+    callback: impl Fn(zenoh::query::Reply) + Send + Sync + 'static,
+) -> zenoh::Result<()> {
+    // Declared only to learn whether a queryable on the key is known (a matching status).
+    let querier = ctx.session.declare_querier(key.to_owned()).wait()?;
+    if !querier.matching_status().wait()?.matching() {
+        let listener = querier.matching_listener().wait()?;
+        let deadline = std::time::Instant::now() + REACH_WAIT;
+        // The status may have changed between the look and the listener.
+        while !querier.matching_status().wait()?.matching() {
+            match listener.recv_deadline(deadline) {
+                Ok(Some(status)) if status.matching() => break,
+                Ok(Some(_)) => continue,
+                _ => break,
+            }
+        }
+    }
+    drop(querier);
+    ctx.session
+        .get(format!("{key}?{parameters}"))
+        .consolidation(ConsolidationMode::None)
+        .priority(Priority::DataLow)
+        // Replies go at the query's congestion control: blocked, not dropped, on a busy link.
+        .congestion_control(CongestionControl::Block)
+        .timeout(ctx.settings.timeout)
+        .callback(callback)
+        .wait()
 }
 
 /// A hole being filled: its own kernel, the number expected next, and whether the next late
