@@ -432,7 +432,11 @@ async fn replies_lost_on_the_way_are_asked_again() {
     assert_eq!(seqs, (0..60).collect::<Vec<_>>(), "every batch kept once");
     let b = status(&node, "hbl").await.backfill.unwrap();
     // The hole, then the one batch still missing.
-    assert_eq!((b.queries, b.wanted_batches, b.late_batches), (2, 31, 30), "{b:?}");
+    assert_eq!(
+        (b.queries, b.wanted_batches, b.late_batches),
+        (2, 31, 30),
+        "{b:?}"
+    );
     gw.stop().await;
 }
 
