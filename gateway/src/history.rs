@@ -6,12 +6,15 @@
 //! checkpoint of the sensor's correction state, to a bounded queue ([`Sink::offer`]): one copy
 //! of the samples into a shared buffer, no allocation, and Zenoh's receive buffer is not held.
 //! When the queue is full the batch is not kept, and counted (`history.dropped_batches`). The
-//! writer thread takes the whole queue every [`DRAIN_INTERVAL`], gathers each sensor's batches
-//! into a block, and flushes: it writes and syncs (`fdatasync`) at least every `flush_interval`
-//! (one second by default), so a batch is durable at most one interval, plus one sync, after it
-//! was corrected. A history query first asks for a flush of everything queued so far
-//! ([`Sink::sync`]), so a consumer that noticed a gap finds the batches it missed even if they
-//! arrived a moment ago.
+//! writer thread takes the whole queue, gathers each sensor's batches into a block, and
+//! flushes: it writes and syncs (`fdatasync`) every `flush_interval` (one second by default),
+//! so a batch is durable at most one interval, plus one sync, after it was corrected. It wakes
+//! for that, for a query's sync, or when [`DRAIN_BATCHES`] or a sixteenth of the queue's bytes
+//! are waiting ([`Sink::offer`] wakes it then, once): not on a timer of its own. It used to take the queue every 20 ms, and those
+//! fifty wake-ups a second were most of its cost at a building's pace, and most of a host's
+//! running a hundred gateways (BENCHMARKS.md). A history query first asks for a flush of
+//! everything queued so far ([`Sink::sync`]), so a consumer that noticed a gap finds the
+//! batches it missed even if they arrived a moment ago.
 
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -25,8 +28,10 @@ use triax_protocol::RawBatchView;
 
 use crate::sensors::SensorEntry;
 
-/// How often the writer takes what the workers queued.
-pub const DRAIN_INTERVAL: Duration = Duration::from_millis(20);
+/// Batches queued that wake the writer before its flush is due, whatever their bytes (each
+/// entry costs about as much again as a 10-sample batch's samples): a few wake-ups a second at
+/// 10 000 batches a second, and half a megabyte waiting.
+pub const DRAIN_BATCHES: usize = 2048;
 
 /// A checkpoint of a sensor's correction state is kept at least this often, by the sensor's
 /// clock: a replay starts from the checkpoint before the first batch it serves.
@@ -50,13 +55,17 @@ struct Waiting {
 }
 
 impl Pending {
-    fn clear(&mut self) {
+    /// Empties it, keeping room for `drain_bytes` (what the writer lets gather before it takes
+    /// the queue) but not more.
+    fn clear(&mut self, drain_bytes: usize) {
         self.bytes.clear();
         self.batches.clear();
         // After a spike (a disk that stalled), give the memory back.
-        if self.bytes.capacity() > 4 << 20 {
-            self.bytes.shrink_to(1 << 20);
-            self.batches.shrink_to(8192);
+        if self.bytes.capacity() > 2 * drain_bytes {
+            self.bytes.shrink_to(drain_bytes);
+        }
+        if self.batches.capacity() > 2 * DRAIN_BATCHES {
+            self.batches.shrink_to(DRAIN_BATCHES);
         }
     }
 }
@@ -79,6 +88,8 @@ pub struct Sink {
     settled: Condvar,
     /// Most bytes of samples and checkpoints waiting.
     capacity_bytes: usize,
+    /// Bytes waiting that wake the writer before its flush is due: a sixteenth of the capacity.
+    drain_bytes: usize,
     pub counters: SinkCounters,
     pub history: Arc<History>,
     /// The arrival number of this run's first batch: what the history held before is below.
@@ -123,6 +134,12 @@ impl Sink {
         let at = p.bytes.len();
         p.bytes.extend_from_slice(samples);
         let h = &view.header;
+        // Wakes the writer once, as the queue crosses its mark: it takes the queue whole.
+        let crossed = (p.bytes.len() >= self.drain_bytes && at < self.drain_bytes)
+            || p.batches.len() + 1 == DRAIN_BATCHES;
+        if crossed {
+            self.wake.notify_one();
+        }
         p.batches.push(Waiting {
             entry: entry.clone(),
             kept: Kept {
@@ -219,6 +236,7 @@ impl Recorder {
             wake: Condvar::new(),
             settled: Condvar::new(),
             capacity_bytes: capacity_bytes.max(1),
+            drain_bytes: (capacity_bytes / 16).max(1),
             counters: SinkCounters::default(),
             history: writer.history().clone(),
             first_arrival: writer.next_arrival(),
@@ -265,11 +283,19 @@ fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Durat
     loop {
         let (sync_wanted, closing) = {
             let mut s = sink.lock();
-            let idle = s.pending.batches.is_empty();
-            if !s.closed && idle && s.sync_to <= sink.counters.settled.load(Relaxed) {
+            // Asleep until the flush is due, a sync is asked, the queue crossed its mark
+            // (`offer` wakes it then), or the sink closes.
+            loop {
+                let wanted = s.sync_to > sink.counters.settled.load(Relaxed);
+                let full = s.pending.bytes.len() >= sink.drain_bytes
+                    || s.pending.batches.len() >= DRAIN_BATCHES;
+                let left = next_flush.saturating_duration_since(Instant::now());
+                if s.closed || stop.load(Relaxed) || wanted || full || left.is_zero() {
+                    break;
+                }
                 s = sink
                     .wake
-                    .wait_timeout(s, DRAIN_INTERVAL)
+                    .wait_timeout(s, left)
                     .unwrap_or_else(|p| p.into_inner())
                     .0;
             }
@@ -285,7 +311,7 @@ fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Durat
             writer.append(&w.entry.id, kept, checkpoint);
             unflushed += 1;
         }
-        taken.clear();
+        taken.clear(sink.drain_bytes);
         let now = Instant::now();
         if now >= next_flush || sync_wanted || closing {
             if let Err(e) = writer.flush() {

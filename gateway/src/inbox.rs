@@ -13,15 +13,15 @@
 //! the async runtime that serves status, metrics and calibration pushes.
 //!
 //! **Correcting in place.** Handing every batch to a sleeping worker costs a wake-up, and at a
-//! building's pace (a thousand sensors sending ten batches a second each, spread over time)
-//! that hand-over was about half of the gateway's CPU. So the receive thread may *claim* the
-//! inbox ([`try_claim`](Inbox::try_claim)) and correct the batch itself, when the inbox is
-//! empty, nobody else holds the claim, and batches arrive sparsely (the previous one at least
-//! `min_gap` before); it then [`release`](Inbox::release)s. The worker claims too, for each
-//! entry it takes ([`take_or_idle`](Inbox::take_or_idle)), so the two never handle a shard's
-//! batches at once and never out of order: a batch is handled in place only when no earlier
-//! one waits. Under a heavy stream the receive thread finds the last arrival too recent and
-//! queues, so the workers still correct in parallel.
+//! building's pace (a thousand sensors sending ten batches a second each) that hand-over was
+//! about half of the gateway's CPU. So the receive thread may *claim* the inbox
+//! ([`try_claim`](Inbox::try_claim)) and correct the batch itself, when the inbox is empty and
+//! nobody else holds the claim; it then [`release`](Inbox::release)s. The worker claims too, for
+//! each entry it takes ([`take_or_idle`](Inbox::take_or_idle)), so the two never handle a
+//! shard's batches at once and never out of order: a batch is handled in place only when no
+//! earlier one waits. How much of its time a receive thread may spend so is bounded by a
+//! [`ReceiveBudget`]: under a heavy stream it hands the rest to the workers, which then correct
+//! in parallel, and Zenoh's reading of the link is never held up for long.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -44,8 +44,6 @@ struct State<T> {
     drain_until: Option<Instant>,
     /// Someone (the worker or a receive thread) is handling an entry of this inbox's shard.
     claimed: bool,
-    /// When [`Inbox::try_claim`] last saw an arrival.
-    last_arrival: Option<Instant>,
 }
 
 /// What [`Inbox::pop`] hands the worker.
@@ -69,7 +67,6 @@ impl<T> Inbox<T> {
                 queue: VecDeque::with_capacity(capacity.min(1024)),
                 drain_until: None,
                 claimed: false,
-                last_arrival: None,
             }),
             capacity: capacity.max(1),
             ready: Condvar::new(),
@@ -104,21 +101,13 @@ impl<T> Inbox<T> {
     }
 
     /// Claims the inbox for handling one arrival in place: true when the inbox is open and
-    /// empty, unclaimed, and the previous arrival came at least `min_gap` ago. The caller
-    /// handles its entry and then calls [`release`](Self::release); on false it
-    /// [`push`](Self::push)es the entry instead.
-    pub fn try_claim(&self, min_gap: std::time::Duration) -> bool {
-        let now = Instant::now();
+    /// empty, and unclaimed. The caller handles its entry and then calls
+    /// [`release`](Self::release); on false it [`push`](Self::push)es the entry instead.
+    pub fn try_claim(&self) -> bool {
         let mut s = self.lock();
-        let sparse = s
-            .last_arrival
-            .is_none_or(|t| now.duration_since(t) >= min_gap);
-        s.last_arrival = Some(now);
         let free = s.drain_until.is_none() && s.queue.is_empty() && !s.claimed;
-        if free && sparse {
-            s.claimed = true;
-        }
-        free && sparse
+        s.claimed |= free;
+        free
     }
 
     /// Ends a claim; wakes the worker if entries came meanwhile.
@@ -201,6 +190,67 @@ impl<T> Inbox<T> {
     }
 }
 
+/// How much of a receive thread's time correcting in place may take: a token bucket that
+/// fills at [`Self::SHARE`] of the time passing, up to [`Self::BURST`], and that each batch
+/// handled in place empties by the time it took. In place while there is credit left.
+///
+/// A building's pace (10 000 small batches a second at a few µs each: a few per cent of a
+/// thread) stays inside it, so no batch wakes a worker, and a wake-up costs more than
+/// correcting a small batch. A heavy stream (a hundred-sample batch every few µs) exhausts it
+/// and goes to the workers, which correct in parallel while the receive thread goes on reading
+/// the link: that thread is the one every stream of the link waits on.
+#[derive(Debug, Clone, Copy)]
+pub struct ReceiveBudget {
+    credit_ns: i64,
+    /// When `credit_ns` was last brought up to date; none: never used, full.
+    updated: Option<Instant>,
+}
+
+impl ReceiveBudget {
+    /// The share of the receive thread's time correction in place may take over time: an
+    /// eighth.
+    pub const SHARE: u32 = 8;
+    /// In-place work a receive thread may do back to back after a rest (a burst of a few
+    /// hundred small batches): the link's reading is held up about this long at most.
+    pub const BURST: std::time::Duration = std::time::Duration::from_millis(1);
+
+    pub const fn new() -> ReceiveBudget {
+        ReceiveBudget {
+            credit_ns: Self::BURST.as_nanos() as i64,
+            updated: None,
+        }
+    }
+
+    fn credit_at(&self, now: Instant) -> i64 {
+        let burst_ns = Self::BURST.as_nanos() as i64;
+        let Some(updated) = self.updated else {
+            return burst_ns;
+        };
+        let earned_ns = now.saturating_duration_since(updated).as_nanos() / u128::from(Self::SHARE);
+        let earned_ns = i64::try_from(earned_ns).unwrap_or(i64::MAX);
+        self.credit_ns.saturating_add(earned_ns).min(burst_ns)
+    }
+
+    /// Whether a batch arriving `now` may be corrected in place.
+    pub fn allows(&self, now: Instant) -> bool {
+        self.credit_at(now) > 0
+    }
+
+    /// A batch was corrected in place from `started` until `ended`.
+    pub fn spent(&mut self, started: Instant, ended: Instant) {
+        let took_ns =
+            i64::try_from(ended.saturating_duration_since(started).as_nanos()).unwrap_or(i64::MAX);
+        self.credit_ns = self.credit_at(ended).saturating_sub(took_ns);
+        self.updated = Some(ended);
+    }
+}
+
+impl Default for ReceiveBudget {
+    fn default() -> ReceiveBudget {
+        ReceiveBudget::new()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -265,11 +315,10 @@ mod tests {
     /// receive thread handles one in place waits for its release (order is kept).
     #[test]
     fn claims_serialise_the_receive_thread_and_the_worker() {
-        let gap = Duration::from_micros(20);
         let q = Arc::new(Inbox::<u32>::new(4, Arc::new(AtomicU64::new(0))));
-        assert!(q.try_claim(gap), "empty, unclaimed, first arrival");
-        // A second arrival while claimed, and too soon: queued.
-        assert!(!q.try_claim(gap));
+        assert!(q.try_claim(), "empty and unclaimed");
+        // A second arrival while claimed: queued.
+        assert!(!q.try_claim());
         q.push(2);
         let q2 = q.clone();
         let worker = std::thread::spawn(move || q2.take_or_idle(Some(Duration::from_secs(5))));
@@ -280,20 +329,57 @@ mod tests {
         );
         q.release();
         assert_eq!(worker.join().unwrap(), Next::Item(2));
-        // The worker now holds the claim: no handling in place, even after a long gap.
-        std::thread::sleep(Duration::from_millis(1));
-        assert!(!q.try_claim(gap));
+        // The worker now holds the claim: no handling in place.
+        assert!(!q.try_claim());
         q.release();
-        std::thread::sleep(Duration::from_millis(1));
-        assert!(q.try_claim(gap), "free again after a gap");
+        assert!(q.try_claim(), "free again");
         q.release();
-        // Back-to-back arrivals are queued for the worker, not handled in place.
-        assert!(!q.try_claim(Duration::from_secs(60)));
+        // Not empty: queued behind what waits.
+        q.push(3);
+        assert!(!q.try_claim());
+        assert_eq!(q.take_or_idle(None), Next::Item(3));
+        q.release();
         // Closed: never in place.
         q.close(Instant::now() + Duration::from_secs(60));
-        std::thread::sleep(Duration::from_millis(1));
-        assert!(!q.try_claim(gap));
+        assert!(!q.try_claim());
         assert_eq!(q.take_or_idle(None), Next::Closed);
+    }
+
+    /// Work in place is allowed from rest up to about a burst, then at its share of the time.
+    #[test]
+    fn the_receive_budget_allows_a_burst_then_its_share() {
+        let mut b = ReceiveBudget::new();
+        let t0 = Instant::now();
+        assert!(b.allows(t0));
+        // Back to back batches of 100 µs each, with no time between them.
+        let work = Duration::from_micros(100);
+        let mut now = t0;
+        let mut in_place = Duration::ZERO;
+        while b.allows(now) {
+            b.spent(now, now + work);
+            now += work;
+            in_place += work;
+        }
+        let burst = ReceiveBudget::BURST;
+        assert!(in_place >= burst && in_place <= 2 * burst, "{in_place:?}");
+        // Then at its share: one batch in eight, over a long stretch.
+        let (mut allowed, n) = (0u32, 8000u32);
+        for _ in 0..n {
+            if b.allows(now) {
+                b.spent(now, now + work);
+                allowed += 1;
+            }
+            now += work;
+        }
+        let share = f64::from(allowed) / f64::from(n);
+        assert!((share - 1.0 / 8.0).abs() < 0.01, "{share}");
+        // Sparse small batches (5 µs every 100 µs: 5 %) are always allowed.
+        let mut b = ReceiveBudget::new();
+        for i in 0..10_000u32 {
+            let at = t0 + Duration::from_micros(100) * i;
+            assert!(b.allows(at), "batch {i}");
+            b.spent(at, at + Duration::from_micros(5));
+        }
     }
 
     #[test]

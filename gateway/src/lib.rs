@@ -117,8 +117,9 @@ fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError 
 
 /// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
 enum Intake {
-    /// Drop-oldest: corrected right here when the sensor's inbox is empty and batches come
-    /// sparsely, else queued for the sensor's worker (`inbox` module: correcting in place).
+    /// Drop-oldest: corrected right here when the sensor's inbox is empty and this receive
+    /// thread's budget allows, else queued for the sensor's worker (`inbox` module: correcting
+    /// in place).
     Queues(Arc<Vec<Arc<Inbox<Sample>>>>, Shards, Arc<worker::Shared>),
     /// Backpressure: the sensor's shard, always run right here on the receive thread.
     Shards(Shards, Arc<worker::Shared>),
@@ -127,10 +128,12 @@ enum Intake {
 /// One shard per worker, shared by the worker and the receive threads.
 type Shards = Arc<Vec<Arc<std::sync::Mutex<worker::Shard>>>>;
 
-/// Batches closer together than this, in one inbox, go to its worker rather than being
-/// corrected on the receive thread: a heavy stream keeps both workers busy, while a building's
-/// sparse batches (1 000 sensors at 10 a second: 200 µs apart per inbox) save a wake-up each.
-const IN_PLACE_MIN_GAP: std::time::Duration = std::time::Duration::from_micros(20);
+thread_local! {
+    /// The budget for correcting in place of the receive thread the callback runs on (Zenoh's
+    /// own threads, shared by every session of the process): see [`inbox::ReceiveBudget`].
+    static RECEIVE_BUDGET: std::cell::Cell<inbox::ReceiveBudget> =
+        const { std::cell::Cell::new(inbox::ReceiveBudget::new()) };
+}
 
 impl Intake {
     /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
@@ -139,9 +142,13 @@ impl Intake {
         match self {
             Intake::Queues(inboxes, shards, shared) => {
                 let i = worker::shard(sensor, inboxes.len());
-                if inboxes[i].try_claim(IN_PLACE_MIN_GAP) {
+                let started = std::time::Instant::now();
+                let mut budget = RECEIVE_BUDGET.get();
+                if budget.allows(started) && inboxes[i].try_claim() {
                     worker::lock_shard(&shards[i]).handle(shared, sample);
                     inboxes[i].release();
+                    budget.spent(started, std::time::Instant::now());
+                    RECEIVE_BUDGET.set(budget);
                 } else {
                     inboxes[i].push(sample);
                 }
@@ -230,6 +237,26 @@ pub fn init_logging(filter: &str) -> Result<(), tracing_subscriber::filter::Pars
         .with_writer(std::io::stderr)
         .try_init();
     Ok(())
+}
+
+/// Zenoh's runtimes for a gateway process, unless `ZENOH_RUNTIME` is set already: the acceptor's
+/// runtime handed over to the receive runtime, `(acc: (handover: rx))`.
+///
+/// Zenoh registers a link's socket with the reactor of the runtime that accepted it, so by
+/// default each batch from a node woke the acceptor's thread, which then woke a receive thread:
+/// at a building's pace (batches a millisecond apart) a context switch and a third of the CPU
+/// per batch, in the gateway and in a bare relay alike (BENCHMARKS.md). Handed over, the
+/// receive thread polls the socket itself. The transmit runtime stays apart: on the receive
+/// threads, a transmit task woken by a put that then blocks (a declaration, on a full queue)
+/// would wait behind it.
+///
+/// Zenoh reads the variable once, at its first use: call this first thing in `main`, before any
+/// thread exists (it sets an environment variable).
+pub fn configure_zenoh_runtime() {
+    const ZENOH_RUNTIME: &str = "ZENOH_RUNTIME";
+    if std::env::var_os(ZENOH_RUNTIME).is_none() {
+        std::env::set_var(ZENOH_RUNTIME, "(acc: (handover: rx))");
+    }
 }
 
 /// Runs a gateway until `shutdown` completes, then stops it cleanly.

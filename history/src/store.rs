@@ -736,6 +736,27 @@ pub struct Writer {
     spare: Vec<Vec<u8>>,
 }
 
+/// Names `sensor` in the segment being written (`segment_sensors`) and in the history's list of
+/// sensors.
+fn note_sensor(segment_sensors: &mut BTreeSet<SensorId>, history: &History, sensor: &SensorId) {
+    if segment_sensors.contains(sensor) {
+        return;
+    }
+    segment_sensors.insert(sensor.clone());
+    let known = history
+        .sensors
+        .read()
+        .unwrap_or_else(|p| p.into_inner())
+        .contains(sensor);
+    if !known {
+        history
+            .sensors
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(sensor.clone());
+    }
+}
+
 /// Segments kept in the page cache: the one being written and the ones closed just before it.
 const HOT_SEGMENTS: usize = 3;
 
@@ -757,22 +778,6 @@ impl Writer {
     ) -> u64 {
         kept.arrival = self.next_arrival;
         self.next_arrival += 1;
-        if !self.segment_sensors.contains(sensor) {
-            self.segment_sensors.insert(sensor.clone());
-            let known = self
-                .history
-                .sensors
-                .read()
-                .unwrap_or_else(|p| p.into_inner())
-                .contains(sensor);
-            if !known {
-                self.history
-                    .sensors
-                    .write()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .insert(sensor.clone());
-            }
-        }
         let closes = |b: &BlockBuilder| {
             checkpoint.is_some()
                 || b.len() >= BLOCK_BYTES_MAX
@@ -781,6 +786,9 @@ impl Writer {
         match self.pending.get_mut(sensor) {
             Some(b) if !closes(b) => b.push(&kept),
             other => {
+                // A sensor with an open block is already named in the segment (a roll comes
+                // only after a flush, which closes every block): only a new block looks.
+                note_sensor(&mut self.segment_sensors, &self.history, sensor);
                 let buf = self.spare.pop().unwrap_or_default();
                 let mut fresh = BlockBuilder::in_buffer(buf, sensor, checkpoint);
                 fresh.push(&kept);

@@ -55,6 +55,12 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
+
+#[path = "bench_proc/mod.rs"]
+mod bench_proc;
+use bench_proc::{
+    context_switches, cpu_seconds, per_thread_group, proc_status_kib, thread_counters, ThreadGroup,
+};
 use clap::Parser;
 use triax_calibration_store::Store;
 use triax_gateway::worker::now_ns;
@@ -97,6 +103,10 @@ struct Args {
     /// skip it (e.g. `--building-sensors 100,1000,5000`).
     #[arg(long, value_delimiter = ',')]
     building_sensors: Vec<usize>,
+    /// Rounds of the building profile: every system at every sensor count in turn, each
+    /// round's ratios reported, then their range.
+    #[arg(long, default_value_t = 1)]
+    rounds: usize,
     /// Skip the throughput and latency phases (run only the building profile and the memory
     /// check).
     #[arg(long)]
@@ -276,46 +286,6 @@ struct CpuPerBatch {
     /// Context switches of the system under test's threads per batch: each is a thread
     /// that slept and was woken.
     server_switches: f64,
-}
-
-/// Context switches, voluntary and not, summed over every thread of a process, from
-/// `/proc/<pid>/task/*/status`. Threads that ended meanwhile are not counted.
-fn context_switches(pid: u32) -> Result<u64> {
-    let mut total = 0;
-    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
-        let Ok(text) = std::fs::read_to_string(task?.path().join("status")) else {
-            continue;
-        };
-        for line in text.lines() {
-            if let Some(rest) = line
-                .strip_prefix("voluntary_ctxt_switches:")
-                .or_else(|| line.strip_prefix("nonvoluntary_ctxt_switches:"))
-            {
-                total += rest.trim().parse::<u64>()?;
-            }
-        }
-    }
-    Ok(total)
-}
-
-/// CPU time a process has used so far, user and system, all threads, from `/proc/<pid>/stat`
-/// (in USER_HZ ticks, 100 per second on Linux).
-fn cpu_seconds(pid: u32) -> Result<f64> {
-    let text = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
-    // The command name is in parentheses and may hold spaces: count fields after it, from
-    // field 3 (state); utime and stime are fields 14 and 15.
-    let rest = text
-        .rfind(')')
-        .map(|i| &text[i + 1..])
-        .context("/proc stat without a command name")?;
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| -> Result<f64> {
-        Ok(fields
-            .get(i)
-            .context("/proc stat too short")?
-            .parse::<u64>()? as f64)
-    };
-    Ok((ticks(14 - 3)? + ticks(15 - 3)?) / 100.0)
 }
 
 fn percentile(sorted: &[i64], p: f64) -> f64 {
@@ -587,6 +557,8 @@ struct BuildingResult {
     switches_per_batch: f64,
     rss_mib: f64,
     bench_us_per_batch: f64,
+    /// The system's threads, by name.
+    threads: Vec<ThreadGroup>,
 }
 
 /// Samples in a building profile batch.
@@ -687,10 +659,11 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
     );
     tokio::time::sleep(Duration::from_millis(500)).await;
     let rate = n as f64 * BUILDING_BATCHES_PER_S;
-    let (cpu0, bench0, sw0) = (
+    let (cpu0, bench0, sw0, threads0) = (
         cpu_seconds(server.pid)?,
         cpu_seconds(std::process::id())?,
         context_switches(server.pid)?,
+        thread_counters(server.pid)?,
     );
     let got0 = received.load(Relaxed);
     let t0 = Instant::now();
@@ -711,10 +684,11 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
         tokio::time::sleep(Duration::from_millis(1)).await;
     }
     let elapsed = t0.elapsed().as_secs_f64();
-    let (cpu1, bench1, sw1) = (
+    let (cpu1, bench1, sw1, threads1) = (
         cpu_seconds(server.pid)?,
         cpu_seconds(std::process::id())?,
         context_switches(server.pid)?,
+        thread_counters(server.pid)?,
     );
     tokio::time::sleep(Duration::from_millis(500)).await;
     let got = received.load(Relaxed) - got0;
@@ -733,19 +707,21 @@ async fn building_profile(system: System, n: usize, seconds: f64) -> Result<Buil
         switches_per_batch: (sw1 - sw0) as f64 / batches,
         rss_mib,
         bench_us_per_batch: (bench1 - bench0) / batches * 1e6,
+        threads: per_thread_group(&threads0, &threads1, batches),
     })
 }
 
-/// The building profile's table, and each gateway against the keyed relay at the same load.
-fn report_building(results: &[(System, BuildingResult)]) {
+/// The building profile's table, the per-thread breakdown, and each gateway against the keyed
+/// relay (and history on against off) at the same load, round by round, with the spread.
+fn report_building(results: &[(usize, System, BuildingResult)]) {
     println!(
         "\n## Building profile: nodes at 100 Hz, {BUILDING_BATCH}-sample batches, {BUILDING_BATCHES_PER_S} batches/s each, keys declared by the nodes"
     );
-    println!("| system | sensors | batches/s offered | delivered | CPU µs/batch | cores | context switches/batch | RSS MiB | publisher + subscriber µs/batch |");
-    println!("|---|---|---|---|---|---|---|---|---|");
-    for (system, r) in results {
+    println!("| round | system | sensors | batches/s offered | delivered | CPU µs/batch | cores | context switches/batch | RSS MiB | publisher + subscriber µs/batch |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for (round, system, r) in results {
         println!(
-            "| {} | {} | {:.0} | {:.4} | {:.2} | {:.3} | {:.2} | {:.1} | {:.2} |",
+            "| {round} | {} | {} | {:.0} | {:.4} | {:.2} | {:.3} | {:.2} | {:.1} | {:.2} |",
             system.name(),
             r.sensors,
             r.offered_batches_per_s,
@@ -757,51 +733,73 @@ fn report_building(results: &[(System, BuildingResult)]) {
             r.bench_us_per_batch
         );
     }
-    for (system, r) in results {
-        if matches!(system, System::Relay | System::KeyedRelay) {
-            continue;
-        }
-        if let Some((_, base)) = results
-            .iter()
-            .find(|(s, b)| *s == System::KeyedRelay && b.sensors == r.sensors)
-        {
+    println!("\nPer thread (threads named alike summed; CPU from schedstat), per batch:\n");
+    println!("| round | system | sensors | threads | CPU µs | voluntary switches | involuntary switches |");
+    println!("|---|---|---|---|---|---|---|");
+    for (round, system, r) in results {
+        for g in r.threads.iter().filter(|g| {
+            g.us_per_batch >= 0.05 || g.voluntary_per_batch + g.involuntary_per_batch >= 0.005
+        }) {
             println!(
-                "- {} / keyed-relay at {} sensors: CPU per batch {:.2}×",
+                "| {round} | {} | {} | {} ×{} | {:.2} | {:.3} | {:.3} |",
                 system.name(),
                 r.sensors,
-                r.server_us_per_batch / base.server_us_per_batch
+                g.name,
+                g.threads,
+                g.us_per_batch,
+                g.voluntary_per_batch,
+                g.involuntary_per_batch
             );
         }
     }
-    for (a, b) in [
-        (System::Gateway, System::GatewayNoHealth),
-        (System::Gateway, System::GatewayNoHistory),
-    ] {
-        for (_, on) in results.iter().filter(|(s, _)| *s == a) {
-            if let Some((_, off)) = results
-                .iter()
-                .find(|(s, r)| *s == b && r.sensors == on.sensors)
-            {
-                println!(
-                    "- {} / {} at {} sensors: CPU per batch {:.3}×",
-                    a.name(),
-                    b.name(),
-                    on.sensors,
-                    on.server_us_per_batch / off.server_us_per_batch
-                );
+    // Ratios of `a` over `b` at each sensor count, round by round, and their range.
+    let ratios = |a: System, b: System, what: &str| {
+        let sensors: std::collections::BTreeSet<usize> =
+            results.iter().map(|(_, _, r)| r.sensors).collect();
+        for n in sensors {
+            let mut cpu = Vec::new();
+            for (round, _, on) in results.iter().filter(|(_, s, r)| *s == a && r.sensors == n) {
+                let Some((_, _, off)) = results
+                    .iter()
+                    .find(|(x, s, r)| x == round && *s == b && r.sensors == n)
+                else {
+                    continue;
+                };
+                cpu.push(on.server_us_per_batch / off.server_us_per_batch);
             }
+            if cpu.is_empty() {
+                continue;
+            }
+            let (lo, hi) = cpu
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
+                    (l.min(x), h.max(x))
+                });
+            let each: Vec<String> = cpu.iter().map(|x| format!("{x:.2}")).collect();
+            println!(
+                "- {} / {} ({what}) at {n} sensors: CPU per batch {} (range {lo:.2}–{hi:.2}, {} rounds)",
+                a.name(),
+                b.name(),
+                each.join(", "),
+                cpu.len()
+            );
         }
+    };
+    println!();
+    for system in [
+        System::Gateway,
+        System::GatewayNoHistory,
+        System::GatewayNoHealth,
+        System::GatewayBackpressure,
+    ] {
+        ratios(system, System::KeyedRelay, "against the floor");
     }
-}
-
-fn proc_status_kib(pid: u32, field: &str) -> Option<u64> {
-    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    text.lines()
-        .find(|l| l.starts_with(field))?
-        .split_whitespace()
-        .nth(1)?
-        .parse()
-        .ok()
+    ratios(
+        System::Gateway,
+        System::GatewayNoHistory,
+        "history on / off",
+    );
+    ratios(System::Gateway, System::GatewayNoHealth, "health on / off");
 }
 
 /// A system under test in its own process, as it is deployed: its own runtime and threads.
@@ -1136,9 +1134,11 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
 fn main() -> Result<()> {
     let args = Args::parse();
     if args.serve.is_some() {
-        // The system under test runs as the service does: same allocator settings, same
+        // The system under test runs as the service does: same allocator settings, same Zenoh
+        // runtimes (the relays too: the floor is Zenoh set up as the gateway sets it up), same
         // logging (to the parent's null device).
         triax_gateway::memory::configure_allocator();
+        triax_gateway::configure_zenoh_runtime();
         triax_gateway::init_logging("info")?;
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -1178,13 +1178,19 @@ fn main() -> Result<()> {
         }
         if !args.building_sensors.is_empty() {
             let mut results = Vec::new();
-            for &n in &args.building_sensors {
-                // The plain relay works out routes per message: the keyed relay is the baseline.
-                for system in all
-                    .into_iter()
-                    .filter(|s| *s != System::Relay && wanted(*s))
-                {
-                    results.push((system, building_profile(system, n, args.seconds).await?));
+            // Rounds of every system in turn, so that each ratio is taken within one round,
+            // minutes apart at most, whatever else loads the machine meanwhile.
+            for round in 1..=args.rounds.max(1) {
+                for &n in &args.building_sensors {
+                    // The plain relay works out routes per message: the keyed relay is the
+                    // baseline.
+                    for system in all
+                        .into_iter()
+                        .filter(|s| *s != System::Relay && wanted(*s))
+                    {
+                        let r = building_profile(system, n, args.seconds).await?;
+                        results.push((round, system, r));
+                    }
                 }
             }
             report_building(&results);
