@@ -51,6 +51,7 @@ fn mode(
             component("acc-02", ModalDirection::Y, along(ModalDirection::Y, 1.0)),
         ],
         reference_component: if direction == ModalDirection::X { 2 } else { 3 },
+        pooled_shape: None,
         order: 24,
         stable_orders: 12,
         replicates: 12,

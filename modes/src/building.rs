@@ -10,11 +10,12 @@ use triax_client::follow::Position;
 use triax_modal::track::{Baseline, Track};
 use triax_modal::{
     identify, ChainUncertainty, Direction, Estimate, Identification, ModalError, ModeObservation,
-    ModeTracker, ShiftVerdict, TrackUpdate,
+    ModeTracker, ShapePool, ShiftVerdict, TrackUpdate,
 };
 use triax_protocol::messages::{
     Alert, AlertKind, AlertLevel, BuildingModes, ModalDirection, ModalEstimate, ModalVerdict,
-    ModeReport, ModeShapeComponent, UnquantifiedModeReport,
+    ModeReport, ModeShapeComponent, PooledShapeComponent, PooledShapeReport,
+    UnquantifiedModeReport,
 };
 use triax_protocol::{BuildingId, CorrectedBatch, SensorId, JSON_FORMAT_VERSION};
 
@@ -98,7 +99,12 @@ pub struct Building {
     pub tracker: ModeTracker,
     temperatures: VecDeque<(i64, f64)>,
     pub record_lines: u64,
+    /// Per track, its last windows' shapes (`triax_modal::pool`); afresh after a restart.
+    pools: std::collections::HashMap<usize, ShapePool>,
 }
+
+/// Windows a track's shape is pooled over: a day of 30-minute windows.
+pub const POOLED_WINDOWS: usize = 48;
 
 /// What one window gives: the message to publish and keep, and the alerts to sign.
 #[derive(Debug, Clone)]
@@ -186,6 +192,7 @@ impl Building {
             tracker,
             temperatures: VecDeque::new(),
             record_lines,
+            pools: std::collections::HashMap::new(),
         }
     }
 
@@ -330,7 +337,31 @@ impl Building {
                     })
                 })
                 .collect();
+            let pooled_shape = update.as_ref().and_then(|u| {
+                let pool = self
+                    .pools
+                    .entry(u.track)
+                    .or_insert_with(|| ShapePool::new(POOLED_WINDOWS));
+                pool.push(mode);
+                let pooled = pool.pooled(mode, mode.frequency_hz.coverage_probability)?;
+                Some(PooledShapeReport {
+                    windows: pooled.windows,
+                    reference_component: pooled.reference_component,
+                    shape: pooled
+                        .shape
+                        .iter()
+                        .filter_map(|c| {
+                            Some(PooledShapeComponent {
+                                sensor_id: SensorId::new(c.sensor_id.clone()).ok()?,
+                                direction: direction(c.direction),
+                                real: estimate(&c.real),
+                            })
+                        })
+                        .collect(),
+                })
+            });
             let report = ModeReport {
+                pooled_shape,
                 track: update.as_ref().map(|u| u.track as u64),
                 direction: direction(mode.direction),
                 frequency_hz: estimate(&mode.frequency_hz),

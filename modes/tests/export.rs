@@ -42,6 +42,7 @@ fn mode(track: Option<u64>, frequency_hz: f64, roof_real: f64, lower_real: f64) 
         damping_ratio: estimate(0.021, 0.002, 11.0),
         shape: vec![component("roof", roof_real), component("mid", lower_real)],
         reference_component: 0,
+        pooled_shape: None,
         order: 24,
         stable_orders: 12,
         replicates: 12,

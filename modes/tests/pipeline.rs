@@ -307,6 +307,25 @@ fn a_storey_loss_raises_a_signed_modal_shift_naming_its_test_and_rate() {
             .modes
             .iter()
             .all(|m| m.verdict == Some(ModalVerdict::Training)));
+        // Each tracked mode carries its track's shape pooled over the windows so far.
+        let w = w as usize;
+        let mut longest = 0;
+        for m in modes.modes.iter().filter(|m| m.track.is_some()) {
+            let p = m
+                .pooled_shape
+                .as_ref()
+                .expect("a tracked mode has a pooled shape");
+            assert!((1..=w + 1).contains(&p.windows), "{p:?}");
+            assert_eq!(p.shape.len(), m.shape.len());
+            let r = &p.shape[p.reference_component].real;
+            assert_eq!((r.value, r.standard_uncertainty), (1.0, 0.0));
+            longest = longest.max(p.windows);
+        }
+        assert_eq!(
+            longest,
+            w + 1,
+            "a track seen in every window pools them all"
+        );
     }
     // A tenth of the first storey's x stiffness: the x fundamental drops by about 2 %.
     building.frame.damage.push((Direction::X, 1, 0.10));

@@ -596,6 +596,26 @@ pub struct ModeShapeComponent {
     pub imag: ModalEstimate,
 }
 
+/// A track's mode shape pooled over windows: each in-phase component relative to the
+/// reference component, the inverse-variance weighted mean of the windows', with the windows'
+/// statistical uncertainty averaged down and the measurement chain's kept whole.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PooledShapeReport {
+    /// Windows pooled.
+    pub windows: usize,
+    pub reference_component: usize,
+    pub shape: Vec<PooledShapeComponent>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PooledShapeComponent {
+    pub sensor_id: SensorId,
+    pub direction: ModalDirection,
+    pub real: ModalEstimate,
+}
+
 /// One identified mode, with its track's judgement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -611,6 +631,10 @@ pub struct ModeReport {
     pub shape: Vec<ModeShapeComponent>,
     /// Index in `shape` of the component the shape is normalised to.
     pub reference_component: usize,
+    /// The track's shape pooled over its last windows (this one included): what a window
+    /// cannot resolve of two close modes, a day of windows can. Absent for an untracked mode.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pooled_shape: Option<PooledShapeReport>,
     /// Model order of the representative pole, orders it was stable at, and jackknife
     /// replicates it was found in.
     pub order: usize,
@@ -780,6 +804,7 @@ mod tests {
                     imag: estimate(0.0, f64::INFINITY),
                 }],
                 reference_component: 0,
+                pooled_shape: None,
                 order: 20,
                 stable_orders: 10,
                 replicates: 12,
