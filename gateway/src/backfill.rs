@@ -246,6 +246,21 @@ fn holes_of(ctx: &Context, sensor: &SensorId, need: Need) -> Vec<Hole> {
             // gateway's downtime cost, and what a kill cost a fill under way. Nothing before
             // the first run: where the sensor's history began is not a hole. A node that
             // numbered afresh (not a `triax-node`) holds nothing below this batch's number.
+            // A sensor the history holds nothing of is new to it: its batches before this one
+            // (a node's first seconds, before its link reached the gateway) are asked for,
+            // within the span a buffer keeps.
+            if runs.is_empty() {
+                return match sequence {
+                    0 => Vec::new(),
+                    _ => vec![Hole {
+                        from_seq,
+                        to_seq: sequence - 1,
+                        after_ns: i64::MIN,
+                        before_ns: timestamp_ns,
+                        state: None,
+                    }],
+                };
+            }
             let mut holes = Vec::new();
             for (i, run) in runs.iter().enumerate() {
                 let (to_seq, before_ns) = match runs.get(i + 1) {
