@@ -239,26 +239,6 @@ pub fn init_logging(filter: &str) -> Result<(), tracing_subscriber::filter::Pars
     Ok(())
 }
 
-/// Zenoh's runtimes for a gateway process, unless `ZENOH_RUNTIME` is set already: the acceptor's
-/// runtime handed over to the receive runtime, `(acc: (handover: rx))`.
-///
-/// Zenoh registers a link's socket with the reactor of the runtime that accepted it, so by
-/// default each batch from a node woke the acceptor's thread, which then woke a receive thread:
-/// at a building's pace (batches a millisecond apart) a context switch and a third of the CPU
-/// per batch, in the gateway and in a bare relay alike (BENCHMARKS.md). Handed over, the
-/// receive thread polls the socket itself. The transmit runtime stays apart: on the receive
-/// threads, a transmit task woken by a put that then blocks (a declaration, on a full queue)
-/// would wait behind it.
-///
-/// Zenoh reads the variable once, at its first use: call this first thing in `main`, before any
-/// thread exists (it sets an environment variable).
-pub fn configure_zenoh_runtime() {
-    const ZENOH_RUNTIME: &str = "ZENOH_RUNTIME";
-    if std::env::var_os(ZENOH_RUNTIME).is_none() {
-        std::env::set_var(ZENOH_RUNTIME, "(acc: (handover: rx))");
-    }
-}
-
 /// Runs a gateway until `shutdown` completes, then stops it cleanly.
 pub async fn run(config: Config, shutdown: impl Future) -> Result<(), GatewayError> {
     Gateway::start(config).await?.run_until(shutdown).await

@@ -141,9 +141,8 @@ async fn shutdown_signal() {
 }
 
 fn main() -> anyhow::Result<()> {
-    // Before any thread exists: the allocator's settings and Zenoh's runtimes are process-wide.
+    // Before any thread exists: the allocator's settings are process-wide.
     triax_gateway::memory::configure_allocator();
-    triax_gateway::configure_zenoh_runtime();
     let cli = Cli::parse();
     let default_log = if cli.demo { "warn" } else { "info" };
     triax_gateway::init_logging(cli.log.as_deref().unwrap_or(default_log))

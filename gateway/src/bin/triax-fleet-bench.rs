@@ -436,7 +436,6 @@ fn main() -> Result<()> {
     if args.serve_gateways.is_some() {
         // As the service binary sets itself up, before any thread exists.
         triax_gateway::memory::configure_allocator();
-        triax_gateway::configure_zenoh_runtime();
         triax_gateway::init_logging("warn")?;
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()

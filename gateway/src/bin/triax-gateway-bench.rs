@@ -1134,11 +1134,10 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
 fn main() -> Result<()> {
     let args = Args::parse();
     if args.serve.is_some() {
-        // The system under test runs as the service does: same allocator settings, same Zenoh
-        // runtimes (the relays too: the floor is Zenoh set up as the gateway sets it up), same
-        // logging (to the parent's null device).
+        // The system under test runs as the service does: same allocator settings, same
+        // logging (to the parent's null device). Zenoh's runtimes follow `ZENOH_RUNTIME` if
+        // the bench's environment sets it, for the relays and the gateways alike.
         triax_gateway::memory::configure_allocator();
-        triax_gateway::configure_zenoh_runtime();
         triax_gateway::init_logging("info")?;
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
