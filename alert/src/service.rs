@@ -521,7 +521,12 @@ async fn publish(session: &zenoh::Session, alert: &Alert, key: &LabSigningKey) {
     );
     let signed = sign_alert(alert, key);
     let expr = Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string();
-    if let Err(e) = session.put(&expr, to_json(&signed)).await {
+    // Zenoh's default for a put drops it when a link's queue is full: an alert must wait
+    // instead, like the gateways' corrected batches.
+    let put = session
+        .put(&expr, to_json(&signed))
+        .congestion_control(zenoh::qos::CongestionControl::Block);
+    if let Err(e) = put.await {
         tracing::error!(key = %expr, cause = %e, "alert not published");
     }
 }
