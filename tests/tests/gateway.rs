@@ -22,6 +22,9 @@
 //! - `split_mode_and_tilt_stream`: split mode recovers a motion whose static and vibration
 //!   sensitivities differ; the tilt stream's angles match the truth within their uncertainty.
 //! - `alerting`: `triax-alert` resumes from its state through the history after a restart.
+//! - `alert_mc` (ignored by default): a Monte Carlo of `triax-alert`'s published alerts with
+//!   known truth: false `exceeded` at the limit, coverage, the sample-bound path, low
+//!   frequencies, and the latency the service adds at 100 sensors.
 //! - `catchup`: a registry that arrives after the gateway is caught up with within seconds.
 //! - `console`: the operators' console in headless Chromium against a demo building; what it
 //!   refuses; the one-sensor status it reads the calibration record from.
@@ -43,6 +46,8 @@
 //! - `tilt`: 300 inclinometers ramping at 0.01–0.2 °/s under sway: the truth at each tilt
 //!   sample's instant lies within ±k·u at the stated rate.
 
+#[path = "gateway/alert_mc.rs"]
+mod alert_mc;
 #[path = "gateway/alerting.rs"]
 mod alerting;
 #[path = "gateway/backfill.rs"]
