@@ -128,6 +128,33 @@ pub struct Settings {
     pub timeout: Duration,
     /// Most batches asked for one hole: the newest of a longer one.
     pub max_batches: u64,
+    /// Most late batches corrected and published a second, all holes together; none: as fast
+    /// as they come. A building's outage returns as one burst, and the live stream shares the
+    /// gateway's cores with it.
+    pub max_batches_per_s: Option<f64>,
+}
+
+/// Spaces late batches at most `per_s` a second, all fills together.
+#[derive(Debug)]
+struct Pace {
+    per_s: f64,
+    next: Mutex<std::time::Instant>,
+}
+
+impl Pace {
+    /// Waits until `n` more batches are within the rate.
+    fn take(&self, n: usize) {
+        let due = {
+            let mut next = self.next.lock().unwrap_or_else(|p| p.into_inner());
+            let now = std::time::Instant::now();
+            let start = (*next).max(now);
+            *next = start + Duration::from_secs_f64(n as f64 / self.per_s);
+            start
+        };
+        if let Some(wait) = due.checked_duration_since(std::time::Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
 }
 
 pub fn channel() -> (Asker, mpsc::Receiver<Request>) {
@@ -148,9 +175,26 @@ pub struct Context {
     pub settings: Settings,
 }
 
+/// [`Context`] with what the fills share.
+struct Filling {
+    ctx: Context,
+    pace: Option<Pace>,
+}
+
+impl std::ops::Deref for Filling {
+    type Target = Context;
+    fn deref(&self) -> &Context {
+        &self.ctx
+    }
+}
+
 /// Serves requests until shutdown: at most one per sensor and [`CONCURRENT`] in all at a time.
 pub async fn run(ctx: Context, mut rx: mpsc::Receiver<Request>, mut shutdown: Shutdown) {
-    let ctx = Arc::new(ctx);
+    let pace = ctx.settings.max_batches_per_s.map(|per_s| Pace {
+        per_s,
+        next: Mutex::new(std::time::Instant::now()),
+    });
+    let ctx = Arc::new(Filling { ctx, pace });
     let mut waiting: VecDeque<Request> = VecDeque::new();
     let mut busy: HashSet<SensorId> = HashSet::new();
     let mut running = tokio::task::JoinSet::new();
@@ -286,7 +330,7 @@ fn holes_of(ctx: &Context, sensor: &SensorId, need: Need) -> Vec<Hole> {
 /// [`ATTEMPTS`] times in all, for numbers still missing, as long as the last round brought
 /// something (a reply lost on a busy link comes again; a number the buffer does not hold does
 /// not). Runs on a blocking thread.
-fn fill(ctx: &Context, request: Request) {
+fn fill(ctx: &Filling, request: Request) {
     let Request { sensor, need } = request;
     let mut holes = holes_of(ctx, &sensor, need);
     for _ in 0..ATTEMPTS {
@@ -316,7 +360,7 @@ struct Filled {
     missing: Vec<Hole>,
 }
 
-fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
+fn fill_hole(ctx: &Filling, sensor: &SensorId, mut hole: Hole) -> Filled {
     let c = &ctx.counters;
     let wanted = hole.to_seq - hole.from_seq + 1;
     if wanted > ctx.settings.max_batches {
@@ -366,6 +410,9 @@ fn fill_hole(ctx: &Context, sensor: &SensorId, mut hole: Hole) -> Filled {
     let flush = |chunk: &mut Vec<Vec<u8>>, run: &mut LateRun| {
         if chunk.is_empty() {
             return;
+        }
+        if let Some(pace) = &ctx.pace {
+            pace.take(chunk.len());
         }
         let corrected = worker::lock_shard(shard).correct_late(&ctx.shared, sensor, run, chunk);
         match corrected {

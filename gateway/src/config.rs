@@ -344,12 +344,16 @@ pub struct FileBackfill {
     pub enabled: Option<bool>,
     pub timeout_s: Option<f64>,
     pub max_batches: Option<u64>,
+    pub max_batches_per_s: Option<f64>,
 }
 
 /// Default `[backfill] timeout_s` and `max_batches` (an hour of 10-sample batches at 100 Hz,
 /// `triax-node`'s default buffer).
 pub const DEFAULT_BACKFILL_TIMEOUT_S: f64 = 60.0;
 pub const DEFAULT_BACKFILL_MAX_BATCHES: u64 = 36_000;
+/// Default `[backfill] max_batches_per_s`: a 60 s outage of 100 sensors at 10 batches a second
+/// fills in 6 s.
+pub const DEFAULT_BACKFILL_MAX_BATCHES_PER_S: f64 = 10_000.0;
 
 fn backfill_settings(b: FileBackfill) -> Result<Option<crate::backfill::Settings>, ConfigError> {
     if !b.enabled.unwrap_or(true) {
@@ -367,9 +371,19 @@ fn backfill_settings(b: FileBackfill) -> Result<Option<crate::backfill::Settings
             format!("{max_batches} is outside 1..=1000000"),
         ));
     }
+    let per_s = b
+        .max_batches_per_s
+        .unwrap_or(DEFAULT_BACKFILL_MAX_BATCHES_PER_S);
+    if !(per_s.is_finite() && (0.0..=10_000_000.0).contains(&per_s)) {
+        return Err(ConfigError::invalid(
+            "backfill.max_batches_per_s",
+            format!("{per_s} is outside 0..=10000000 (0: no limit)"),
+        ));
+    }
     Ok(Some(crate::backfill::Settings {
         timeout,
         max_batches,
+        max_batches_per_s: (per_s > 0.0).then_some(per_s),
     }))
 }
 
