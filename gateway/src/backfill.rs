@@ -7,15 +7,18 @@
 //! on the first batch the gateway meets of a sensor after it started, for every hole the history
 //! it inherited has in the span a buffer can fill (found here, off the sample path, from the
 //! runs of numbers it kept before this run: [`triax_history::History::kept_runs`]): what the
-//! downtime cost, and what a kill cost a fill under way. A request the queue
-//! cannot take is counted (`backfill.refused`) and the hole stays as it is today.
+//! downtime cost, and what a kill cost a fill under way; for a sensor new to the history, the
+//! numbers below its first batch. A request the queue cannot take is counted
+//! (`backfill.refused_requests` in status) and the hole stays a hole.
 //!
 //! **How.** One request at a time per sensor, [`CONCURRENT`] sensors at once, each on a blocking
 //! thread: a Zenoh query at `DataLow` priority, so the replies queue behind live data, with no
 //! consolidation. Replies are checked (the sensor's key, a raw batch that parses, the sensor
 //! its header names, a number inside the range and above the last taken, a time strictly
-//! between the batches around the hole) and anything else is counted (`backfill.rejected`) and
-//! skipped. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
+//! between the batches around the hole) and anything else is counted
+//! (`backfill.rejected_replies`) and skipped. What an answer lacked is asked again while the
+//! last answer brought something ([`ATTEMPTS`]), and all fills together go at most
+//! `[backfill] max_batches_per_s`, so that an outage's return does not crowd out the live stream. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
 //! ([`crate::worker::Shard::correct_late`]) and published after it, so that a live batch waits
 //! for at most one chunk's correction, with a kernel of their own restored from the state
 //! before the gap (a cold one after the gateway's restart, as the live path was then): the live
