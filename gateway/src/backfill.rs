@@ -365,6 +365,12 @@ struct Filled {
 
 fn fill_hole(ctx: &Filling, sensor: &SensorId, mut hole: Hole) -> Filled {
     let c = &ctx.counters;
+    if hole.from_seq > hole.to_seq {
+        return Filled {
+            received: 0,
+            missing: Vec::new(),
+        };
+    }
     let wanted = hole.to_seq - hole.from_seq + 1;
     if wanted > ctx.settings.max_batches {
         hole.from_seq = hole.to_seq + 1 - ctx.settings.max_batches;
