@@ -507,6 +507,24 @@ impl State {
                     *m = mark;
                 }
                 None => {
+                    // A sensor met for the first time, past its number 0: its earlier batches
+                    // (from the time it is followed from) may still come late, if a gateway
+                    // fetches a node's first seconds from its buffer.
+                    if mark.position.sequence > 0
+                        && mark.position.timestamp_ns > self.new_sensors_from_ns
+                    {
+                        self.holes.insert(
+                            batch.header.sensor_id.clone(),
+                            vec![Hole {
+                                // Numbered so that the next is 0.
+                                after: Position {
+                                    sequence: u64::MAX,
+                                    timestamp_ns: self.new_sensors_from_ns.saturating_sub(1),
+                                },
+                                before: mark.position,
+                            }],
+                        );
+                    }
                     self.marks.insert(batch.header.sensor_id.clone(), mark);
                 }
             }

@@ -415,6 +415,10 @@ class Follower:
                 if len(holes) >= MAX_HOLES:
                     holes.pop(0)
                 holes.append([mark[:2], p])
+            elif mark is None and p[0] > 0 and p[1] > self.new_from_ns and not is_late(batch):
+                # Met for the first time past its number 0: its earlier batches (from the time
+                # it is followed from) may still come late from the node's buffer.
+                self.holes[sensor] = [[(-1, self.new_from_ns - 1), p]]
             self.marks[sensor] = (*p, batch["timestamp_ns"] + duration_ns(batch))
         self.ready.append((payload, batch))
 

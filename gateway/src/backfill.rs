@@ -289,26 +289,24 @@ fn holes_of(ctx: &Context, sensor: &SensorId, need: Need) -> Vec<Hole> {
                     return Vec::new();
                 }
             };
-            // Between the runs the history holds, and from the last to this batch: what the
-            // gateway's downtime cost, and what a kill cost a fill under way. Nothing before
-            // the first run: where the sensor's history began is not a hole. A node that
-            // numbered afresh (not a `triax-node`) holds nothing below this batch's number.
-            // A sensor the history holds nothing of is new to it: its batches before this one
-            // (a node's first seconds, before its link reached the gateway) are asked for,
-            // within the span a buffer keeps.
-            if runs.is_empty() {
-                return match sequence {
-                    0 => Vec::new(),
-                    _ => vec![Hole {
-                        from_seq,
-                        to_seq: sequence - 1,
-                        after_ns: i64::MIN,
-                        before_ns: timestamp_ns,
-                        state: None,
-                    }],
-                };
-            }
+            // Below the first run the history holds (within the span a buffer keeps), between
+            // the runs, and from the last to this batch: a node's first seconds, before its
+            // link reached the gateway (and late batches of them a kill did not let the history
+            // keep), what the gateway's downtime cost, and what a kill cost a fill under way. A
+            // node that numbered afresh (not a `triax-node`) holds nothing below this batch's
+            // number, and a history that holds the whole span starts its first run at its edge.
+            let first_seq = runs.first().map_or(sequence, |r| r.first_seq);
+            let first_ns = runs.first().map_or(timestamp_ns, |r| r.first_ns);
             let mut holes = Vec::new();
+            if first_seq > from_seq && first_seq <= sequence {
+                holes.push(Hole {
+                    from_seq,
+                    to_seq: first_seq - 1,
+                    after_ns: i64::MIN,
+                    before_ns: first_ns,
+                    state: None,
+                });
+            }
             for (i, run) in runs.iter().enumerate() {
                 let (to_seq, before_ns) = match runs.get(i + 1) {
                     Some(next) => (next.first_seq - 1, next.first_ns),
