@@ -1201,6 +1201,36 @@ mod tests {
     }
 
     #[test]
+    fn backfill_settings_default_and_refuse_by_name() {
+        let c = parse("").unwrap();
+        let b = c.backfill.expect("backfill is on by default");
+        assert_eq!(b.max_batches, DEFAULT_BACKFILL_MAX_BATCHES);
+        assert_eq!(
+            b.max_batches_per_s,
+            Some(DEFAULT_BACKFILL_MAX_BATCHES_PER_S)
+        );
+        assert_eq!(
+            b.timeout,
+            Duration::from_secs_f64(DEFAULT_BACKFILL_TIMEOUT_S)
+        );
+        assert!(parse("[backfill]\nenabled = false")
+            .unwrap()
+            .backfill
+            .is_none());
+        let unpaced = parse("[backfill]\nmax_batches_per_s = 0").unwrap();
+        assert_eq!(unpaced.backfill.unwrap().max_batches_per_s, None);
+        for (bad, field) in [
+            ("max_batches = 0", "backfill.max_batches"),
+            ("max_batches_per_s = -1", "backfill.max_batches_per_s"),
+            ("timeout_s = 0", "backfill.timeout_s"),
+            ("retries = 3", "retries"),
+        ] {
+            let e = parse(&format!("[backfill]\n{bad}")).unwrap_err();
+            assert!(e.to_string().contains(field), "{bad}: {e}");
+        }
+    }
+
+    #[test]
     fn the_example_file_is_valid() {
         let c = parse(include_str!("../gateway.example.toml")).unwrap();
         assert_eq!(c.sensor("roof-incl-1").mode, CorrectionMode::Split);
