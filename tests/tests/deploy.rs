@@ -391,6 +391,24 @@ async fn anything(
 }
 
 /// Replies to a query on `selector` within `window`.
+/// A queryable on `key` that answers every query with `text`.
+async fn answering(
+    session: &zenoh::Session,
+    key: &str,
+    text: &'static str,
+) -> zenoh::query::Queryable<()> {
+    session
+        .declare_queryable(key.to_owned())
+        .callback(move |q| {
+            let key = q.key_expr().clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, text).await;
+            });
+        })
+        .await
+        .unwrap()
+}
+
 async fn replies(session: &zenoh::Session, selector: &str, window: Duration) -> usize {
     let Ok(r) = session
         .get(selector)
@@ -530,16 +548,7 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
     // The registry: the lab serves it and the gateway's identity gets the answer; nobody else
     // can ask it, and nobody but the lab can serve it.
     let registry_key = "triax/north/calibration/registry";
-    let served = lab
-        .declare_queryable(registry_key)
-        .callback(|q| {
-            let key = q.key_expr().clone();
-            tokio::spawn(async move {
-                let _ = q.reply(key, "from the lab").await;
-            });
-        })
-        .await
-        .unwrap();
+    let served = answering(&lab, registry_key, "from the lab").await;
     let gateway_identity = tls_client(dir.path(), tls_port, gw_cn).await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert_eq!(replies(&gateway_identity, registry_key, quiet).await, 1);
@@ -556,16 +565,7 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
         );
     }
     drop(served);
-    let fake = consumer
-        .declare_queryable(registry_key)
-        .callback(|q| {
-            let key = q.key_expr().clone();
-            tokio::spawn(async move {
-                let _ = q.reply(key, "forged").await;
-            });
-        })
-        .await
-        .unwrap();
+    let fake = answering(&consumer, registry_key, "forged").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert_eq!(
         replies(&gateway_identity, registry_key, quiet).await,
@@ -577,16 +577,7 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
     // The node's buffer (backfill): the node serves it and the gateway's identity gets the
     // answer; nobody else can ask it, and a consumer cannot pose as a node's buffer.
     let buffer_key = Key::Buffer(north.clone(), sensor.clone()).to_string();
-    let buffer = node
-        .declare_queryable(&buffer_key)
-        .callback(|q| {
-            let key = q.key_expr().clone();
-            tokio::spawn(async move {
-                let _ = q.reply(key, "a raw batch").await;
-            });
-        })
-        .await
-        .unwrap();
+    let buffer = answering(&node, &buffer_key, "a raw batch").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert_eq!(replies(&gateway_identity, &buffer_key, quiet).await, 1);
     for (who, s) in [
@@ -601,16 +592,7 @@ async fn every_identity_does_what_it_may_and_nothing_else() {
         );
     }
     drop(buffer);
-    let fake = consumer
-        .declare_queryable(&buffer_key)
-        .callback(|q| {
-            let key = q.key_expr().clone();
-            tokio::spawn(async move {
-                let _ = q.reply(key, "forged").await;
-            });
-        })
-        .await
-        .unwrap();
+    let fake = answering(&consumer, &buffer_key, "forged").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert_eq!(
         replies(&gateway_identity, &buffer_key, quiet).await,

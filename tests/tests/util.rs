@@ -218,16 +218,63 @@ pub async fn start(config: Config) -> Running {
 
 /// A peer session connected to `endpoint`, with no scouting and no listener.
 pub async fn client(endpoint: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("connect/endpoints", format!("[\"{endpoint}\"]")),
+    client_of(&[endpoint]).await
+}
+
+/// A peer session connected to every one of `endpoints`, with no scouting and no listener.
+pub async fn client_of(endpoints: &[&str]) -> zenoh::Session {
+    let list = endpoints
+        .iter()
+        .map(|e| format!("\"{e}\""))
+        .collect::<Vec<_>>()
+        .join(",");
+    peer(&[
+        ("connect/endpoints", format!("[{list}]")),
         ("listen/endpoints", "[]".to_owned()),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        c.insert_json5(k, &v).expect("valid zenoh setting");
+    ])
+    .await
+}
+
+/// A peer session listening on `endpoint`, with no scouting: one that outlives the gateways
+/// that connect to it.
+pub async fn listening_peer(endpoint: &str) -> zenoh::Session {
+    peer(&[("listen/endpoints", format!("[\"{endpoint}\"]"))]).await
+}
+
+/// A peer session with multicast scouting off and `settings` (JSON5 values by key).
+async fn peer(settings: &[(&str, String)]) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"peer\"")
+        .expect("valid zenoh setting");
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .expect("valid zenoh setting");
+    for (k, v) in settings {
+        c.insert_json5(k, v).expect("valid zenoh setting");
     }
-    zenoh::open(c).await.expect("client session opens")
+    zenoh::open(c).await.expect("peer session opens")
+}
+
+/// Runs a gateway with `config` in this process (a test binary started as a child by its
+/// test, so that it can be killed) until its standard input closes, as the binary does on
+/// SIGTERM; logs at info on standard error, which the parent keeps.
+pub fn run_gateway_until_stdin_closes(config: Config) {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("a runtime for the child gateway");
+    let stdin_closed = async {
+        tokio::task::spawn_blocking(|| {
+            use std::io::Read;
+            let mut buf = [0u8; 64];
+            while matches!(std::io::stdin().read(&mut buf), Ok(n) if n > 0) {}
+        })
+        .await
+        .expect("the stdin watcher ends");
+    };
+    triax_gateway::init_logging("info").expect("logging starts once");
+    runtime
+        .block_on(triax_gateway::run(config, stdin_closed))
+        .expect("the child gateway runs");
 }
 
 /// Waits until `publisher` has a matching subscriber (the gateway's).

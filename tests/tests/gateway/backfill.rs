@@ -89,25 +89,6 @@ async fn replay(session: &zenoh::Session, building: &str, sensor: &str) -> Vec<V
     out
 }
 
-/// A peer session connected to every one of `endpoints`.
-async fn client_of(endpoints: &[&str]) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    let list = endpoints
-        .iter()
-        .map(|e| format!("\"{e}\""))
-        .collect::<Vec<_>>()
-        .join(",");
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("connect/endpoints", format!("[{list}]")),
-        ("listen/endpoints", "[]".to_owned()),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    zenoh::open(c).await.unwrap()
-}
-
 fn settings(config: &mut triax_gateway::Config) {
     config.sensors.insert(
         SensorId::new(SPLIT).unwrap(),
@@ -323,15 +304,7 @@ async fn what_a_gateway_missed_while_down_is_fetched_when_it_starts() {
     );
     // The node listens, so that it outlives the gateway.
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let mut zc = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("listen/endpoints", format!("[\"{endpoint}\"]")),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        zc.insert_json5(k, &v).unwrap();
-    }
-    let node = zenoh::open(zc).await.unwrap();
+    let node = listening_peer(&endpoint).await;
     let buffer = Buffer::default();
     let _queryable = buffer.serve(&node, "hbd").await;
     let (published, _sub) = subscribe(&node, "hbd").await;

@@ -16,7 +16,6 @@
 //!   --nocapture`.
 
 use std::collections::{BTreeMap, HashMap};
-use std::io::Read;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
@@ -51,22 +50,7 @@ fn fault_gateway_process() {
         CHILD_ENV.map(|k| std::env::var(k).unwrap_or_else(|_| panic!("{k} is set by the parent")));
     let mut cfg = triax_gateway::Config::for_tests(&building, std::path::Path::new(&store), vec![]);
     cfg.zenoh.connect = vec![connect];
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let stdin_closed = async {
-        tokio::task::spawn_blocking(|| {
-            let mut buf = [0u8; 64];
-            while matches!(std::io::stdin().read(&mut buf), Ok(n) if n > 0) {}
-        })
-        .await
-        .unwrap();
-    };
-    triax_gateway::init_logging("info").unwrap();
-    runtime
-        .block_on(triax_gateway::run(cfg, stdin_closed))
-        .unwrap();
+    run_gateway_until_stdin_closes(cfg);
 }
 
 /// A TCP link between the nodes and the router that the test can cut: while cut, every

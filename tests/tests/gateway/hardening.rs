@@ -22,25 +22,6 @@ use triax_protocol::record::sample;
 use super::status;
 use crate::util::*;
 
-/// A peer session connected to every endpoint given.
-async fn attacker(endpoints: &[&str]) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    let list = endpoints
-        .iter()
-        .map(|e| format!("\"{e}\""))
-        .collect::<Vec<_>>()
-        .join(",");
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("connect/endpoints", format!("[{list}]")),
-        ("listen/endpoints", "[]".to_owned()),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        c.insert_json5(k, &v).expect("valid zenoh setting");
-    }
-    zenoh::open(c).await.expect("attacker session opens")
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wildcard_and_foreign_keys_are_refused_in_every_building() {
     let dir = tempfile::tempdir().unwrap();
@@ -50,7 +31,7 @@ async fn wildcard_and_foreign_keys_are_refused_in_every_building() {
     let mut cfg_b = config("hb", &dir.path().join("b"));
     cfg_b.zenoh.connect = vec![gw_a.endpoint.clone()];
     let gw_b = start(cfg_b).await;
-    let session = attacker(&[&gw_a.endpoint, &gw_b.endpoint]).await;
+    let session = client_of(&[&gw_a.endpoint, &gw_b.endpoint]).await;
 
     let published = Arc::new(std::sync::Mutex::new(Vec::<CorrectedBatch>::new()));
     let p = published.clone();

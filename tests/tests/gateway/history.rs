@@ -754,15 +754,7 @@ async fn the_history_survives_kill_9_within_its_durability_rule() {
     // The test's own session listens; the gateway connects to it, and again after each restart.
     let port = free_port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("listen/endpoints", format!("[\"{endpoint}\"]")),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    let session = zenoh::open(c).await.unwrap();
+    let session = listening_peer(&endpoint).await;
     type Live = std::sync::Arc<std::sync::Mutex<Vec<(Instant, Vec<u8>)>>>;
     let live: Live = Default::default();
     let l = live.clone();

@@ -14,7 +14,6 @@
 
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-use std::io::Read;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -67,23 +66,8 @@ fn gateway_process() {
             ..SensorSettings::default()
         },
     );
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    let stdin_closed = async {
-        tokio::task::spawn_blocking(|| {
-            let mut buf = [0u8; 64];
-            while matches!(std::io::stdin().read(&mut buf), Ok(n) if n > 0) {}
-        })
-        .await
-        .unwrap();
-    };
     // The parent keeps the log and shows it when the run lost a batch it should not have.
-    triax_gateway::init_logging("info").unwrap();
-    runtime
-        .block_on(triax_gateway::run(cfg, stdin_closed))
-        .unwrap();
+    run_gateway_until_stdin_closes(cfg);
 }
 
 /// Batch `seq` of a 100 Hz node: sway at 1.3 Hz inside the record's band, a slow tilt, gravity.
@@ -131,15 +115,7 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
     );
     // The test's session listens; each gateway process connects to it.
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_owned()),
-        ("listen/endpoints", format!("[\"{endpoint}\"]")),
-        ("scouting/multicast/enabled", "false".to_owned()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    let session = zenoh::open(c).await.unwrap();
+    let session = listening_peer(&endpoint).await;
     // Live batches as they come, with the gateway run that published them.
     type Live = Arc<Mutex<Vec<(usize, std::time::Instant, Vec<u8>)>>>;
     let live: Live = Default::default();
