@@ -91,20 +91,6 @@ use triax_protocol::record::{sample, CalibrationRecord};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use util::*;
 
-async fn status(session: &zenoh::Session, b: &str) -> GatewayStatus {
-    let replies = session
-        .get(Key::Status(BuildingId::new(b).unwrap()).to_string())
-        .timeout(TIMEOUT)
-        .await
-        .expect("status query sent");
-    let reply = tokio::time::timeout(TIMEOUT, replies.recv_async())
-        .await
-        .expect("status answered in time")
-        .expect("a reply");
-    let sample = reply.result().expect("status reply is not an error");
-    from_json(&sample.payload().to_bytes()).expect("status decodes")
-}
-
 async fn metrics(addr: std::net::SocketAddr) -> String {
     let mut s = tokio::net::TcpStream::connect(addr)
         .await

@@ -47,6 +47,21 @@ pub async fn blocking_publisher(
     publisher
 }
 
+/// The gateway's status of building `b` (the first page).
+pub async fn status(session: &zenoh::Session, b: &str) -> triax_protocol::messages::GatewayStatus {
+    let replies = session
+        .get(Key::Status(BuildingId::new(b).unwrap()).to_string())
+        .timeout(TIMEOUT)
+        .await
+        .expect("status query sent");
+    let reply = tokio::time::timeout(TIMEOUT, replies.recv_async())
+        .await
+        .expect("status answered in time")
+        .expect("a reply");
+    let sample = reply.result().expect("status reply is not an error");
+    triax_protocol::from_json(&sample.payload().to_bytes()).expect("status decodes")
+}
+
 /// A loopback TCP port nobody listens on right now (see [`triax_net::free_loopback_port`]).
 pub fn free_port() -> u16 {
     triax_net::free_loopback_port().expect("loopback is available")
