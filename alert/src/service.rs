@@ -13,7 +13,8 @@
 //!
 //! Tilt samples are not kept in the histories; they arrive through a plain subscription whose
 //! callback only copies into a bounded channel (`try_send`, counted when full). One task owns the
-//! [`Monitor`] and does everything else, so the window state needs no lock.
+//! [`Monitor`] and does everything else but sign and put the alerts it finds, which a second
+//! task does in the order they were found; the window state needs no lock.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::future::Future;
@@ -338,6 +339,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     let mut save = tokio::time::interval(STATE_PERIOD);
     save.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut reported_dropped = 0;
+    let (publisher, publishing) = spawn_publisher(session.clone(), signing);
     tokio::pin!(shutdown);
     loop {
         let alerts = tokio::select! {
@@ -402,11 +404,18 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             }
         };
         for alert in alerts {
-            publish(&session, &alert, &signing).await;
+            if publisher.send(alert).await.is_err() {
+                tracing::error!("the alert publisher stopped");
+            }
         }
     }
     for f in &followers {
         f.abort();
+    }
+    // Every alert judged goes out before the session closes.
+    drop(publisher);
+    if let Err(e) = publishing.await {
+        tracing::error!(cause = %e, "the alert publisher failed");
     }
     if let Some(p) = &config.state_path {
         if let Err(e) = save_state(p, &positions) {
@@ -503,6 +512,27 @@ fn on_tilt(monitor: &mut Monitor, key: &str, payload: &[u8]) -> Vec<Alert> {
             Vec::new()
         }
     }
+}
+
+/// Alerts waiting to be signed and put.
+pub const PUBLISH_QUEUE: usize = 1024;
+
+/// Signs, logs and puts alerts in the order they come, on a task of its own: a burst of
+/// judgements (every sensor of a building sends its batch at the same instant) is judged while
+/// the alerts already found are signed and put, on the other core, and each alert waits only
+/// for those before it, not for the rest of the burst's judgements. The queue is bounded;
+/// when full, judging waits (an alert is never dropped).
+fn spawn_publisher(
+    session: zenoh::Session,
+    signing: LabSigningKey,
+) -> (mpsc::Sender<Alert>, tokio::task::JoinHandle<()>) {
+    let (tx, mut rx) = mpsc::channel::<Alert>(PUBLISH_QUEUE);
+    let task = tokio::spawn(async move {
+        while let Some(alert) = rx.recv().await {
+            publish(&session, &alert, &signing).await;
+        }
+    });
+    (tx, task)
 }
 
 async fn publish(session: &zenoh::Session, alert: &Alert, key: &LabSigningKey) {
