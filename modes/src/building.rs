@@ -196,15 +196,30 @@ impl Building {
         }
     }
 
-    /// The state to save after a window.
+    /// The state as gathered now: every closed window counted as identified.
     pub fn state(&self) -> BuildingState {
         let next = self.gatherer.next_index();
+        self.state_with(
+            (next != i64::MIN).then_some(next),
+            &self.gatherer.positions(),
+        )
+    }
+
+    /// The state to save once `closed` is concluded: the windows after it, closed or not, are
+    /// still to be identified.
+    pub fn state_after(&self, closed: &ClosedWindow) -> BuildingState {
+        self.state_with(Some(closed.index + 1), &closed.resume)
+    }
+
+    fn state_with(
+        &self,
+        next_index: Option<i64>,
+        positions: &BTreeMap<SensorId, Position>,
+    ) -> BuildingState {
         BuildingState {
-            next_index: (next != i64::MIN).then_some(next),
-            positions: self
-                .gatherer
-                .positions()
-                .into_iter()
+            next_index,
+            positions: positions
+                .iter()
                 .map(|(s, p)| (s.to_string(), (p.sequence, p.timestamp_ns)))
                 .collect(),
             tracks: self.tracker.tracks.iter().map(TrackState::of).collect(),

@@ -73,6 +73,10 @@ pub struct ClosedWindow {
     pub end_ns: i64,
     /// Some of its batches were read back from the history.
     pub late: bool,
+    /// Where each sensor's stream resumes once this window (and every earlier one) is
+    /// identified: the [`Gatherer::positions`] as this window closed. The gatherer moves on
+    /// while the window is identified, so the state saved after it must not take later ones.
+    pub resume: BTreeMap<SensorId, Position>,
 }
 
 /// Gathers one building's batches into windows.
@@ -369,6 +373,7 @@ impl Gatherer {
             coverage,
             end_ns: (index + 1).saturating_mul(self.window_ns),
             late: pending.late,
+            resume: self.positions(),
         }
     }
 }

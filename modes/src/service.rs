@@ -7,8 +7,19 @@
 //! state.json`, whole or not at all: the next window's index, per sensor the last batch wholly
 //! inside an identified window (a restarted service resumes its follower there, so the window
 //! it was filling is filled again from the history), and the tracks with their training
-//! observations. The identification runs on a blocking thread; the loop waits for it, so a
-//! slow window slows the followers, whose own gap filling makes up for what Zenoh then drops.
+//! observations.
+//!
+//! **Identification off the loop.** Every building's windows close at the same instants (their
+//! boundaries are multiples of `window_s` since the epoch), and a window takes a fraction of a
+//! second to identify: a loop that waited for each would stand still for all of a fleet's
+//! windows at once, while the followers' queues overflowed. So closed windows go to one
+//! identification thread through a queue of [`IDENTIFY_QUEUE`] windows, taken in the order they
+//! closed, and the loop goes on gathering; a building's windows are concluded (tracked,
+//! published, recorded, saved) in order as their results come back. The state saved after a
+//! window is the one as that window closed, so a window still queued at a stop is gathered
+//! again from the history after the restart. One thread: a fleet's identifications take one
+//! core at most; when the queue is full (the thread cannot keep up), the loop waits, and the
+//! followers' own gap filling makes up for what Zenoh then drops.
 
 use std::collections::BTreeMap;
 use std::future::Future;
@@ -23,11 +34,15 @@ use triax_protocol::signing::{sign_alert, LabSigningKey};
 use triax_protocol::{to_json, BuildingId, Key};
 
 use crate::building::{identify_window, Building, BuildingState};
+use triax_modal::{Identification, ModalError};
+
 use crate::config::{BuildingConfig, Config};
 use crate::grid::ClosedWindow;
 
 /// Messages waiting for the loop.
 pub const INBOX_CAPACITY: usize = 4096;
+/// Closed windows waiting for the identification thread.
+pub const IDENTIFY_QUEUE: usize = 256;
 
 /// A reading of a building's temperature source, as JSON on its configured key:
 /// `{"timestamp_ns": …, "temperature_c": …}`.
@@ -50,6 +65,8 @@ pub enum ServiceError {
     State { path: String, message: String },
     #[error(transparent)]
     SigningKey(#[from] triax_alert::ServiceError),
+    #[error("identification thread: {0}")]
+    Thread(String),
 }
 
 fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError {
@@ -62,6 +79,65 @@ fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError 
 enum Inbound {
     Corrected(BuildingId, Delivery),
     Temperature(BuildingId, Vec<u8>),
+}
+
+/// A closed window on its way to the identification thread.
+struct Job {
+    building: BuildingId,
+    config: Arc<BuildingConfig>,
+    closed: ClosedWindow,
+}
+
+/// A window back from the identification thread; `result` is none if it panicked.
+struct Identified {
+    building: BuildingId,
+    closed: ClosedWindow,
+    result: Option<Result<Identification, ModalError>>,
+}
+
+/// The identification thread: takes jobs in order until the loop stops sending or receiving.
+fn spawn_identifier(
+) -> Result<(mpsc::Sender<Job>, mpsc::UnboundedReceiver<Identified>), ServiceError> {
+    let (job_tx, mut job_rx) = mpsc::channel::<Job>(IDENTIFY_QUEUE);
+    let (done_tx, done_rx) = mpsc::unbounded_channel::<Identified>();
+    std::thread::Builder::new()
+        .name("triax-identify".into())
+        .spawn(move || {
+            while let Some(job) = job_rx.blocking_recv() {
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    identify_window(&job.config, &job.closed)
+                }))
+                .ok();
+                let done = Identified {
+                    building: job.building,
+                    closed: job.closed,
+                    result,
+                };
+                if done_tx.send(done).is_err() {
+                    return;
+                }
+            }
+        })
+        .map_err(|e| ServiceError::Thread(e.to_string()))?;
+    Ok((job_tx, done_rx))
+}
+
+/// Queues a building's closed windows for identification, oldest first.
+async fn submit(jobs: &mpsc::Sender<Job>, building: &Building, closed: Vec<ClosedWindow>) {
+    if closed.is_empty() {
+        return;
+    }
+    let config = Arc::new(building.config.clone());
+    for closed in closed {
+        let job = Job {
+            building: building.id.clone(),
+            config: config.clone(),
+            closed,
+        };
+        if jobs.send(job).await.is_err() {
+            tracing::error!(building = %building.id, "the identification thread stopped");
+        }
+    }
 }
 
 fn state_path(dir: &Path, building: &BuildingId) -> PathBuf {
@@ -161,6 +237,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         buildings.insert(id.clone(), building);
     }
     drop(tx);
+    let (jobs, mut identified) = spawn_identifier()?;
     let started = tokio::time::Instant::now();
     let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -169,12 +246,19 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
         let msg = tokio::select! {
             _ = &mut shutdown => break,
             msg = rx.recv() => match msg { Some(m) => m, None => break },
+            done = identified.recv() => {
+                // The thread lives while `jobs` does.
+                let Some(done) = done else { break };
+                if let Some(building) = buildings.get_mut(&done.building) {
+                    conclude(&session, &config, building, done, &signing).await;
+                }
+                continue;
+            }
             _ = tick.tick() => {
                 let now_s = started.elapsed().as_secs_f64();
                 for building in buildings.values_mut() {
-                    for closed in building.tick(now_s) {
-                        conclude(&session, &config, building, closed, &signing).await;
-                    }
+                    let closed = building.tick(now_s);
+                    submit(&jobs, building, closed).await;
                 }
                 continue;
             }
@@ -195,9 +279,8 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
                     continue;
                 };
                 let now_s = started.elapsed().as_secs_f64();
-                for closed in building.on_batch(&d.batch, d.recovered, now_s) {
-                    conclude(&session, &config, building, closed, &signing).await;
-                }
+                let closed = building.on_batch(&d.batch, d.recovered, now_s);
+                submit(&jobs, building, closed).await;
             }
         }
     }
@@ -213,26 +296,19 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     Ok(())
 }
 
-/// Identifies a closed window off the loop, then tracks, publishes, records, alerts and saves.
+/// Tracks an identified window, publishes, records, alerts and saves.
 async fn conclude(
     session: &zenoh::Session,
     config: &Config,
     building: &mut Building,
-    closed: ClosedWindow,
+    done: Identified,
     signing: &LabSigningKey,
 ) {
-    let bc: Arc<BuildingConfig> = Arc::new(building.config.clone());
-    let closed = Arc::new(closed);
-    let result = {
-        let (bc, closed) = (bc.clone(), closed.clone());
-        tokio::task::spawn_blocking(move || identify_window(&bc, &closed)).await
-    };
-    let result = match result {
-        Ok(r) => r,
-        Err(e) => {
-            tracing::error!(building = %building.id, cause = %e, "identification panicked");
-            return;
-        }
+    let Identified { closed, result, .. } = done;
+    let Some(result) = result else {
+        tracing::error!(building = %building.id, window_start_ns = closed.window.start_timestamp_ns,
+            "identification panicked");
+        return;
     };
     let outcome = building.conclude(&closed, result, None, OffsetDateTime::now_utc());
     let m = &outcome.modes;
@@ -258,7 +334,7 @@ async fn conclude(
             Err(e) => tracing::error!(dir = %dir.display(), cause = %e, "record not written"),
         }
         let path = state_path(root, &building.id);
-        if let Err(e) = save_state(&path, &building.state()) {
+        if let Err(e) = save_state(&path, &building.state_after(&closed)) {
             tracing::error!(path = %path.display(), cause = %e, "state not written");
         }
     }

@@ -164,6 +164,21 @@ fn windows_on_one_grid_leave_out_flags_gaps_and_misaligned_clocks() {
     let positions = gatherer.positions();
     let s1 = positions[&SensorId::new("s1").unwrap()];
     assert_eq!(s1.sequence, 239, "120 s of 0.5 s batches end at #239");
+    // Each window carries the restart point as it closed: the state saved once the first is
+    // identified must not skip the second, which one batch closed with it.
+    let id = SensorId::new("s1").unwrap();
+    assert_eq!(first.resume[&id].sequence, 119, "60 s end at #119");
+    assert_eq!(second.resume, positions);
+    let core = Building::new(
+        BuildingId::new("sim").unwrap(),
+        config(building.model.clone(), window_s),
+        None,
+    );
+    let after_first = core.state_after(first);
+    assert_eq!(after_first.next_index, Some(first.index + 1));
+    assert_eq!(after_first.positions["s1"].0, 119);
+    let restored = Building::new(core.id.clone(), core.config.clone(), Some(&after_first));
+    assert_eq!(restored.gatherer.next_index(), second.index);
 
     // Sensor 6 falls silent: the third window waits for it `close_after_s` (5 s) of the
     // service's clock after the others passed its end, however far they run meanwhile, then
