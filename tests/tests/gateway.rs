@@ -72,6 +72,8 @@ mod history_owner;
 mod intervals;
 #[path = "gateway/modes.rs"]
 mod modes;
+#[path = "gateway/modes_mc.rs"]
+mod modes_mc;
 #[path = "gateway/replay_restart.rs"]
 mod replay_restart;
 #[path = "gateway/tilt.rs"]

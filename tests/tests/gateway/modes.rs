@@ -3,40 +3,43 @@
 //! time, stamped by the simulation's clock; the service gathers the corrected streams into a
 //! 30-minute window, identifies it and publishes the modes on `triax/<building>/modes`; stopped
 //! over the next window, it reads that back from the history when started again, says it is
-//! late, and its tracks go on.
+//! late, and its tracks go on. The setup here is shared with `modes_mc`.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 
 use triax_modal::sim::{SimBuilding, SimConfig};
-use triax_modal::{Direction, SsiConfig, TrackerConfig};
+use triax_modal::{BuildingModel, ChainUncertainty, Direction, SsiConfig, TrackerConfig};
 use triax_modes::{BuildingConfig, Config as ModesConfig};
 use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::batch::{BatchHeader, RawBatch};
 use triax_protocol::messages::{BuildingModes, ModalDirection};
-use triax_protocol::record::sample;
-use triax_protocol::{from_json, BuildingId, SensorId};
+use triax_protocol::record::{sample, CalibrationRecord};
+use triax_protocol::{from_json, BuildingId, CalibrationSet, SensorId};
 
 use crate::util::*;
 
 /// Midnight UTC, a window boundary: the simulation's first sample.
-const EPOCH_NS: i64 = 1_800_921_600_000_000_000;
+pub(crate) const EPOCH_NS: i64 = 1_800_921_600_000_000_000;
 const STANDARD_GRAVITY_MPS2: f64 = 9.806_65;
 /// Samples per raw batch: 5 s at 100 Hz.
-const BATCH: usize = 500;
+pub(crate) const BATCH: usize = 500;
 
 /// Publishes a simulated stretch as raw batches of every sensor, interleaved, from sequence
-/// `first_sequence` and sample `first_sample` of the simulation's clock; returns how many
-/// batches each sensor sent.
-async fn stream(
+/// `first_sequence` and sample `first_sample` of the simulation's clock, each sensor's outputs
+/// made with its own `sets[i]` (its true sensitivity and offset); returns how many batches
+/// each sensor sent.
+pub(crate) async fn stream(
     sim: &triax_modal::Window,
     publishers: &[zenoh::pubsub::Publisher<'static>],
-    set: &triax_protocol::CalibrationSet,
+    sets: &[CalibrationSet],
     first_sequence: u64,
     first_sample: usize,
 ) -> u64 {
+    assert_eq!(sets.len(), sim.sensors.len(), "one set per sensor");
     let batches = sim.len().div_ceil(BATCH);
     for b in 0..batches {
-        for (series, publisher) in sim.sensors.iter().zip(publishers) {
+        for ((series, publisher), set) in sim.sensors.iter().zip(publishers).zip(sets) {
             let from = b * BATCH;
             let to = (from + BATCH).min(series.acceleration_mps2.len());
             let samples = series.acceleration_mps2[from..to]
@@ -64,56 +67,101 @@ async fn stream(
     batches as u64
 }
 
+/// A sensor's record: the sample record, its static and dynamic sets alike (whichever the
+/// gateway applies), with a band up to Nyquist, so that the sensors' white noise is in band.
+pub(crate) fn record_for(sensor_id: &str) -> CalibrationRecord {
+    let mut r = sample::record(sensor_id, 1);
+    r.dynamic.domain.frequency_max_hz = 50.0;
+    r.static_set = r.dynamic.clone();
+    r
+}
+
+/// A gateway of `building` on `store`. The field health checks judge the records against the
+/// data; the sample record's sensor is not this simulation's (its stated noise, its gravity),
+/// and a record turned suspect flags every sample after: the checks are not what these tests
+/// are about.
+pub(crate) fn gateway_config(building: &str, store: &Path) -> triax_gateway::Config {
+    let mut c = config(building, store);
+    c.health = None;
+    c
+}
+
+/// The service's settings for a building of `model`: 30-minute windows, the default
+/// identification and tracker, no temperature source, shapes with the measurement chain's
+/// uncertainty `chain`.
+pub(crate) fn building_config(model: &BuildingModel, chain: ChainUncertainty) -> BuildingConfig {
+    BuildingConfig {
+        model: model.clone(),
+        window_s: 1800.0,
+        alignment_tolerance: 0.1,
+        close_after_s: 60.0,
+        chain: Some(chain),
+        ssi: SsiConfig::default(),
+        tracker: TrackerConfig::default(),
+        alert_modes_per_direction: 3,
+        temperature_key: None,
+        record_max_windows: 100,
+    }
+}
+
+/// The service following `building` through the gateway at `endpoint`, its state in
+/// `dir/modes`, its signing key at `dir/modes.key`.
+pub(crate) fn service_config(
+    endpoint: &str,
+    building: &str,
+    settings: BuildingConfig,
+    dir: &Path,
+) -> ModesConfig {
+    let mut buildings = BTreeMap::new();
+    buildings.insert(BuildingId::new(building).unwrap(), settings);
+    ModesConfig {
+        zenoh: ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![endpoint.to_owned()]),
+        buildings,
+        state_dir: Some(dir.join("modes")),
+        signing_key_file: Some(dir.join("modes.key")),
+    }
+}
+
+/// Returns once the service has subscribed to `building`'s corrected streams: it follows live
+/// batches from the moment it starts.
+pub(crate) async fn wait_service_listens(node: &zenoh::Session, building: &str) {
+    let probe = format!("triax/{building}/corrected/probe");
+    wait_until_async("the modes service subscribed", || async {
+        node.declare_publisher(probe.clone())
+            .await
+            .unwrap()
+            .matching_status()
+            .await
+            .unwrap()
+            .matching()
+    })
+    .await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_service_identifies_the_first_three_modes_of_each_direction_through_a_gateway() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let building = SimBuilding::five_storey(11);
-    // Static and dynamic sets alike, whichever the gateway applies; a band up to Nyquist, so
-    // the sensors' white noise is in band.
     let records: Vec<_> = building
         .model
         .sensors
         .iter()
-        .map(|s| {
-            let mut r = sample::record(&s.sensor_id, 1);
-            r.dynamic.domain.frequency_max_hz = 50.0;
-            r.static_set = r.dynamic.clone();
-            r
-        })
+        .map(|s| record_for(&s.sensor_id))
         .collect();
     seed_store(&store, &records);
-    // The field health checks judge the records against the data; the sample record's
-    // sensor is not this simulation's (its stated noise, its gravity), and a record turned
-    // suspect flags every sample after: the checks are not what this test is about.
-    let mut gw_config = config("hm1", &store);
-    gw_config.health = None;
-    let gw = start(gw_config).await;
+    let gw = start(gateway_config("hm1", &store)).await;
     let node = client(&gw.endpoint).await;
     let published = node.declare_subscriber("triax/hm1/modes").await.unwrap();
 
     let state_dir = dir.path().join("modes");
-    let mut buildings = BTreeMap::new();
-    buildings.insert(
-        BuildingId::new("hm1").unwrap(),
-        BuildingConfig {
-            model: building.model.clone(),
-            window_s: 1800.0,
-            alignment_tolerance: 0.1,
-            close_after_s: 60.0,
-            chain: Some(SimConfig::default().chain),
-            ssi: SsiConfig::default(),
-            tracker: TrackerConfig::default(),
-            alert_modes_per_direction: 3,
-            temperature_key: None,
-            record_max_windows: 100,
-        },
-    );
-    let modes_config = || ModesConfig {
-        zenoh: ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![gw.endpoint.clone()]),
-        buildings: buildings.clone(),
-        state_dir: Some(state_dir.clone()),
-        signing_key_file: Some(dir.path().join("modes.key")),
+    let modes_config = || {
+        service_config(
+            &gw.endpoint,
+            "hm1",
+            building_config(&building.model, SimConfig::default().chain),
+            dir.path(),
+        )
     };
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let service = tokio::spawn(triax_modes::run(modes_config(), async {
@@ -127,19 +175,9 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
     for s in &building.model.sensors {
         publishers.push(blocking_publisher(&node, key_raw("hm1", &s.sensor_id)).await);
     }
-    // The service follows live batches from the moment it starts: wait until it listens.
-    wait_until_async("the modes service subscribed", || async {
-        node.declare_publisher("triax/hm1/corrected/probe")
-            .await
-            .unwrap()
-            .matching_status()
-            .await
-            .unwrap()
-            .matching()
-    })
-    .await;
-    let set = records[0].dynamic.clone();
-    let first_batches = stream(&sim, &publishers, &set, 0, 0).await;
+    wait_service_listens(&node, "hm1").await;
+    let sets: Vec<_> = records.iter().map(|r| r.dynamic.clone()).collect();
+    let first_batches = stream(&sim, &publishers, &sets, 0, 0).await;
     let sample = tokio::time::timeout(TIMEOUT, published.recv_async())
         .await
         .expect("the window's modes are published")
@@ -218,7 +256,7 @@ async fn the_service_identifies_the_first_three_modes_of_each_direction_through_
     // another's (the first runs minutes past the window's end before the others arrive: the
     // window waits for them), identifies it late, and its tracks go on.
     let next = building.simulate(t, 1920.0, EPOCH_NS + 1_801_000_000_000, 4);
-    let last = first_batches + stream(&next, &publishers, &set, first_batches, 180_100).await - 1;
+    let last = first_batches + stream(&next, &publishers, &sets, first_batches, 180_100).await - 1;
     for s in &building.model.sensors {
         wait_history_holds(&node, "hm1", &s.sensor_id, last).await;
     }
