@@ -1,11 +1,23 @@
 //! Tracking modes across windows, regressing out the environment, and deciding on a shift.
 //!
-//! **Matching.** Each window's modes are matched one to one to the tracks by shape first: a
-//! mode may join a track when its frequency is within `frequency_tolerance` (10 %) of the
-//! track's last frequency and its MAC with the track's last shape is at least `mac_min` (0.8);
-//! among those, pairs are taken by decreasing MAC. Close modes in `x` and `y` (a few % apart)
-//! have nearly orthogonal shapes, so the MAC keeps them apart where a frequency rule would
-//! swap them as the temperature moves both. A mode that matches no track starts one.
+//! **Matching.** A track's shape is the running mean of the in-phase shapes of the modes it
+//! matched (each of unit norm, turned to the mean's phase, over the last `shape_windows`), so
+//! that one poor window does not become the shape the next is compared with. Its frequency
+//! scatter is its own: the running mean square of the change from one matched window to the next
+//! (a prior of 1 % of the frequency counts for two windows, floored at 0.1 %). Each window's
+//! modes are assigned one to one to the tracks at the least total cost (a small assignment),
+//! `z²/band² + (1 − MAC)/(1 − mac_min)`, where `z` is the frequency's distance from the track's
+//! last, in the track's scatter, and the MAC is with the track's shape. A pair may be taken when
+//! the frequency is within `frequency_tolerance` (10 %) of the track's last and the MAC is at
+//! least `mac_min` (0.8). Tracks that have followed their mode for `shape_windows` are assigned
+//! first, younger ones then the modes left: a mode identified twice in a window starts a track
+//! with the second, which then gets windows only when the established track has one already.
+//! Close modes in `x` and `y` (a few % apart) have nearly orthogonal shapes, so the MAC keeps
+//! them apart where a frequency rule would swap them as the temperature moves both. A mode left
+//! over may then still join a track of its direction that got no mode in this window when its
+//! frequency is within the track's band (`|z| ≤ frequency_band`) and its MAC is at least
+//! `mac_min_in_band` (a window whose shape is poor for the mode, not another mode); only a mode
+//! no track can take starts one.
 //!
 //! **Environment.** A track's first `training_windows` observations fit the baseline
 //! `f = b₀ + b₁·x₁ + … + b_p·x_p` by ordinary least squares, where `x` are the regressors given
@@ -46,6 +58,12 @@ use crate::uncertainty::Estimate;
 pub struct TrackerConfig {
     pub frequency_tolerance: f64,
     pub mac_min: f64,
+    /// Windows over which a track's shape and frequency scatter are averaged.
+    pub shape_windows: usize,
+    /// A track's band: the frequency's distance from the track's last, in the track's scatter.
+    pub frequency_band: f64,
+    /// The least MAC with which a mode within a track's band joins it when no other mode did.
+    pub mac_min_in_band: f64,
     /// Observations that fit a track's baseline.
     pub training_windows: usize,
     /// Stated rate of false `shift` verdicts per track.
@@ -65,6 +83,9 @@ impl Default for TrackerConfig {
         TrackerConfig {
             frequency_tolerance: 0.10,
             mac_min: 0.8,
+            shape_windows: 48,
+            frequency_band: 4.0,
+            mac_min_in_band: 0.5,
             training_windows: 336,
             false_alarms_per_year: 1.0,
             windows_per_year: 365.25 * 48.0,
@@ -236,12 +257,112 @@ pub struct Track {
     pub direction: Direction,
     pub last_frequency_hz: f64,
     pub last_shape: Vec<Complex<f64>>,
+    /// The running mean of the matched in-phase shapes, of unit norm (empty: `last_shape`).
+    pub mean_shape: Vec<Complex<f64>>,
+    /// The running mean square of the frequency's change between matched windows, Hz².
+    pub step_variance_hz2: f64,
+    /// Changes averaged into `step_variance_hz2`.
+    pub steps: usize,
     pub training_frequencies_hz: Vec<f64>,
     pub training_regressors: Vec<Vec<f64>>,
     pub baseline: Option<Baseline>,
     pub observations: usize,
     /// The current block's (frequency, prediction, regressors).
     pub block: Vec<(f64, f64, Vec<f64>)>,
+}
+
+/// The prior of a track's frequency scatter, relative, and the windows it counts for.
+const PRIOR_SCATTER_RELATIVE: f64 = 0.01;
+const PRIOR_WINDOWS: f64 = 2.0;
+/// The least frequency scatter of a track, relative.
+const MIN_SCATTER_RELATIVE: f64 = 0.001;
+/// The cost of a pair that may not be taken.
+const EXCLUDED: f64 = 1e6;
+
+impl Track {
+    fn new(id: usize, mode: &ModeObservation) -> Track {
+        Track {
+            id,
+            direction: mode.direction,
+            last_frequency_hz: mode.frequency_hz.value,
+            last_shape: mode.shape.clone(),
+            mean_shape: Vec::new(),
+            step_variance_hz2: 0.0,
+            steps: 0,
+            training_frequencies_hz: Vec::new(),
+            training_regressors: Vec::new(),
+            baseline: None,
+            observations: 0,
+            block: Vec::new(),
+        }
+    }
+
+    /// The shape a mode is compared with: the running mean, or the last for a state without.
+    pub fn shape(&self) -> &[Complex<f64>] {
+        if self.mean_shape.len() == self.last_shape.len() {
+            &self.mean_shape
+        } else {
+            &self.last_shape
+        }
+    }
+
+    /// The standard deviation of a window's frequency about the track's last, Hz.
+    pub fn frequency_scatter_hz(&self, shape_windows: usize) -> f64 {
+        let f = self.last_frequency_hz.abs();
+        let n = self.steps.min(shape_windows.max(1)) as f64;
+        let prior = (PRIOR_SCATTER_RELATIVE * f).powi(2);
+        let variance = (PRIOR_WINDOWS * prior + n * self.step_variance_hz2) / (PRIOR_WINDOWS + n);
+        variance.sqrt().max(MIN_SCATTER_RELATIVE * f)
+    }
+
+    /// Adds a matched mode's frequency and shape to the running averages.
+    fn learn(&mut self, mode: &ModeObservation, shape_windows: usize) {
+        let horizon = shape_windows.max(1);
+        let f = mode.frequency_hz.value;
+        if self.observations > 0 && f.is_finite() {
+            let w = 1.0 / (self.steps + 1).min(horizon) as f64;
+            let d = f - self.last_frequency_hz;
+            self.step_variance_hz2 = (1.0 - w) * self.step_variance_hz2 + w * d * d;
+            self.steps += 1;
+        }
+        let norm = mode.shape.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+        if !(norm > 0.0 && norm.is_finite()) {
+            return;
+        }
+        let mut shape: Vec<Complex<f64>> = mode.shape.iter().map(|c| c / norm).collect();
+        let reference = self.shape();
+        let reference_norm = reference.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+        if reference.len() != shape.len()
+            || self.observations == 0
+            || reference_norm.is_nan()
+            || reference_norm <= 0.0
+        {
+            self.mean_shape = shape;
+            return;
+        }
+        let reference: Vec<Complex<f64>> = reference.iter().map(|c| c / reference_norm).collect();
+        // Turned to the mean's phase (a sign for in-phase shapes).
+        let cross: Complex<f64> = shape
+            .iter()
+            .zip(&reference)
+            .map(|(s, m)| s.conj() * m)
+            .sum();
+        if cross.norm() > 0.0 {
+            let turn = cross / cross.norm();
+            shape.iter_mut().for_each(|s| *s *= turn);
+        }
+        let w = 1.0 / (self.observations + 1).min(horizon) as f64;
+        let mut mean: Vec<Complex<f64>> = reference
+            .iter()
+            .zip(&shape)
+            .map(|(m, s)| m * (1.0 - w) + s * w)
+            .collect();
+        let norm = mean.iter().map(|c| c.norm_sqr()).sum::<f64>().sqrt();
+        if norm > 0.0 && norm.is_finite() {
+            mean.iter_mut().for_each(|c| *c /= norm);
+            self.mean_shape = mean;
+        }
+    }
 }
 
 /// Follows a building's modes from window to window.
@@ -259,51 +380,96 @@ impl ModeTracker {
         }
     }
 
+    /// The cost of giving `mode` to `track` (see the module's documentation), or `EXCLUDED`.
+    fn cost(&self, mode: &ModeObservation, track: &Track, in_band: bool) -> f64 {
+        let f = mode.frequency_hz.value;
+        let shape = track.shape();
+        if !f.is_finite() || mode.shape.len() != shape.len() {
+            return EXCLUDED;
+        }
+        let df = (f - track.last_frequency_hz).abs() / track.last_frequency_hz;
+        if df > self.config.frequency_tolerance {
+            return EXCLUDED;
+        }
+        let band = self.config.frequency_band.max(f64::MIN_POSITIVE);
+        let z =
+            (f - track.last_frequency_hz) / track.frequency_scatter_hz(self.config.shape_windows);
+        let m_ac = mac(&mode.shape, shape);
+        let admitted = if in_band {
+            mode.direction == track.direction
+                && z.abs() <= band
+                && m_ac >= self.config.mac_min_in_band
+        } else {
+            m_ac >= self.config.mac_min
+        };
+        if !admitted {
+            return EXCLUDED;
+        }
+        (z / band).powi(2) + (1.0 - m_ac) / (1.0 - self.config.mac_min).max(1e-6)
+    }
+
+    /// Whether a track has followed its mode for `shape_windows`: such tracks are offered a
+    /// window's modes before younger ones.
+    fn established(&self, track: &Track) -> bool {
+        track.observations >= self.config.shape_windows
+    }
+
+    /// Assigns the modes not yet taken to the tracks not yet taken, established or not, at the
+    /// least total cost.
+    fn assign(
+        &self,
+        modes: &[ModeObservation],
+        mode_taken: &mut [Option<usize>],
+        track_taken: &mut [bool],
+        established: bool,
+        in_band: bool,
+    ) {
+        let rows: Vec<usize> = (0..modes.len())
+            .filter(|&m| mode_taken[m].is_none())
+            .collect();
+        let cols: Vec<usize> = (0..self.tracks.len())
+            .filter(|&t| !track_taken[t] && self.established(&self.tracks[t]) == established)
+            .collect();
+        if rows.is_empty() || cols.is_empty() {
+            return;
+        }
+        let cost: Vec<Vec<f64>> = rows
+            .iter()
+            .map(|&m| {
+                cols.iter()
+                    .map(|&t| self.cost(&modes[m], &self.tracks[t], in_band))
+                    .collect()
+            })
+            .collect();
+        for (r, c) in least_cost_assignment(&cost) {
+            if cost[r][c] < EXCLUDED {
+                mode_taken[rows[r]] = Some(cols[c]);
+                track_taken[cols[c]] = true;
+            }
+        }
+    }
+
     /// Matches a window's modes to the tracks, and judges each matched track's residual.
     /// `regressors` are the window's environmental values, temperature first (see the
     /// module's documentation).
     pub fn update(&mut self, modes: &[ModeObservation], regressors: &[f64]) -> Vec<TrackUpdate> {
-        let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
-        for (m, mode) in modes.iter().enumerate() {
-            for (t, track) in self.tracks.iter().enumerate() {
-                let df = (mode.frequency_hz.value - track.last_frequency_hz).abs()
-                    / track.last_frequency_hz;
-                if df > self.config.frequency_tolerance
-                    || mode.shape.len() != track.last_shape.len()
-                {
-                    continue;
-                }
-                let m_ac = mac(&mode.shape, &track.last_shape);
-                if m_ac >= self.config.mac_min {
-                    pairs.push((m_ac, m, t));
-                }
-            }
-        }
-        pairs.sort_by(|a, b| b.0.total_cmp(&a.0));
         let mut mode_taken = vec![None; modes.len()];
         let mut track_taken = vec![false; self.tracks.len()];
-        for (_, m, t) in pairs {
-            if mode_taken[m].is_none() && !track_taken[t] {
-                mode_taken[m] = Some(t);
-                track_taken[t] = true;
-            }
+        for (established, in_band) in [(true, false), (false, false), (true, true), (false, true)] {
+            self.assign(
+                modes,
+                &mut mode_taken,
+                &mut track_taken,
+                established,
+                in_band,
+            );
         }
         let mut updates = Vec::new();
         for (m, mode) in modes.iter().enumerate() {
             let t = match mode_taken[m] {
                 Some(t) => t,
                 None => {
-                    self.tracks.push(Track {
-                        id: self.tracks.len(),
-                        direction: mode.direction,
-                        last_frequency_hz: mode.frequency_hz.value,
-                        last_shape: mode.shape.clone(),
-                        training_frequencies_hz: Vec::new(),
-                        training_regressors: Vec::new(),
-                        baseline: None,
-                        observations: 0,
-                        block: Vec::new(),
-                    });
+                    self.tracks.push(Track::new(self.tracks.len(), mode));
                     self.tracks.len() - 1
                 }
             };
@@ -315,6 +481,7 @@ impl ModeTracker {
     fn observe(&mut self, t: usize, mode: &ModeObservation, regressors: &[f64]) -> TrackUpdate {
         let config = self.config.clone();
         let track = &mut self.tracks[t];
+        track.learn(mode, config.shape_windows);
         track.last_frequency_hz = mode.frequency_hz.value;
         track.last_shape = mode.shape.clone();
         track.observations += 1;
@@ -359,6 +526,76 @@ impl ModeTracker {
         }
         update
     }
+}
+
+/// The rows' columns of least total cost in a matrix of costs (rows and columns of any
+/// number): the Hungarian method on the matrix padded square with `EXCLUDED`. Pairs of
+/// `EXCLUDED` cost are among those returned; the caller drops them.
+fn least_cost_assignment(cost: &[Vec<f64>]) -> Vec<(usize, usize)> {
+    let rows = cost.len();
+    let cols = cost.first().map_or(0, Vec::len);
+    let n = rows.max(cols);
+    let a = |i: usize, j: usize| {
+        if i < rows && j < cols {
+            cost[i][j].min(EXCLUDED)
+        } else {
+            EXCLUDED
+        }
+    };
+    // Potentials u (rows) and v (columns), 1-based with a dummy 0; p[j]: the row of column j.
+    let mut u = vec![0.0; n + 1];
+    let mut v = vec![0.0; n + 1];
+    let mut p = vec![0usize; n + 1];
+    let mut way = vec![0usize; n + 1];
+    for i in 1..=n {
+        p[0] = i;
+        let mut j0 = 0;
+        let mut minv = vec![f64::INFINITY; n + 1];
+        let mut used = vec![false; n + 1];
+        loop {
+            used[j0] = true;
+            let i0 = p[j0];
+            let mut delta = f64::INFINITY;
+            let mut j1 = 0;
+            for j in 1..=n {
+                if !used[j] {
+                    let cur = a(i0 - 1, j - 1) - u[i0] - v[j];
+                    if cur < minv[j] {
+                        minv[j] = cur;
+                        way[j] = j0;
+                    }
+                    if minv[j] < delta {
+                        delta = minv[j];
+                        j1 = j;
+                    }
+                }
+            }
+            for j in 0..=n {
+                if used[j] {
+                    u[p[j]] += delta;
+                    v[j] -= delta;
+                } else {
+                    minv[j] -= delta;
+                }
+            }
+            j0 = j1;
+            if p[j0] == 0 {
+                break;
+            }
+        }
+        loop {
+            let j1 = way[j0];
+            p[j0] = p[j1];
+            j0 = j1;
+            if j0 == 0 {
+                break;
+            }
+        }
+    }
+    (1..=n)
+        .filter(|&j| p[j] >= 1 && p[j] <= rows && j <= cols)
+        .map(|j| (p[j] - 1, j - 1))
+        .collect()
 }
 
 /// The guard-band rule on a relative residual (see the module's documentation).

@@ -48,6 +48,14 @@ pub struct TrackState {
     pub last_frequency_hz: f64,
     /// `[re, im]` per component.
     pub last_shape: Vec<[f64; 2]>,
+    /// The running mean of the matched shapes, `[re, im]` per component (empty: none saved).
+    #[serde(default)]
+    pub mean_shape: Vec<[f64; 2]>,
+    /// The running mean square of the frequency's change between matched windows, Hz².
+    #[serde(default)]
+    pub step_variance_hz2: f64,
+    #[serde(default)]
+    pub steps: usize,
     pub training_frequencies_hz: Vec<f64>,
     pub training_regressors: Vec<Vec<f64>>,
     pub observations: usize,
@@ -61,6 +69,9 @@ impl TrackState {
             direction: t.direction,
             last_frequency_hz: t.last_frequency_hz,
             last_shape: t.last_shape.iter().map(|c| [c.re, c.im]).collect(),
+            mean_shape: t.mean_shape.iter().map(|c| [c.re, c.im]).collect(),
+            step_variance_hz2: t.step_variance_hz2,
+            steps: t.steps,
             training_frequencies_hz: t.training_frequencies_hz.clone(),
             training_regressors: t.training_regressors.clone(),
             observations: t.observations,
@@ -81,6 +92,13 @@ impl TrackState {
                 .iter()
                 .map(|c| Complex::new(c[0], c[1]))
                 .collect(),
+            mean_shape: self
+                .mean_shape
+                .iter()
+                .map(|c| Complex::new(c[0], c[1]))
+                .collect(),
+            step_variance_hz2: self.step_variance_hz2,
+            steps: self.steps,
             training_frequencies_hz: self.training_frequencies_hz.clone(),
             training_regressors: self.training_regressors.clone(),
             baseline,
