@@ -392,8 +392,9 @@ impl Tally {
 /// seven for any of the six; over 200 windows the band would be ±1.3σ and fail one right
 /// interval in five); damping covered in at least 90 % (over fewer than 200 windows, at least
 /// 95 % − 3σ). MAC and shape coverage are printed, not asserted; so are the tracks each true
-/// mode joined (the service's tracker matches a mode to a track by its MAC with the track's last
-/// window's shape, so a close pair's window that leaks the other way can start a new one).
+/// mode joined (the service's tracker assigns modes to tracks by frequency in the track's own
+/// scatter and by MAC with the track's running mean shape: a close pair's window that leaks the
+/// other way must not start a new track, and the printed splits show whether one did).
 ///
 /// `cargo test --release -p triax-tests --test gateway modes_mc -- --ignored --nocapture`
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
