@@ -185,6 +185,34 @@ impl FileConfig {
                     "must be > 0",
                 ));
             }
+            let t = &b.tracker;
+            let matching = [
+                (
+                    "tracker.frequency_tolerance",
+                    t.frequency_tolerance > 0.0 && t.frequency_tolerance < 1.0,
+                    "must be > 0 and < 1 (a relative distance)",
+                ),
+                (
+                    "tracker.mac_min",
+                    t.mac_min > 0.0 && t.mac_min <= 1.0,
+                    "must be > 0 and ≤ 1",
+                ),
+                (
+                    "tracker.mac_min_in_band",
+                    t.mac_min_in_band > 0.0 && t.mac_min_in_band <= t.mac_min,
+                    "must be > 0 and ≤ tracker.mac_min",
+                ),
+                (
+                    "tracker.frequency_band",
+                    t.frequency_band.is_finite() && t.frequency_band > 0.0,
+                    "must be > 0 (standard deviations of the track's scatter)",
+                ),
+                ("tracker.shape_windows", t.shape_windows >= 1, "must be ≥ 1"),
+            ];
+            // NaN fails every comparison above, so it is refused too.
+            if let Some((field, _, why)) = matching.iter().find(|(_, ok, _)| !ok) {
+                return Err(ConfigError::invalid(at(field), *why));
+            }
             if b.tracker.training_windows < 3 {
                 return Err(ConfigError::invalid(
                     at("tracker.training_windows"),
@@ -273,5 +301,17 @@ mod tests {
         assert!(e.contains("window_s"), "{e}");
         let e = Config::from_toml("").unwrap_err().to_string();
         assert!(e.contains("no building"), "{e}");
+        for (field, value) in [
+            ("frequency_tolerance", "0.0"),
+            ("mac_min", "1.5"),
+            ("mac_min_in_band", "0.9"),
+            ("frequency_band", "nan"),
+            ("shape_windows", "0"),
+        ] {
+            let text =
+                format!("[buildings.hq]\n{SENSOR}[buildings.hq.tracker]\n{field} = {value}\n");
+            let e = Config::from_toml(&text).unwrap_err().to_string();
+            assert!(e.contains(&format!("tracker.{field}")), "{field}: {e}");
+        }
     }
 }
