@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 use rand::SeedableRng;
 use rand_distr::Distribution;
 
-use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
+use triax_protocol::batch::CorrectedSample;
 use triax_protocol::messages::{AlertKind, AlertLevel, Heartbeat};
 use triax_protocol::signing::{read_alert, TrustedKeys};
 use triax_protocol::{to_json, BuildingId, Key, SensorId};
@@ -102,20 +102,12 @@ fn batch(
     rng: &mut rand::rngs::StdRng,
 ) -> Vec<u8> {
     let noise = rand_distr::Normal::new(0.0, 0.01).expect("finite deviation");
-    CorrectedBatch {
-        header: BatchHeader {
-            sensor_id: sensor.clone(),
-            sequence: seq,
-            timestamp_ns: t0_ns + seq as i64 * 100_000_000,
-            sample_rate_hz: 100.0,
-        },
-        batch_flags: 0,
-        info: CorrectionInfo {
-            calibration_version: 1,
-            mode: Mode::Dynamic,
-            coverage_factor: 2.0,
-        },
-        samples: (0..10)
+    triax_protocol::batch::sample::dynamic(
+        sensor.clone(),
+        seq,
+        t0_ns + seq as i64 * 100_000_000,
+        100.0,
+        (0..10)
             .map(|i| {
                 // The phase in f64 from the sample's index: an f32 time loses the phase's
                 // precision within minutes, and the sway would not be one sinusoid.
@@ -131,7 +123,7 @@ fn batch(
                 }
             })
             .collect(),
-    }
+    )
     .encode()
 }
 

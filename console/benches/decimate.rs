@@ -11,7 +11,7 @@
 use std::time::Instant;
 
 use triax_console::buckets::Aggregator;
-use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
+use triax_protocol::batch::{CorrectedBatch, CorrectedSample};
 use triax_protocol::SensorId;
 
 const T0: i64 = 1_800_000_000_000_000_000;
@@ -19,29 +19,23 @@ const T0: i64 = 1_800_000_000_000_000_000;
 fn batches(seconds: usize) -> Vec<CorrectedBatch> {
     let id = SensorId::new("bench-01").expect("literal id is valid");
     (0..seconds * 2)
-        .map(|seq| CorrectedBatch {
-            header: BatchHeader {
-                sensor_id: id.clone(),
-                sequence: seq as u64,
-                timestamp_ns: T0 + seq as i64 * 500_000_000,
-                sample_rate_hz: 100.0,
-            },
-            batch_flags: 0,
-            info: CorrectionInfo {
-                calibration_version: 1,
-                mode: Mode::Dynamic,
-                coverage_factor: 2.0,
-            },
-            samples: (0..50)
-                .map(|i| {
-                    let t = (seq * 50 + i) as f32 / 100.0;
-                    CorrectedSample {
-                        accel_mps2: [(t * 7.0).sin() * 0.2, (t * 3.0).cos() * 0.1, 9.81],
-                        uncertainty_mps2: [0.004; 3],
-                        flags: 0,
-                    }
-                })
-                .collect(),
+        .map(|seq| {
+            triax_protocol::batch::sample::dynamic(
+                id.clone(),
+                seq as u64,
+                T0 + seq as i64 * 500_000_000,
+                100.0,
+                (0..50)
+                    .map(|i| {
+                        let t = (seq * 50 + i) as f32 / 100.0;
+                        CorrectedSample {
+                            accel_mps2: [(t * 7.0).sin() * 0.2, (t * 3.0).cos() * 0.1, 9.81],
+                            uncertainty_mps2: [0.004; 3],
+                            flags: 0,
+                        }
+                    })
+                    .collect(),
+            )
         })
         .collect()
 }

@@ -284,23 +284,15 @@ impl Feeds {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo, Mode};
+    use triax_protocol::batch::CorrectedSample;
 
     fn batch(seq: u64, n: usize) -> CorrectedBatch {
-        CorrectedBatch {
-            header: BatchHeader {
-                sensor_id: SensorId::new("s").unwrap(),
-                sequence: seq,
-                timestamp_ns: seq as i64 * n as i64 * 10_000_000,
-                sample_rate_hz: 100.0,
-            },
-            batch_flags: 0,
-            info: CorrectionInfo {
-                calibration_version: 1,
-                mode: Mode::Dynamic,
-                coverage_factor: 2.0,
-            },
-            samples: vec![
+        triax_protocol::batch::sample::dynamic(
+            SensorId::new("s").unwrap(),
+            seq,
+            seq as i64 * n as i64 * 10_000_000,
+            100.0,
+            vec![
                 CorrectedSample {
                     accel_mps2: [0.0; 3],
                     uncertainty_mps2: [0.0; 3],
@@ -308,7 +300,7 @@ mod tests {
                 };
                 n
             ],
-        }
+        )
     }
 
     #[test]

@@ -405,33 +405,27 @@ pub fn chi2_quantile(nu: f64, p: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo, Mode};
+    use triax_protocol::batch::CorrectedSample;
     use triax_protocol::SensorId;
 
     const T0: i64 = 1_800_000_000_000_000_000;
 
     fn batches(seconds: usize, x: impl Fn(f64) -> f64) -> Vec<CorrectedBatch> {
         (0..seconds * 2)
-            .map(|b| CorrectedBatch {
-                header: BatchHeader {
-                    sensor_id: SensorId::new("s").unwrap(),
-                    sequence: b as u64,
-                    timestamp_ns: T0 + b as i64 * 500_000_000,
-                    sample_rate_hz: 100.0,
-                },
-                batch_flags: 0,
-                info: CorrectionInfo {
-                    calibration_version: 1,
-                    mode: Mode::Dynamic,
-                    coverage_factor: 2.0,
-                },
-                samples: (0..50)
-                    .map(|i| CorrectedSample {
-                        accel_mps2: [x((b * 50 + i) as f64 / 100.0) as f32, 0.0, 9.8],
-                        uncertainty_mps2: [0.01; 3],
-                        flags: 0,
-                    })
-                    .collect(),
+            .map(|b| {
+                triax_protocol::batch::sample::dynamic(
+                    SensorId::new("s").unwrap(),
+                    b as u64,
+                    T0 + b as i64 * 500_000_000,
+                    100.0,
+                    (0..50)
+                        .map(|i| CorrectedSample {
+                            accel_mps2: [x((b * 50 + i) as f64 / 100.0) as f32, 0.0, 9.8],
+                            uncertainty_mps2: [0.01; 3],
+                            flags: 0,
+                        })
+                        .collect(),
+                )
             })
             .collect()
     }

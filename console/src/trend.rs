@@ -249,40 +249,35 @@ impl TrendCache {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo, Mode};
+    use triax_protocol::batch::CorrectedSample;
 
     const T0: i64 = 1_800_000_000 * 1_000_000_000 / MINUTE_NS * MINUTE_NS;
 
     /// Two minutes at 100 Hz of a 2 Hz sine of amplitude 0.3 on x over 9.8 on z.
     fn batches() -> Vec<CorrectedBatch> {
         (0..240)
-            .map(|b| CorrectedBatch {
-                header: BatchHeader {
-                    sensor_id: SensorId::new("s").unwrap(),
-                    sequence: b,
-                    timestamp_ns: T0 + b as i64 * 500_000_000,
-                    sample_rate_hz: 100.0,
-                },
-                batch_flags: 0,
-                info: CorrectionInfo {
-                    calibration_version: 1,
-                    mode: Mode::Dynamic,
-                    coverage_factor: 2.0,
-                },
-                samples: (0..50)
-                    .map(|i| {
-                        let t = (b as f64 * 50.0 + i as f64) / 100.0;
-                        CorrectedSample {
-                            accel_mps2: [
-                                (0.3 * (2.0 * std::f64::consts::PI * 2.0 * t + 0.1).sin()) as f32,
-                                0.0,
-                                9.8,
-                            ],
-                            uncertainty_mps2: [0.01; 3],
-                            flags: u16::from(b == 0 && i == 0),
-                        }
-                    })
-                    .collect(),
+            .map(|b| {
+                triax_protocol::batch::sample::dynamic(
+                    SensorId::new("s").unwrap(),
+                    b,
+                    T0 + b as i64 * 500_000_000,
+                    100.0,
+                    (0..50)
+                        .map(|i| {
+                            let t = (b as f64 * 50.0 + i as f64) / 100.0;
+                            CorrectedSample {
+                                accel_mps2: [
+                                    (0.3 * (2.0 * std::f64::consts::PI * 2.0 * t + 0.1).sin())
+                                        as f32,
+                                    0.0,
+                                    9.8,
+                                ],
+                                uncertainty_mps2: [0.01; 3],
+                                flags: u16::from(b == 0 && i == 0),
+                            }
+                        })
+                        .collect(),
+                )
             })
             .collect()
     }

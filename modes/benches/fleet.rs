@@ -33,7 +33,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use triax_modal::sim::SimBuilding;
-use triax_protocol::batch::{BatchHeader, CorrectedBatch, CorrectedSample, CorrectionInfo, Mode};
+use triax_protocol::batch::CorrectedSample;
 use triax_protocol::messages::BuildingModes;
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
@@ -378,21 +378,13 @@ async fn main() {
         let from = (ts.rem_euclid(WINDOW_NS) / SAMPLE_NS) as usize;
         for (i, p) in publishers.iter().enumerate() {
             let s = i % sensors.len();
-            let batch = CorrectedBatch {
-                header: BatchHeader {
-                    sensor_id: sensors[s].clone(),
-                    sequence: k as u64,
-                    timestamp_ns: ts,
-                    sample_rate_hz: RATE_HZ,
-                },
-                batch_flags: 0,
-                info: CorrectionInfo {
-                    calibration_version: 1,
-                    mode: Mode::Dynamic,
-                    coverage_factor: 2.0,
-                },
-                samples: motion[s][from..from + a.batch].to_vec(),
-            };
+            let batch = triax_protocol::batch::sample::dynamic(
+                sensors[s].clone(),
+                k as u64,
+                ts,
+                RATE_HZ,
+                motion[s][from..from + a.batch].to_vec(),
+            );
             p.put(batch.encode()).await.expect("put");
         }
         batches += publishers.len() as u64;

@@ -650,6 +650,37 @@ impl<'a> CorrectedBatchWriter<'a> {
     }
 }
 
+/// Small, valid batches for tests, simulations and benches across the workspace.
+pub mod sample {
+    use super::*;
+
+    /// A batch as the gateway publishes a clean one corrected in `dynamic` mode with record
+    /// version 1 and k = 2: no batch flag.
+    pub fn dynamic(
+        sensor_id: SensorId,
+        sequence: u64,
+        timestamp_ns: i64,
+        sample_rate_hz: f64,
+        samples: Vec<CorrectedSample>,
+    ) -> CorrectedBatch {
+        CorrectedBatch {
+            header: BatchHeader {
+                sensor_id,
+                sequence,
+                timestamp_ns,
+                sample_rate_hz,
+            },
+            batch_flags: 0,
+            info: CorrectionInfo {
+                calibration_version: 1,
+                mode: Mode::Dynamic,
+                coverage_factor: 2.0,
+            },
+            samples,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

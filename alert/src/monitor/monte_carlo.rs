@@ -16,7 +16,6 @@ use super::*;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-use triax_protocol::{BatchHeader, CorrectionInfo, Mode};
 
 const RATE_HZ: f64 = 100.0;
 const BATCH: usize = 400;
@@ -85,21 +84,13 @@ impl Stream {
                 }
             })
             .collect();
-        CorrectedBatch {
-            header: BatchHeader {
-                sensor_id: SensorId::new("mc").expect("valid id"),
-                sequence,
-                timestamp_ns: T0_NS + (start as f64 * 1e9 / RATE_HZ) as i64,
-                sample_rate_hz: RATE_HZ,
-            },
-            batch_flags: 0,
-            info: CorrectionInfo {
-                calibration_version: 1,
-                mode: Mode::Dynamic,
-                coverage_factor: 2.0,
-            },
+        triax_protocol::batch::sample::dynamic(
+            SensorId::new("mc").expect("valid id"),
+            sequence,
+            T0_NS + (start as f64 * 1e9 / RATE_HZ) as i64,
+            RATE_HZ,
             samples,
-        }
+        )
     }
 }
 

@@ -344,25 +344,16 @@ mod tests {
     use crate::sinefit::{self, Geometry};
     use rand::{Rng, SeedableRng};
     use rand_distr::{Distribution, Normal};
-    use triax_protocol::{BatchHeader, CorrectionInfo, Mode};
 
     /// A 100 Hz batch of `sensor` numbered `seq` (its first sample 0.1·seq s after the epoch).
     fn corrected(sensor: &str, seq: u64, samples: Vec<CorrectedSample>) -> CorrectedBatch {
-        CorrectedBatch {
-            header: BatchHeader {
-                sensor_id: SensorId::new(sensor).expect("id"),
-                sequence: seq,
-                timestamp_ns: 1_800_000_000_000_000_000 + seq as i64 * 100_000_000,
-                sample_rate_hz: 100.0,
-            },
-            batch_flags: 0,
-            info: CorrectionInfo {
-                calibration_version: 1,
-                mode: Mode::Dynamic,
-                coverage_factor: 2.0,
-            },
+        triax_protocol::batch::sample::dynamic(
+            SensorId::new(sensor).expect("id"),
+            seq,
+            1_800_000_000_000_000_000 + seq as i64 * 100_000_000,
+            100.0,
             samples,
-        }
+        )
     }
 
     /// How a tracker with a given retune threshold compares with a fresh search.
