@@ -36,13 +36,15 @@ use clap::Parser;
 #[allow(dead_code)]
 #[path = "bench_proc/mod.rs"]
 mod bench_proc;
+#[path = "bench_signal/mod.rs"]
+mod bench_signal;
 use bench_proc::{cpu_seconds, per_thread_group, proc_status_kib, thread_counters};
 
 use triax_calibration_store::Store;
 use triax_gateway::worker::now_ns;
 use triax_gateway::{Config, Gateway};
 use triax_net::ZenohMode;
-use triax_protocol::batch::{BatchHeader, CorrectedBatch, RawBatch};
+use triax_protocol::batch::CorrectedBatch;
 use triax_protocol::record::sample;
 use triax_protocol::{BuildingId, Key, SensorId};
 use zenoh::qos::CongestionControl;
@@ -136,33 +138,16 @@ fn router(zenohd: &str, listen_port: u16, connect: Option<u16>) -> Result<Reaped
     Ok(r)
 }
 
-/// A node's batch: a sway and white noise at the bench record's stated output noise, so that
-/// the field health checks see healthy sensors.
+/// A node's batch, stamped now.
 fn raw_batch(sensor: &SensorId, sequence: u64, rng: &mut rand::rngs::StdRng) -> Vec<u8> {
-    use rand::Rng;
-    let t0_ns = now_ns();
-    let samples = (0..BATCH_SAMPLES)
-        .map(|i| {
-            let t = (sequence as usize * BATCH_SAMPLES + i) as f64 / SAMPLE_RATE_HZ;
-            let mut noise = || 0.001 * rng.sample::<f64, _>(rand_distr::StandardNormal);
-            [
-                (0.03 * (2.0 * std::f64::consts::PI * 1.3 * t).sin() + noise()) as f32,
-                (0.02 * (2.0 * std::f64::consts::PI * 1.9 * t).cos() + noise()) as f32,
-                (0.98 + noise()) as f32,
-            ]
-        })
-        .collect();
-    RawBatch {
-        header: BatchHeader {
-            sensor_id: sensor.clone(),
-            sequence,
-            timestamp_ns: t0_ns,
-            sample_rate_hz: SAMPLE_RATE_HZ,
-        },
-        temperature_c: None,
-        samples,
-    }
-    .encode()
+    bench_signal::healthy_batch(
+        sensor,
+        sequence,
+        now_ns(),
+        BATCH_SAMPLES,
+        SAMPLE_RATE_HZ,
+        rng,
+    )
 }
 
 /// The child: every gateway, in one process; prints `ready` once all serve, then `online N`

@@ -58,6 +58,8 @@ use anyhow::{bail, Context, Result};
 
 #[path = "bench_proc/mod.rs"]
 mod bench_proc;
+#[path = "bench_signal/mod.rs"]
+mod bench_signal;
 use bench_proc::{
     context_switches, cpu_seconds, per_thread_group, proc_status_kib, thread_counters, ThreadGroup,
 };
@@ -189,36 +191,12 @@ fn raw_batch(sensor: &SensorId, sequence: u64, samples: &[[f32; 3]]) -> Vec<u8> 
     .encode()
 }
 
-/// A building node's batch `sequence`: time stamps that follow on from batch to batch, a sway
-/// that goes on across batches, and white noise at the bench record's stated `output_noise`
-/// (1 mV), so that the field health checks see the healthy sensor they would see in a building
-/// (a batch repeated verbatim looks like spikes at every boundary and turns every sensor
-/// suspect at once, which measures a one-off, not the steady state).
+/// A building node's batch `sequence` ([`bench_signal::healthy_batch`]), its time stamps
+/// following on from batch to batch.
 fn building_batch(sensor: &SensorId, sequence: u64, rng: &mut rand::rngs::StdRng) -> Vec<u8> {
-    use rand::Rng;
     const EPOCH_NS: i64 = 1_800_000_000_000_000_000;
-    let samples = (0..BUILDING_BATCH)
-        .map(|i| {
-            let t = (sequence as usize * BUILDING_BATCH + i) as f64 / 100.0;
-            let mut noise = || 0.001 * rng.sample::<f64, _>(rand_distr::StandardNormal);
-            [
-                (0.03 * (2.0 * std::f64::consts::PI * 1.3 * t).sin() + noise()) as f32,
-                (0.02 * (2.0 * std::f64::consts::PI * 1.9 * t).cos() + noise()) as f32,
-                (0.98 + noise()) as f32,
-            ]
-        })
-        .collect();
-    RawBatch {
-        header: BatchHeader {
-            sensor_id: sensor.clone(),
-            sequence,
-            timestamp_ns: EPOCH_NS + sequence as i64 * (BUILDING_BATCH as i64) * 10_000_000,
-            sample_rate_hz: 100.0,
-        },
-        temperature_c: None,
-        samples,
-    }
-    .encode()
+    let timestamp_ns = EPOCH_NS + sequence as i64 * (BUILDING_BATCH as i64) * 10_000_000;
+    bench_signal::healthy_batch(sensor, sequence, timestamp_ns, BUILDING_BATCH, 100.0, rng)
 }
 
 fn outputs() -> Vec<[f32; 3]> {
