@@ -117,9 +117,11 @@ impl Moments {
     /// ω(m − o).
     pub fn sample(&mut self, sign: f64, tau: f64, cos: f64, sin: f64, y: f64) {
         let phi = [cos, sin, 1.0, tau, tau * cos, tau * sin, y];
+        // Constant bounds, so that the 28 products unroll: this runs for every sample that
+        // enters or leaves a tracked window.
         for (i, row) in self.m.iter_mut().enumerate() {
             let w = sign * phi[i];
-            for (mij, pj) in row.iter_mut().zip(&phi).skip(i) {
+            for (mij, pj) in row[i..].iter_mut().zip(&phi[i..]) {
                 *mij += w * pj;
             }
         }
