@@ -1,7 +1,7 @@
 //! The thin Zenoh layer around [`Monitor`]: follow, decode, feed, publish, log, remember.
 //!
-//! Corrected streams come through a [`Follower`] per building, which loses nothing the gateway's
-//! history holds (PROTOCOL.md §5.2): a stretch this service missed (it was slow, partitioned from
+//! Corrected streams come through a follower per building ([`Fleet::follow_into`], all into one
+//! queue of the monitor's), which loses nothing the gateway's history holds (PROTOCOL.md §5.2): a stretch this service missed (it was slow, partitioned from
 //! the building, or restarted) is read back from the history and fed to the monitor in order
 //! before the live batch that showed the gap, so every window is judged on complete data, and an
 //! alert raised from such data says it is late. The last sequence number handled per sensor is
@@ -25,7 +25,7 @@ use std::time::Duration;
 
 use time::OffsetDateTime;
 use tokio::sync::mpsc;
-use triax_client::{Delivery, Fleet, FollowOptions};
+use triax_client::{Delivery, Fleet, FollowOptions, Following};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, AlertingStatus, TiltSample};
 use triax_protocol::signing::{sign_alert, signing_key_from_hex, to_hex, LabSigningKey};
@@ -34,7 +34,8 @@ use triax_protocol::{from_json, to_json, BuildingId, CorrectedBatch, Key, Sensor
 use crate::config::Config;
 use crate::monitor::Monitor;
 
-/// Messages waiting for the monitor.
+/// Messages waiting for the monitor: corrected batches (one queue for every building), and
+/// apart, tilt samples and buildings found.
 pub const INBOX_CAPACITY: usize = 4096;
 /// How often the resume state is written.
 pub const STATE_PERIOD: Duration = Duration::from_secs(1);
@@ -109,7 +110,6 @@ fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError 
 }
 
 enum Inbound {
-    Corrected(BuildingId, Delivery),
     Tilt {
         key: String,
         payload: Vec<u8>,
@@ -205,31 +205,85 @@ fn save_state(path: &Path, positions: &Positions) -> std::io::Result<()> {
     std::fs::rename(&tmp, path)
 }
 
-/// Follows one building: every delivery goes to the monitor's inbox, waiting for room (a full
-/// inbox slows the follower, whose own gap-filling makes up for what Zenoh then drops).
+/// Follows one building: every delivery goes to the monitor's queue of corrected batches,
+/// shared by every building, waiting for room (a full queue slows the follower, whose own
+/// gap-filling makes up for what Zenoh then drops).
 fn follow(
     fleet: &Fleet,
     building: BuildingId,
     resume: BTreeMap<SensorId, u64>,
-    tx: mpsc::Sender<Inbound>,
-) -> tokio::task::JoinHandle<()> {
+    tx: mpsc::Sender<Delivery>,
+) -> Following {
     let mut options = FollowOptions::new(building.clone());
     options.resume_after = resume;
     // Alerts judge the present: a hole filled late is in the history for review.
     options.late_batches = false;
-    let mut follower = fleet.follow(options);
     tracing::info!(building = %building, "following corrected streams");
-    tokio::spawn(async move {
-        while let Some(d) = follower.next().await {
-            if tx
-                .send(Inbound::Corrected(building.clone(), d))
-                .await
-                .is_err()
-            {
-                return;
+    fleet.follow_into(options, tx)
+}
+
+/// Where the service is in each stream, and what a restart judged before.
+struct Progress {
+    positions: Positions,
+    /// Batches up to these sequence numbers were judged before the restart: they only prime.
+    judged_before: BTreeMap<(BuildingId, SensorId), u64>,
+}
+
+impl Progress {
+    fn new(positions: Positions) -> Progress {
+        let judged_before = positions
+            .iter()
+            .flat_map(|(b, sensors)| {
+                sensors
+                    .iter()
+                    .map(move |(s, p)| ((b.clone(), s.clone()), p.judged()))
+            })
+            .collect();
+        Progress {
+            positions,
+            judged_before,
+        }
+    }
+
+    /// Feeds one corrected batch to the monitor: primes it with a batch judged before a
+    /// restart, judges any other, and remembers where the stream is.
+    fn judge(&mut self, monitor: &mut Monitor, config: &Config, d: &Delivery) -> Vec<Alert> {
+        let h = &d.batch.header;
+        let building = &d.building;
+        if !self.judged_before.is_empty() {
+            let key = (building.clone(), h.sensor_id.clone());
+            if let Some(&judged) = self.judged_before.get(&key) {
+                if d.recovered && h.sequence <= judged {
+                    monitor.prime(building, &d.batch, OffsetDateTime::now_utc());
+                    return Vec::new();
+                }
+                self.judged_before.remove(&key);
             }
         }
-    })
+        let position = Position::WithLeadIn {
+            judged: h.sequence,
+            lead_in_batches: lead_in_batches(config, &d.batch),
+        };
+        // In place for a known sensor: no ids to copy per batch.
+        match self
+            .positions
+            .get_mut(building)
+            .and_then(|sensors| sensors.get_mut(&h.sensor_id))
+        {
+            Some(p) => *p = position,
+            None => {
+                self.positions
+                    .entry(building.clone())
+                    .or_default()
+                    .insert(h.sensor_id.clone(), position);
+            }
+        }
+        let mut alerts = monitor.on_corrected(building, &d.batch, OffsetDateTime::now_utc());
+        if d.recovered {
+            alerts.iter_mut().for_each(mark_late);
+        }
+        alerts
+    }
 }
 
 /// Runs the alerting service until `shutdown` completes.
@@ -238,10 +292,10 @@ fn follow(
 /// the tilt streams of the watched buildings, publishes every alert on
 /// `triax/<building>/alert/<sensor>` and logs it.
 pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(), ServiceError> {
-    let mut positions = match &config.state_path {
+    let mut progress = Progress::new(match &config.state_path {
         Some(p) => load_state(p)?,
         None => Positions::new(),
-    };
+    });
     let signing = signing_key(config.signing_key_file.as_deref())?;
     let session = zenoh::open(config.zenoh.to_config()?)
         .await
@@ -314,20 +368,12 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     // Buildings listed, and buildings the state remembers when watching all.
     let mut initial: BTreeSet<BuildingId> = config.buildings.keys().cloned().collect();
     if config.watch_all_buildings {
-        initial.extend(positions.keys().cloned());
+        initial.extend(progress.positions.keys().cloned());
     }
-    // Batches up to these sequence numbers were judged before the restart: they only prime.
-    let mut judged_before: BTreeMap<(BuildingId, SensorId), u64> = positions
-        .iter()
-        .flat_map(|(b, sensors)| {
-            sensors
-                .iter()
-                .map(move |(s, p)| ((b.clone(), s.clone()), p.judged()))
-        })
-        .collect();
+    let (deliveries_tx, mut deliveries) = mpsc::channel::<Delivery>(INBOX_CAPACITY);
     for b in initial {
-        let resume = resume_points(&positions, &b);
-        followers.push(follow(&fleet, b.clone(), resume, tx.clone()));
+        let resume = resume_points(&progress.positions, &b);
+        followers.push(follow(&fleet, b.clone(), resume, deliveries_tx.clone()));
         followed.insert(b);
     }
 
@@ -344,37 +390,18 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     loop {
         let alerts = tokio::select! {
             _ = &mut shutdown => break,
+            d = deliveries.recv() => match d {
+                Some(d) => progress.judge(&mut monitor, &config, &d),
+                // The sender here keeps the channel open.
+                None => break,
+            },
             msg = rx.recv() => match msg {
                 Some(Inbound::Building(b)) => {
                     if followed.insert(b.clone()) {
-                        let resume = resume_points(&positions, &b);
-                        followers.push(follow(&fleet, b, resume, tx.clone()));
+                        let resume = resume_points(&progress.positions, &b);
+                        followers.push(follow(&fleet, b, resume, deliveries_tx.clone()));
                     }
                     Vec::new()
-                }
-                Some(Inbound::Corrected(building, d)) => {
-                    let h = &d.batch.header;
-                    let key = (building.clone(), h.sensor_id.clone());
-                    if let Some(&judged) = judged_before.get(&key) {
-                        if d.recovered && h.sequence <= judged {
-                            monitor.prime(&building, &d.batch, OffsetDateTime::now_utc());
-                            continue;
-                        }
-                        judged_before.remove(&key);
-                    }
-                    positions.entry(building.clone()).or_default().insert(
-                        h.sensor_id.clone(),
-                        Position::WithLeadIn {
-                            judged: h.sequence,
-                            lead_in_batches: lead_in_batches(&config, &d.batch),
-                        },
-                    );
-                    let mut alerts =
-                        monitor.on_corrected(&building, &d.batch, OffsetDateTime::now_utc());
-                    if d.recovered {
-                        alerts.iter_mut().for_each(mark_late);
-                    }
-                    alerts
                 }
                 Some(Inbound::Tilt { key, payload }) => on_tilt(&mut monitor, &key, &payload),
                 // The sender here keeps the channel open.
@@ -396,7 +423,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             }
             _ = save.tick() => {
                 if let Some(p) = &config.state_path {
-                    if let Err(e) = save_state(p, &positions) {
+                    if let Err(e) = save_state(p, &progress.positions) {
                         tracing::warn!(path = %p.display(), cause = %e, "resume state not written");
                     }
                 }
@@ -409,16 +436,14 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             }
         }
     }
-    for f in &followers {
-        f.abort();
-    }
+    drop(followers);
     // Every alert judged goes out before the session closes.
     drop(publisher);
     if let Err(e) = publishing.await {
         tracing::error!(cause = %e, "the alert publisher failed");
     }
     if let Some(p) = &config.state_path {
-        if let Err(e) = save_state(p, &positions) {
+        if let Err(e) = save_state(p, &progress.positions) {
             tracing::warn!(path = %p.display(), cause = %e, "resume state not written");
         }
     }

@@ -117,6 +117,9 @@ impl FollowOptions {
 /// One batch handed to the consumer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Delivery {
+    /// The building followed: deliveries of many buildings may share one channel
+    /// ([`Fleet::follow_into`]).
+    pub building: BuildingId,
     pub payload: Vec<u8>,
     pub batch: CorrectedBatch,
     /// Read from the history rather than taken live.
@@ -146,8 +149,7 @@ pub struct FollowerCounters {
 /// A building's corrected batches, none lost that the history holds.
 pub struct Follower {
     rx: mpsc::Receiver<Delivery>,
-    counters: Arc<FollowerCounters>,
-    task: tokio::task::JoinHandle<()>,
+    following: Following,
     /// Keeps the subscriptions of a follower started alone.
     _fleet: Option<Fleet>,
 }
@@ -233,12 +235,26 @@ impl Fleet {
     /// `resume_after`) say was missed, then the live stream. A building the subscription does
     /// not cover gets nothing.
     pub fn follow(&self, options: FollowOptions) -> Follower {
+        let (tx, rx) = mpsc::channel(options.buffer_batches.clamp(1, 1024));
+        let following = self.follow_into(options, tx);
+        Follower {
+            rx,
+            following,
+            _fleet: None,
+        }
+    }
+
+    /// Follows like [`Fleet::follow`], but hands every delivery to `tx`, which the followers of
+    /// other buildings may share (each [`Delivery`] names its building): a consumer of many
+    /// buildings reads one queue, with no task of its own per building forwarding a
+    /// [`Follower`] into it (a hand-over and a queue of 1 024 batches less per building). A
+    /// full `tx` holds the follower back as a full [`Follower`] does.
+    pub fn follow_into(&self, options: FollowOptions, tx: mpsc::Sender<Delivery>) -> Following {
         let (events_tx, mut events) = mpsc::channel(options.buffer_batches.max(1));
         self.routes
             .write()
             .unwrap_or_else(|p| p.into_inner())
             .insert(options.building.clone(), events_tx);
-        let (tx, rx) = mpsc::channel(options.buffer_batches.clamp(1, 1024));
         let counters = Arc::new(FollowerCounters::default());
         let mut state = State {
             session: self.session.clone(),
@@ -268,12 +284,26 @@ impl Fleet {
                 }
             }
         });
-        Follower {
-            rx,
-            counters,
-            task,
-            _fleet: None,
-        }
+        Following { counters, task }
+    }
+}
+
+/// A building followed into a shared queue ([`Fleet::follow_into`]); following stops when it
+/// is dropped.
+pub struct Following {
+    counters: Arc<FollowerCounters>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Following {
+    pub fn counters(&self) -> &FollowerCounters {
+        &self.counters
+    }
+}
+
+impl Drop for Following {
+    fn drop(&mut self) {
+        self.task.abort();
     }
 }
 
@@ -297,13 +327,7 @@ impl Follower {
     }
 
     pub fn counters(&self) -> &FollowerCounters {
-        &self.counters
-    }
-}
-
-impl Drop for Follower {
-    fn drop(&mut self) {
-        self.task.abort();
+        self.following.counters()
     }
 }
 
@@ -537,6 +561,7 @@ impl State {
         c.fetch_add(1, Relaxed);
         self.tx
             .send(Delivery {
+                building: self.options.building.clone(),
                 payload,
                 batch,
                 recovered,

@@ -15,7 +15,7 @@ pub mod spectrum;
 pub mod stationxml;
 mod whole;
 
-pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters};
+pub use follow::{Delivery, Fleet, FollowOptions, Follower, FollowerCounters, Following};
 pub use history::{HistoryRequest, Recovered};
 
 /// Why a consumer could not do what it was asked.
