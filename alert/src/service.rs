@@ -1,12 +1,13 @@
 //! The thin Zenoh layer around [`Monitor`]: follow, decode, feed, publish, log, remember.
 //!
 //! Corrected streams come through a follower per building ([`Fleet::follow_into`], all into one
-//! queue of the monitor's), which loses nothing the gateway's history holds (PROTOCOL.md §5.2): a stretch this service missed (it was slow, partitioned from
-//! the building, or restarted) is read back from the history and fed to the monitor in order
-//! before the live batch that showed the gap, so every window is judged on complete data, and an
-//! alert raised from such data says it is late. The last sequence number handled per sensor is
-//! kept in `state_path` (written every [`STATE_PERIOD`] and at shutdown), with how many batches
-//! before it the baseline filter needs to settle and the window to fill: a restarted service
+//! queue of the monitor's), which loses nothing the gateway's history holds (PROTOCOL.md §5.2):
+//! a stretch this service missed (it was slow, partitioned from the building, or restarted) is
+//! read back from the history and fed to the monitor in order before the live batch that showed
+//! the gap, so every window is judged on complete data, and an alert raised from such data says
+//! it is late. The last sequence number handled per sensor is kept in `state_path` (written
+//! every [`STATE_PERIOD`] and at shutdown), with how many batches before it the baseline filter
+//! needs to settle and the window to fill: a restarted service
 //! reads those batches again without judging them (they were judged before it stopped), then
 //! judges what follows as if it had never stopped. With `watch_all_buildings`, buildings are
 //! found by their gateways' heartbeats.
