@@ -41,6 +41,11 @@ const ARM_BACKOFF_BATCHES: u32 = 10;
 /// Gauss–Newton steps of a retune; from within a few u of the optimum two are plenty.
 const RETUNE_STEPS: usize = 2;
 
+/// Moves of the sums' origin by their own map ([`Moments::moved`]) before they are rebuilt
+/// from the window: each move and each sample in and out adds rounding of about 1e-16 of the
+/// sums, far below anything the fit resolves after this many windows.
+const MOVES: u32 = 16;
+
 /// (cos, sin) of ω·k at the last k asked for at one end of the window.
 #[derive(Debug, Clone, Copy)]
 struct Phase {
@@ -133,6 +138,8 @@ struct AxisTrack {
     /// N of τ = (m − origin)/N.
     scale: f64,
     moments: Moments,
+    /// Times the origin was moved by the sums' own map since they were built.
+    moves: u32,
 }
 
 #[derive(Debug)]
@@ -171,7 +178,14 @@ fn clean(s: &TimedSample) -> bool {
 impl SwayTracker {
     fn index(&self, t_ns: i64) -> i64 {
         let epoch = self.epoch_ns.unwrap_or(t_ns);
-        ((t_ns - epoch) as f64 / self.period_ns).round() as i64
+        let x = (t_ns - epoch) as f64 / self.period_ns;
+        // Rounded half away from zero, as `f64::round`, without its call into libm (a few %
+        // of the tracker, which asks for three indices a sample).
+        if x >= 0.0 {
+            (x + 0.5) as i64
+        } else {
+            -((0.5 - x) as i64)
+        }
     }
 
     /// Stops tracking: the window is judged in full until the tracker is armed again.
@@ -293,6 +307,7 @@ impl SwayTracker {
             origin,
             scale: at_origin.scale,
             moments: axis.moments(omega, true),
+            moves: 0,
         })
     }
 
@@ -363,6 +378,24 @@ impl SwayTracker {
             // Carried to the optimum, the fit is the optimum's, adequate or not: a search
             // would come to the same verdict.
             if !stale && close(&at) {
+                return at.fit;
+            }
+            // A window behind, with ω well within reach of the optimum (a quarter of the step
+            // that would retune), the origin moves by the sums' own map rather than a pass
+            // over the window; the fit does not depend on where τ = 0 is. Every so often they
+            // are rebuilt anyway, recentred at the optimum, so that the rounding of samples
+            // added and taken away does not build up.
+            if stale && at.carry_error_u <= self.retune_peak_u / 16.0 && track.moves < MOVES {
+                let shift = front - track.origin;
+                if let Some(track) = self.axes[j].as_mut() {
+                    track.moments = track
+                        .moments
+                        .moved(track.omega * shift as f64, shift as f64 / track.scale);
+                    track.origin = front;
+                    track.moves += 1;
+                    // The ends' phases were of the old origin.
+                    track.phases = Phases::new(track.omega);
+                }
                 return at.fit;
             }
         }
