@@ -11,9 +11,11 @@
 //! comes from the same sums). So every batch is judged with the fit, the uncertainties and the
 //! adequacy tests of a window fitted afresh, to second order in the step. When what is left of
 //! the second order could exceed [`RETUNE_PEAK_U`] of the amplitude's u, ω is searched again by
-//! Gauss–Newton steps over the window and the moments are rebuilt there; they are also rebuilt,
-//! at ω + step, once their origin is a window behind the window's start. A window whose tracked
-//! fit is not adequate is judged in full, and its sums are kept up to date for the next.
+//! Gauss–Newton steps over the window and the moments are rebuilt there. Once their origin is a
+//! window behind the window's start, it is moved to the start by a linear map of the moments
+//! ([`Moments::moved`]) while ω is close to the optimum, and otherwise (and every few moves)
+//! they are rebuilt at ω + step. A window whose tracked fit is not adequate is judged in full,
+//! and its sums are kept up to date for the next.
 //!
 //! The tracker speaks only for windows whose every sample is clean and usable and for sensors
 //! without a frequency limit; everything else, and any axis that can reach a limit without an
