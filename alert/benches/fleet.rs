@@ -33,6 +33,11 @@ use triax_protocol::messages::{AlertKind, AlertLevel, Heartbeat};
 use triax_protocol::signing::{read_alert, TrustedKeys};
 use triax_protocol::{to_json, BuildingId, Key, SensorId};
 
+// The gateway's benches' /proc readers; this bench uses a part of them.
+#[allow(dead_code)]
+#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
+mod bench_proc;
+
 /// Seconds into the run of the first injected event.
 const FIRST_EVENT_S: f64 = 13.0;
 
@@ -79,24 +84,11 @@ impl Drop for Reaped {
 }
 
 fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
+    bench_proc::cpu_seconds(pid).unwrap_or(0.0)
 }
 
 fn rss_mib(pid: u32) -> f64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse::<f64>().ok())
-        })
-        .unwrap_or(0.0)
-        / 1024.0
+    bench_proc::proc_status_kib(pid, "VmRSS:").map_or(0.0, |kib| kib as f64 / 1024.0)
 }
 
 fn batch(

@@ -27,6 +27,11 @@ use triax_protocol::messages::{
 };
 use triax_protocol::{to_json, BuildingId, SensorId, JSON_FORMAT_VERSION};
 
+// The gateway's benches' /proc readers; this bench uses a part of them.
+#[allow(dead_code)]
+#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
+mod bench_proc;
+
 const BUILDINGS: usize = 100;
 const SENSORS: usize = 100;
 
@@ -202,22 +207,11 @@ async fn buildings(endpoint: String) -> (zenoh::Session, Vec<zenoh::query::Query
 
 /// utime + stime of `pid`, in seconds.
 fn cpu_s(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).expect("the console runs");
-    // Fields after the command's closing parenthesis; utime and stime are the 12th and 13th.
-    let rest = &stat[stat.rfind(')').expect("a stat line") + 2..];
-    let f: Vec<&str> = rest.split(' ').collect();
-    let ticks: f64 = f[11].parse::<f64>().expect("utime") + f[12].parse::<f64>().expect("stime");
-    // USER_HZ is 100 on Linux.
-    ticks / 100.0
+    bench_proc::cpu_seconds(pid).expect("the console runs")
 }
 
 fn rss_mib(pid: u32, field: &str) -> f64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("the console runs");
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix(field))
-        .and_then(|v| v.trim().trim_end_matches(" kB").trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0)
+    bench_proc::proc_status_kib(pid, field).map_or(f64::NAN, |kib| kib as f64 / 1024.0)
 }
 
 fn stats(mut v: Vec<f64>) -> String {

@@ -37,6 +37,11 @@ use triax_protocol::batch::CorrectedSample;
 use triax_protocol::messages::BuildingModes;
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
+// The gateway's benches' /proc readers; this bench uses a part of them.
+#[allow(dead_code)]
+#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
+mod bench_proc;
+
 /// The service's default window, s of the sensors' clocks.
 const WINDOW_S: i64 = 1800;
 const WINDOW_NS: i64 = WINDOW_S * 1_000_000_000;
@@ -91,46 +96,18 @@ impl Drop for Reaped {
     }
 }
 
-/// User and system CPU seconds of a `/proc/<pid>/stat` or `/proc/<pid>/task/<tid>/stat`.
-fn cpu_seconds_of(stat_path: &str) -> f64 {
-    let stat = std::fs::read_to_string(stat_path).unwrap_or_default();
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
-}
-
 fn cpu_seconds(pid: u32) -> f64 {
-    cpu_seconds_of(&format!("/proc/{pid}/stat"))
+    bench_proc::cpu_seconds(pid).unwrap_or(0.0)
 }
 
 /// The CPU seconds of the service's identification thread (named `triax-identify`).
 fn identify_cpu_seconds(pid: u32) -> f64 {
-    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
-        return 0.0;
-    };
-    tasks
-        .flatten()
-        .filter(|t| {
-            std::fs::read_to_string(t.path().join("comm"))
-                .is_ok_and(|c| c.trim() == "triax-identify")
-        })
-        .map(|t| cpu_seconds_of(&t.path().join("stat").to_string_lossy()))
-        .sum()
+    bench_proc::named_threads_cpu_seconds(pid, "triax-identify").unwrap_or(0.0)
 }
 
 /// A `/proc/<pid>/status` figure in MiB (`VmRSS`, `VmHWM`: the peak).
 fn status_mib(pid: u32, field: &str) -> f64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with(field))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse::<f64>().ok())
-        })
-        .unwrap_or(0.0)
-        / 1024.0
+    bench_proc::proc_status_kib(pid, field).map_or(0.0, |kib| kib as f64 / 1024.0)
 }
 
 fn load_average() -> String {

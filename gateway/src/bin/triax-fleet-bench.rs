@@ -32,7 +32,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 
-// Shared with triax-gateway-bench, which uses all of it.
+// Shared with the other benches, which use the rest of it.
 #[allow(dead_code)]
 #[path = "bench_proc/mod.rs"]
 mod bench_proc;

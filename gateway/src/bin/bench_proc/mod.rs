@@ -1,5 +1,8 @@
 //! What a bench reads of a process from /proc: CPU time, context switches and resident set,
-//! for the whole process and per thread. Shared by the bench binaries (`#[path]`).
+//! for the whole process and per thread. Shared by the bench binaries (`#[path]`), the
+//! gateway's and the alerting, modal and console services' benches.
+
+use std::path::Path;
 
 use anyhow::{Context, Result};
 
@@ -26,7 +29,28 @@ pub fn context_switches(pid: u32) -> Result<u64> {
 /// CPU time a process has used so far, user and system, all threads, from `/proc/<pid>/stat`
 /// (in USER_HZ ticks, 100 per second on Linux).
 pub fn cpu_seconds(pid: u32) -> Result<f64> {
-    let text = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+    stat_cpu_seconds(Path::new(&format!("/proc/{pid}/stat")))
+}
+
+/// CPU seconds of the threads of a process with this name (`/proc/<pid>/task/*/comm`), summed
+/// from their own `stat`; threads that ended meanwhile are not counted.
+pub fn named_threads_cpu_seconds(pid: u32, name: &str) -> Result<f64> {
+    let mut total = 0.0;
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
+        let dir = task?.path();
+        let Ok(comm) = std::fs::read_to_string(dir.join("comm")) else {
+            continue;
+        };
+        if comm.trim() == name {
+            total += stat_cpu_seconds(&dir.join("stat")).unwrap_or(0.0);
+        }
+    }
+    Ok(total)
+}
+
+/// User and system CPU seconds of a `/proc/<pid>/stat` or `/proc/<pid>/task/<tid>/stat`.
+fn stat_cpu_seconds(path: &Path) -> Result<f64> {
+    let text = std::fs::read_to_string(path)?;
     // The command name is in parentheses and may hold spaces: count fields after it, from
     // field 3 (state); utime and stime are fields 14 and 15.
     let rest = text
