@@ -103,6 +103,9 @@ pub struct HistorySettings {
     pub flush_interval: Duration,
     /// Bytes of samples waiting for the writer before further batches are not kept (counted).
     pub queue_bytes: usize,
+    /// Long runs of the log written past the page cache (`O_DIRECT`) where the file system
+    /// allows (`triax_history::append`).
+    pub direct_io: bool,
 }
 
 impl HistorySettings {
@@ -119,6 +122,7 @@ impl HistorySettings {
         c.max_bytes = self.max_bytes;
         c.retention = self.retention;
         c.segment_bytes = self.segment_bytes;
+        c.direct_io = self.direct_io;
         c
     }
 }
@@ -335,6 +339,7 @@ pub struct FileHistory {
     pub segment_mib: Option<f64>,
     pub flush_interval_ms: Option<f64>,
     pub queue_mib: Option<f64>,
+    pub direct_io: Option<bool>,
 }
 
 /// `[backfill]`: gaps filled from the nodes' buffers (README, "The sensor node").
@@ -836,6 +841,7 @@ fn history_settings(
         segment_bytes: (segment_mib * (1u64 << 20) as f64) as u64,
         flush_interval: Duration::from_secs_f64(flush_ms / 1000.0),
         queue_bytes: (queue_mib * (1u64 << 20) as f64) as usize,
+        direct_io: h.direct_io.unwrap_or(true),
     }))
 }
 
@@ -1116,6 +1122,19 @@ mod tests {
         assert_eq!(path, Some(PathBuf::from("/srv/triax/triax-history-zz")));
         let c = parse("building = \"zz\"\n[history]\npath = \"/srv/h\"").unwrap();
         assert_eq!(c.history.map(|h| h.path), Some(PathBuf::from("/srv/h")));
+    }
+
+    #[test]
+    fn the_history_writes_past_the_page_cache_unless_told_not_to() {
+        let h = |text: &str| parse(text).unwrap().history.unwrap();
+        assert!(h("").direct_io);
+        assert!(h("[history]\ndirect_io = true").direct_io);
+        let off = h("[history]\ndirect_io = false");
+        assert!(!off.direct_io);
+        assert!(
+            !off.history_config(&BuildingId::new("hq").unwrap(), "g")
+                .direct_io
+        );
     }
 
     #[test]

@@ -30,6 +30,7 @@
 //! Pure storage: no Zenoh, no async runtime, no knowledge of correction. The gateway's
 //! `history` module owns the writer thread and the replay.
 
+pub mod append;
 pub mod block;
 pub mod os;
 mod owner;

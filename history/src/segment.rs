@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 
 use triax_protocol::SensorId;
 
+use crate::append::Appender;
 use crate::block::{Block, BlockSummary};
 use crate::HistoryError;
 
@@ -345,40 +346,25 @@ pub fn drop_cached(dir: &Path, id: u64) {
     }
 }
 
-/// Writes every buffer, in order, in as few system calls as the kernel allows.
-fn write_all_vectored(file: &mut File, bufs: &[Vec<u8>]) -> std::io::Result<()> {
-    // At most this many slices a call (the kernel's IOV_MAX is 1024).
-    const IOV: usize = 1024;
-    for chunk in bufs.chunks(IOV) {
-        let mut slices: Vec<std::io::IoSlice<'_>> =
-            chunk.iter().map(|b| std::io::IoSlice::new(b)).collect();
-        let mut rest = &mut slices[..];
-        while !rest.is_empty() {
-            let n = file.write_vectored(rest)?;
-            if n == 0 {
-                return Err(std::io::ErrorKind::WriteZero.into());
-            }
-            std::io::IoSlice::advance_slices(&mut rest, n);
-        }
-    }
-    Ok(())
-}
-
 /// The segment being written.
 #[derive(Debug)]
 pub struct SegmentWriter {
     pub id: u64,
-    log: File,
+    log: Appender,
     idx: File,
     log_path: PathBuf,
     idx_path: PathBuf,
+    /// Bytes of the log that are durable and indexed.
     pub log_bytes: u64,
     pub idx_bytes: u64,
+    /// Blocks written since the last sync: durable and indexed at the next.
+    unsynced: Vec<IndexEntry>,
 }
 
 impl SegmentWriter {
-    /// Creates segment `id` (its files must not exist).
-    pub fn create(dir: &Path, id: u64) -> Result<SegmentWriter, HistoryError> {
+    /// Creates segment `id` (its files must not exist). Long runs of its log go to the disk
+    /// directly when `direct` and the file system allow ([`crate::append`]).
+    pub fn create(dir: &Path, id: u64, direct: bool) -> Result<SegmentWriter, HistoryError> {
         let (lp, ip) = (log_path(dir, id), idx_path(dir, id));
         let open = |p: &Path| {
             OpenOptions::new()
@@ -387,7 +373,7 @@ impl SegmentWriter {
                 .open(p)
                 .map_err(io("create a segment file", p))
         };
-        let log = open(&lp)?;
+        let log = Appender::new(open(&lp)?, &lp, 0, direct);
         let idx = open(&ip)?;
         // The directory entry itself must survive a crash.
         File::open(dir)
@@ -401,35 +387,62 @@ impl SegmentWriter {
             idx_path: ip,
             log_bytes: 0,
             idx_bytes: 0,
+            unsynced: Vec::new(),
         })
     }
 
-    /// Appends framed blocks (as [`crate::block::BlockBuilder::finish`] made them) and makes
-    /// them durable, then indexes them. Returns their entries.
-    pub fn append(
+    /// Bytes of the log written, durable or not.
+    pub fn written_bytes(&self) -> u64 {
+        self.log.appended()
+    }
+
+    /// Bytes of the log written directly since the last call.
+    pub fn take_direct_bytes(&mut self) -> u64 {
+        self.log.take_direct_bytes()
+    }
+
+    /// Whether long runs of the log still go to the disk directly.
+    pub fn is_direct(&self) -> bool {
+        self.log.is_direct()
+    }
+
+    /// Appends framed blocks (as [`crate::block::BlockBuilder::finish`] made them), not yet
+    /// durable: [`sync`](Self::sync) makes them so, and indexes them.
+    pub fn write(
         &mut self,
         frames: &[Vec<u8>],
         blocks: &[(u64, u32, BlockSummary)],
-    ) -> Result<Vec<IndexEntry>, HistoryError> {
-        write_all_vectored(&mut self.log, frames).map_err(io("append to a log", &self.log_path))?;
+    ) -> Result<(), HistoryError> {
+        let mut offset = self.log.appended();
         self.log
-            .sync_data()
-            .map_err(io("sync a log", &self.log_path))?;
-        let mut entries = Vec::with_capacity(blocks.len());
-        let mut offset = self.log_bytes;
-        let mut out = Vec::with_capacity(blocks.len() * ENTRY_BYTES);
+            .append(frames)
+            .map_err(io("append to a log", &self.log_path))?;
         for &(sensor_hash, frame_len, summary) in blocks {
-            let e = IndexEntry {
+            self.unsynced.push(IndexEntry {
                 offset,
                 frame_len,
                 sensor_hash,
                 summary,
-            };
-            e.encode(&mut out);
+            });
             offset += u64::from(frame_len);
-            entries.push(e);
         }
-        self.log_bytes = offset;
+        Ok(())
+    }
+
+    /// Makes every block written durable, then indexes them. Returns their entries.
+    pub fn sync(&mut self) -> Result<Vec<IndexEntry>, HistoryError> {
+        self.log
+            .finish()
+            .map_err(io("append to a log", &self.log_path))?;
+        self.log
+            .sync_data()
+            .map_err(io("sync a log", &self.log_path))?;
+        let entries = std::mem::take(&mut self.unsynced);
+        let mut out = Vec::with_capacity(entries.len() * ENTRY_BYTES);
+        for e in &entries {
+            e.encode(&mut out);
+        }
+        self.log_bytes = self.log.appended();
         self.idx
             .write_all(&out)
             .map_err(io("append to an index", &self.idx_path))?;

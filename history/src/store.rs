@@ -31,10 +31,13 @@ pub struct HistoryConfig {
     /// another building is refused. None: neither recorded nor checked (tools and benches that
     /// read any history).
     pub owner: Option<Owner>,
+    /// Long runs of a log go to the disk directly (`O_DIRECT`) where the file system allows
+    /// ([`crate::append`]); otherwise, and when false, through the page cache.
+    pub direct_io: bool,
 }
 
 impl HistoryConfig {
-    /// 30 days, 20 GiB, 32 MiB or 1 h segments.
+    /// 30 days, 20 GiB, 32 MiB or 1 h segments, direct writes.
     pub fn new(dir: impl Into<PathBuf>) -> HistoryConfig {
         HistoryConfig {
             dir: dir.into(),
@@ -43,6 +46,7 @@ impl HistoryConfig {
             segment_bytes: 32 << 20,
             segment_age: Duration::from_secs(3600),
             owner: None,
+            direct_io: true,
         }
     }
 
@@ -59,6 +63,8 @@ pub struct HistoryCounters {
     pub written_batches: AtomicU64,
     pub written_samples: AtomicU64,
     pub written_blocks: AtomicU64,
+    /// Bytes of logs written past the page cache (`O_DIRECT`, [`crate::append`]).
+    pub direct_bytes: AtomicU64,
     pub flushes: AtomicU64,
     pub deleted_segments: AtomicU64,
     pub deleted_bytes: AtomicU64,
@@ -249,7 +255,7 @@ impl History {
             .max()
             .unwrap_or(0);
         let next_id = ids.last().map_or(1, |id| id + 1);
-        let writer_segment = SegmentWriter::create(&dir, next_id)?;
+        let writer_segment = SegmentWriter::create(&dir, next_id, config.direct_io)?;
         let mut active = Segment::empty(next_id, &dir);
         active.live = Some(Vec::new());
         segments.push(active);
@@ -268,6 +274,8 @@ impl History {
             segment_started: Instant::now(),
             pending: HashMap::new(),
             ready: Vec::new(),
+            ready_bytes: 0,
+            failed: None,
             next_arrival,
             segment_sensors: BTreeSet::new(),
             spare: Vec::new(),
@@ -718,6 +726,10 @@ const BLOCK_BYTES_MAX: usize = 1 << 20;
 /// ... or this many batches (the index keeps the count in 16 bits).
 const BLOCK_BATCHES_MAX: u32 = 60_000;
 
+/// Closed blocks waiting past this many bytes are written before the flush (not synced): a
+/// heavy stream then holds a stage's worth of closed blocks in memory, not a flush interval's.
+const WRITE_AHEAD_BYTES: usize = crate::append::STAGE_BYTES;
+
 /// Appends to the history: batches gather per sensor in memory and go to disk, one block per
 /// sensor, at each [`flush`](Self::flush).
 #[derive(Debug)]
@@ -728,6 +740,10 @@ pub struct Writer {
     pending: HashMap<SensorId, BlockBuilder>,
     /// Blocks closed before the flush (a checkpoint or the size limit started a new one).
     ready: Vec<(SensorId, BlockBuilder)>,
+    /// Their bytes: past [`WRITE_AHEAD_BYTES`] they are written ahead of the flush.
+    ready_bytes: usize,
+    /// A write ahead of the flush failed: the flush reports it.
+    failed: Option<HistoryError>,
     next_arrival: u64,
     /// Sensors of the segment being written, for its `.sensors` file.
     segment_sensors: BTreeSet<SensorId>,
@@ -795,11 +811,15 @@ impl Writer {
                 match other {
                     Some(b) => {
                         let old = std::mem::replace(b, fresh);
+                        self.ready_bytes += old.len();
                         self.ready.push((sensor.clone(), old));
                     }
                     None => {
                         self.pending.insert(sensor.clone(), fresh);
                     }
+                }
+                if self.ready_bytes >= WRITE_AHEAD_BYTES {
+                    self.write_ahead();
                 }
             }
         }
@@ -828,9 +848,24 @@ impl Writer {
     /// segment and applies retention when due.
     pub fn flush(&mut self) -> Result<(), HistoryError> {
         let mut blocks: Vec<(SensorId, BlockBuilder)> = std::mem::take(&mut self.ready);
+        self.ready_bytes = 0;
         blocks.extend(self.pending.drain());
         if !blocks.is_empty() {
             self.write_blocks(blocks)?;
+        }
+        if let Some(seg) = self.segment.as_mut() {
+            let synced = seg.sync();
+            let direct = seg.take_direct_bytes();
+            self.history
+                .counters
+                .direct_bytes
+                .fetch_add(direct, Relaxed);
+            self.publish(synced)?;
+        }
+        if let Some(e) = self.failed.take() {
+            // A write ahead of this flush failed: its segment's unsynced blocks were lost with it
+            // (the later ones went to a fresh segment, and are durable now).
+            return Err(e);
         }
         self.history.counters.flushes.fetch_add(1, Relaxed);
         let due = self.segment.as_ref().is_none_or(|s| {
@@ -845,6 +880,16 @@ impl Writer {
         Ok(())
     }
 
+    /// Writes the closed blocks now, durable at the next flush, which reports a failure.
+    fn write_ahead(&mut self) {
+        let blocks = std::mem::take(&mut self.ready);
+        self.ready_bytes = 0;
+        if let Err(e) = self.write_blocks(blocks) {
+            self.failed = Some(e);
+        }
+    }
+
+    /// Appends blocks to the segment's log, not yet durable.
     fn write_blocks(&mut self, blocks: Vec<(SensorId, BlockBuilder)>) -> Result<(), HistoryError> {
         let mut frames = Vec::with_capacity(blocks.len());
         let mut meta = Vec::with_capacity(blocks.len());
@@ -863,7 +908,17 @@ impl Writer {
         }
         // Present after `roll`.
         let seg = self.segment.as_mut().expect("a segment is open");
-        let appended = seg.append(&frames, &meta);
+        let written = seg.write(&frames, &meta);
+        self.recycle(frames);
+        if let Err(e) = written {
+            self.fail_segment();
+            return Err(e);
+        }
+        Ok(())
+    }
+
+    /// Keeps written blocks' buffers for the next blocks, up to [`SPARE_BYTES`].
+    fn recycle(&mut self, frames: impl IntoIterator<Item = Vec<u8>>) {
         let mut kept: usize = self.spare.iter().map(Vec::capacity).sum();
         for mut f in frames {
             if kept + f.capacity() <= SPARE_BYTES {
@@ -872,34 +927,47 @@ impl Writer {
                 self.spare.push(f);
             }
         }
-        match appended {
-            Ok(entries) => {
-                let id = seg.id;
-                let mut segs = self.history.write();
-                if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
-                    for e in &entries {
-                        s.absorb(e);
-                    }
-                    s.modified = SystemTime::now();
-                    s.live
-                        .get_or_insert_with(Vec::new)
-                        .extend(entries.iter().copied());
-                }
-                self.history
-                    .counters
-                    .written_blocks
-                    .fetch_add(entries.len() as u64, Relaxed);
-                Ok(())
-            }
+    }
+
+    /// Hands durable blocks to readers.
+    fn publish(
+        &mut self,
+        synced: Result<Vec<IndexEntry>, HistoryError>,
+    ) -> Result<(), HistoryError> {
+        let entries = match synced {
+            Ok(entries) => entries,
             Err(e) => {
-                // The segment's end is unknown now: close it (recovery cuts what is torn) and
-                // write the next flush to a fresh one. These blocks are lost, and counted.
-                self.history.counters.write_errors.fetch_add(1, Relaxed);
-                let id = seg.id;
-                self.segment = None;
-                let _ = segment::recover(&self.history.config.dir, id);
-                Err(e)
+                self.fail_segment();
+                return Err(e);
             }
+        };
+        let Some(id) = self.segment.as_ref().map(|s| s.id) else {
+            return Ok(());
+        };
+        let mut segs = self.history.write();
+        if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
+            for e in &entries {
+                s.absorb(e);
+            }
+            s.modified = SystemTime::now();
+            s.live
+                .get_or_insert_with(Vec::new)
+                .extend(entries.iter().copied());
+        }
+        self.history
+            .counters
+            .written_blocks
+            .fetch_add(entries.len() as u64, Relaxed);
+        Ok(())
+    }
+
+    /// After a failed write or sync the segment's end is unknown: it is closed (recovery cuts
+    /// what is torn) and the next flush writes to a fresh one. The blocks written since the
+    /// last sync are lost, and counted.
+    fn fail_segment(&mut self) {
+        self.history.counters.write_errors.fetch_add(1, Relaxed);
+        if let Some(seg) = self.segment.take() {
+            let _ = segment::recover(&self.history.config.dir, seg.id);
         }
     }
 
@@ -930,7 +998,7 @@ impl Writer {
             }
             segs.last().map_or(1, |s| s.id + 1)
         };
-        let fresh = SegmentWriter::create(&dir, next_id)?;
+        let fresh = SegmentWriter::create(&dir, next_id, self.history.config.direct_io)?;
         let mut segs = self.history.write();
         if let Some(id) = closing {
             if let Some(s) = segs.iter_mut().find(|s| s.id == id) {

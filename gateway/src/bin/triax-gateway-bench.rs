@@ -107,8 +107,8 @@ struct Args {
     /// skip it (e.g. `--building-sensors 100,1000,5000`).
     #[arg(long, value_delimiter = ',')]
     building_sensors: Vec<usize>,
-    /// Rounds of the building profile: every system at every sensor count in turn, each
-    /// round's ratios reported, then their range.
+    /// Rounds of the throughput phases and of the building profile: every system (at every
+    /// sensor count) in turn, each round's ratios reported, then their range.
     #[arg(long, default_value_t = 1)]
     rounds: usize,
     /// Skip the throughput and latency phases (run only the building profile and the memory
@@ -255,7 +255,7 @@ struct PhaseResult {
 }
 
 /// CPU time per delivered batch at the CPU phase's fixed load, µs.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct CpuPerBatch {
     /// The system under test's process.
     server_us: f64,
@@ -266,6 +266,8 @@ struct CpuPerBatch {
     /// Context switches of the system under test's threads per batch: each is a thread
     /// that slept and was woken.
     server_switches: f64,
+    /// The system under test's threads, by name.
+    threads: Vec<ThreadGroup>,
 }
 
 fn percentile(sorted: &[i64], p: f64) -> f64 {
@@ -476,6 +478,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
     // CPU per batch at a fixed load that both systems carry in full.
     let (server_cpu0, bench_cpu0) = (cpu_seconds(server.pid)?, cpu_seconds(std::process::id())?);
     let switches0 = context_switches(server.pid)?;
+    let threads0 = thread_counters(server.pid)?;
     let fixed = fleet
         .throughput(phase, Some(args.cpu_samples_per_s))
         .await?;
@@ -485,6 +488,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         bench_us: (cpu_seconds(std::process::id())? - bench_cpu0) / batches * 1e6,
         delivered: fixed.received_per_s / fixed.sent_per_s,
         server_switches: (context_switches(server.pid)? - switches0) as f64 / batches,
+        threads: per_thread_group(&threads0, &thread_counters(server.pid)?, batches),
     };
 
     // Latency at a fixed rate.
@@ -1050,7 +1054,7 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
     );
     println!("|---|---|---|---|---|---|---|");
     for (system, r) in results {
-        let c = r.cpu;
+        let c = &r.cpu;
         println!(
             "| {} | {:.0} | {:.0} | {:.0} | {:.2} / {:.2} (delivered {:.3}) | {:.2} | {:.0} / {:.0} ({} batches) |",
             system.name(),
@@ -1071,8 +1075,24 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
         ZERO_LOSS_MAX * 100.0,
         args.trial_seconds
     );
+    println!("\nCPU phase per thread of the system under test (threads named alike summed; CPU from schedstat), per batch:\n");
+    println!("| system | threads | CPU µs | voluntary switches | involuntary switches |");
+    println!("|---|---|---|---|---|");
+    for (system, r) in results {
+        for g in r.cpu.threads.iter().filter(|g| g.us_per_batch >= 0.05) {
+            println!(
+                "| {} | {} ×{} | {:.2} | {:.3} | {:.3} |",
+                system.name(),
+                g.name,
+                g.threads,
+                g.us_per_batch,
+                g.voluntary_per_batch,
+                g.involuntary_per_batch
+            );
+        }
+    }
     let get = |s: System| results.iter().find(|(x, _)| *x == s).map(|(_, r)| r);
-    let total = |c: CpuPerBatch| c.server_us + c.bench_us;
+    let total = |c: &CpuPerBatch| c.server_us + c.bench_us;
     let paced_rate = paced.paced_samples_per_s.unwrap_or(f64::NAN);
     for system in [System::Gateway, System::GatewayBackpressure] {
         let Some(g) = get(system) else { continue };
@@ -1094,21 +1114,80 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
                 g.zero_loss_samples_per_s / base.zero_loss_samples_per_s,
                 g.cpu.server_us - base.cpu.server_us,
                 g.cpu.bench_us - base.cpu.bench_us,
-                total(base.cpu) / total(g.cpu),
+                total(&base.cpu) / total(&g.cpu),
                 g.p50_us - base.p50_us,
                 g.p99_us - base.p99_us,
                 args.latency_batches_per_s
             );
         }
     }
-    if let (Some(gw), Some(nh)) = (get(System::Gateway), get(System::GatewayNoHistory)) {
+    if let Some(h) = history_on_off(results) {
         println!(
-            "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×",
-            gw.samples_per_s / nh.samples_per_s,
-            gw.zero_loss_samples_per_s / nh.zero_loss_samples_per_s,
-            gw.cpu.server_us / nh.cpu.server_us
+            "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×, capacity from CPU (total / total) {:.2}; the history writer {:.2} µs a batch, {:.1} % of the gateway's CPU",
+            h.unpaced, h.zero_loss, h.cpu, h.capacity_from_cpu, h.writer_us, h.writer_share * 100.0
         );
     }
+}
+
+/// History on against off in one round of the throughput phases.
+struct OnOff {
+    unpaced: f64,
+    zero_loss: f64,
+    /// The gateway's CPU per batch, on over off.
+    cpu: f64,
+    /// Off's CPU per batch over on's, the system under test and the bench's own process
+    /// together: the capacity the CPU leaves, as a ratio.
+    capacity_from_cpu: f64,
+    /// The history writer thread's CPU per batch, and its share of the gateway's.
+    writer_us: f64,
+    writer_share: f64,
+}
+
+fn history_on_off(results: &[(System, PhaseResult)]) -> Option<OnOff> {
+    let get = |s: System| results.iter().find(|(x, _)| *x == s).map(|(_, r)| r);
+    let (on, off) = (get(System::Gateway)?, get(System::GatewayNoHistory)?);
+    let writer_us = on
+        .cpu
+        .threads
+        .iter()
+        .filter(|g| g.name == "triax-history")
+        .map(|g| g.us_per_batch)
+        .sum::<f64>();
+    Some(OnOff {
+        unpaced: on.samples_per_s / off.samples_per_s,
+        zero_loss: on.zero_loss_samples_per_s / off.zero_loss_samples_per_s,
+        cpu: on.cpu.server_us / off.cpu.server_us,
+        capacity_from_cpu: (off.cpu.server_us + off.cpu.bench_us)
+            / (on.cpu.server_us + on.cpu.bench_us),
+        writer_us,
+        writer_share: writer_us / on.cpu.server_us,
+    })
+}
+
+/// Each round's history on / off ratios, and their range.
+fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
+    let all: Vec<OnOff> = rounds.iter().filter_map(|r| history_on_off(r)).collect();
+    if all.len() < 2 {
+        return;
+    }
+    let line = |what: &str, f: &dyn Fn(&OnOff) -> f64| {
+        let v: Vec<f64> = all.iter().map(f).collect();
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let each: Vec<String> = v.iter().map(|x| format!("{x:.2}")).collect();
+        println!("- {what}: {} (range {lo:.2}–{hi:.2})", each.join(", "));
+    };
+    println!("\n## History on / off over {} rounds", all.len());
+    line("unpaced", &|h| h.unpaced);
+    line("without loss", &|h| h.zero_loss);
+    line("CPU per batch, gateway process", &|h| h.cpu);
+    line("capacity from CPU (total / total)", &|h| {
+        h.capacity_from_cpu
+    });
+    line("history writer, µs a batch", &|h| h.writer_us);
+    line("history writer, % of the gateway's CPU", &|h| {
+        h.writer_share * 100.0
+    });
 }
 
 fn main() -> Result<()> {
@@ -1143,17 +1222,26 @@ fn main() -> Result<()> {
         ];
         let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
         if !args.no_throughput {
-            let mut results: Vec<(System, PhaseResult)> = Vec::new();
+            let mut rounds = Vec::new();
             let mut paced = args.clone();
-            for system in all.into_iter().filter(|s| wanted(*s)) {
-                let r = run_system(system, &paced).await?;
-                if system == System::Relay && paced.paced_samples_per_s.is_none() {
-                    // The gateways are offered the relay's capacity as well.
-                    paced.paced_samples_per_s = Some(r.samples_per_s);
+            // Rounds of every system in turn, as for the building profile below.
+            for round in 1..=args.rounds.max(1) {
+                let mut results: Vec<(System, PhaseResult)> = Vec::new();
+                for system in all.into_iter().filter(|s| wanted(*s)) {
+                    let r = run_system(system, &paced).await?;
+                    if system == System::Relay && paced.paced_samples_per_s.is_none() {
+                        // The gateways are offered the relay's capacity as well.
+                        paced.paced_samples_per_s = Some(r.samples_per_s);
+                    }
+                    results.push((system, r));
                 }
-                results.push((system, r));
+                if args.rounds > 1 {
+                    println!("\n### Round {round}\n");
+                }
+                report(&args, &paced, &results);
+                rounds.push(results);
             }
-            report(&args, &paced, &results);
+            report_on_off_rounds(&rounds);
         }
         if !args.building_sensors.is_empty() {
             let mut results = Vec::new();
