@@ -55,17 +55,19 @@ struct Waiting {
 }
 
 impl Pending {
-    /// Empties it, keeping room for `drain_bytes` (what the writer lets gather before it takes
-    /// the queue) but not more.
+    /// Empties it, keeping its memory up to a few times what the writer lets gather: a
+    /// buffer that shrank and grew again whenever the writer took it late would be fresh
+    /// pages to fault in each time (it is mapped, above the allocator's threshold), the costly
+    /// part of writing on a virtual machine (BENCHMARKS.md, "History on and off").
     fn clear(&mut self, drain_bytes: usize) {
         self.bytes.clear();
         self.batches.clear();
         // After a spike (a disk that stalled), give the memory back.
-        if self.bytes.capacity() > 2 * drain_bytes {
-            self.bytes.shrink_to(drain_bytes);
+        if self.bytes.capacity() > 8 * drain_bytes {
+            self.bytes.shrink_to(2 * drain_bytes);
         }
-        if self.batches.capacity() > 2 * DRAIN_BATCHES {
-            self.batches.shrink_to(DRAIN_BATCHES);
+        if self.batches.capacity() > 8 * DRAIN_BATCHES {
+            self.batches.shrink_to(2 * DRAIN_BATCHES);
         }
     }
 }

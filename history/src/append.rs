@@ -51,9 +51,10 @@ pub struct Appender {
 }
 
 /// Bytes on their way to a direct write, laid out so that a page-aligned file offset falls on a
-/// page-aligned address.
+/// page-aligned address. Handed from a segment to the next ([`Appender::take_stage`]): a fresh
+/// megabyte a segment would be fresh pages to fault in.
 #[derive(Debug)]
-struct Stage {
+pub struct Stage {
     /// Fixed size, never grows: `origin` stays aligned.
     buf: Vec<u8>,
     /// Index of the first page-aligned address in `buf`.
@@ -94,8 +95,8 @@ impl Stage {
 
 impl Appender {
     /// Appends to `file` (opened with `append`, empty or holding `len` bytes), directly as well
-    /// when the file system allows it and `direct` is asked.
-    pub fn new(file: File, path: &Path, len: u64, direct: bool) -> Appender {
+    /// when the file system allows it and `direct` is asked; with `stage` if one is at hand.
+    pub fn new(file: File, path: &Path, len: u64, direct: bool, stage: Option<Stage>) -> Appender {
         let direct = direct
             .then(|| {
                 OpenOptions::new()
@@ -109,7 +110,7 @@ impl Appender {
             file,
             direct,
             appended: len,
-            stage: None,
+            stage: stage.filter(|s| s.len == 0),
             direct_bytes: 0,
         }
     }
@@ -117,6 +118,12 @@ impl Appender {
     /// Whether long runs still go direct.
     pub fn is_direct(&self) -> bool {
         self.direct.is_some()
+    }
+
+    /// The staging buffer, for the next log, once everything staged is written
+    /// ([`finish`](Self::finish)).
+    pub fn take_stage(&mut self) -> Option<Stage> {
+        self.stage.take_if(|s| s.len == 0)
     }
 
     /// Bytes written directly since the last call.
@@ -300,7 +307,7 @@ mod tests {
             .append(true)
             .open(&path)
             .unwrap();
-        (Appender::new(file, &path, 0, direct), path)
+        (Appender::new(file, &path, 0, direct, None), path)
     }
 
     /// Appends writes of the given sizes, finishing after each group, and checks the file

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use triax_protocol::SensorId;
 
-use crate::append::Appender;
+use crate::append::{Appender, Stage};
 use crate::block::{Block, BlockSummary};
 use crate::HistoryError;
 
@@ -363,8 +363,14 @@ pub struct SegmentWriter {
 
 impl SegmentWriter {
     /// Creates segment `id` (its files must not exist). Long runs of its log go to the disk
-    /// directly when `direct` and the file system allow ([`crate::append`]).
-    pub fn create(dir: &Path, id: u64, direct: bool) -> Result<SegmentWriter, HistoryError> {
+    /// directly when `direct` and the file system allow ([`crate::append`]), staged in `stage`
+    /// if the previous segment hands its own on.
+    pub fn create(
+        dir: &Path,
+        id: u64,
+        direct: bool,
+        stage: Option<Stage>,
+    ) -> Result<SegmentWriter, HistoryError> {
         let (lp, ip) = (log_path(dir, id), idx_path(dir, id));
         let open = |p: &Path| {
             OpenOptions::new()
@@ -373,7 +379,7 @@ impl SegmentWriter {
                 .open(p)
                 .map_err(io("create a segment file", p))
         };
-        let log = Appender::new(open(&lp)?, &lp, 0, direct);
+        let log = Appender::new(open(&lp)?, &lp, 0, direct, stage);
         let idx = open(&ip)?;
         // The directory entry itself must survive a crash.
         File::open(dir)
@@ -394,6 +400,11 @@ impl SegmentWriter {
     /// Bytes of the log written, durable or not.
     pub fn written_bytes(&self) -> u64 {
         self.log.appended()
+    }
+
+    /// The log's staging buffer, for the next segment (after a [`sync`](Self::sync)).
+    pub fn take_stage(&mut self) -> Option<Stage> {
+        self.log.take_stage()
     }
 
     /// Bytes of the log written directly since the last call.

@@ -255,7 +255,7 @@ impl History {
             .max()
             .unwrap_or(0);
         let next_id = ids.last().map_or(1, |id| id + 1);
-        let writer_segment = SegmentWriter::create(&dir, next_id, config.direct_io)?;
+        let writer_segment = SegmentWriter::create(&dir, next_id, config.direct_io, None)?;
         let mut active = Segment::empty(next_id, &dir);
         active.live = Some(Vec::new());
         segments.push(active);
@@ -974,7 +974,9 @@ impl Writer {
     /// Closes the segment being written and starts the next.
     fn roll(&mut self) -> Result<(), HistoryError> {
         let dir = self.history.config.dir.clone();
-        let closing = self.segment.take().map(|s| s.id);
+        let mut closing_segment = self.segment.take();
+        let stage = closing_segment.as_mut().and_then(SegmentWriter::take_stage);
+        let closing = closing_segment.map(|s| s.id);
         if let Some(id) = closing {
             let ids: Vec<SensorId> = std::mem::take(&mut self.segment_sensors)
                 .into_iter()
@@ -998,7 +1000,7 @@ impl Writer {
             }
             segs.last().map_or(1, |s| s.id + 1)
         };
-        let fresh = SegmentWriter::create(&dir, next_id, self.history.config.direct_io)?;
+        let fresh = SegmentWriter::create(&dir, next_id, self.history.config.direct_io, stage)?;
         let mut segs = self.history.write();
         if let Some(id) = closing {
             if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
