@@ -10,6 +10,10 @@
 //!   sample's Welch–Satterthwaite ν is found and the batch's k looked up from it.
 //! - `batch/static_temperature`: `static_dof` with a temperature model and a batch that carries
 //!   its temperature, so that both sets are taken to it first.
+//! - `building/<what>/<n>`: a building's pace, 10-sample batches taken from `n` sensors in turn,
+//!   each with its own corrector, kernel and health monitor, as the gateway holds them: the
+//!   per-batch cost with one sensor's state hot in the cache against a thousand's cold.
+//!   `kernel`: the correction path as above; `kernel+health`: and the health checks' feed.
 //!
 //! Run: `cargo bench -p triax-gateway --bench kernel`.
 
@@ -196,5 +200,88 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// One sensor of the building group: what the gateway keeps per sensor for these steps.
+struct BuildingSensor {
+    corrector: std::sync::Arc<Corrector>,
+    kernel: SensorKernel,
+    health: triax_health::SensorHealth,
+    payload: Vec<u8>,
+    timestamp_ns: i64,
+}
+
+/// Samples in a building's batch.
+const BUILDING_N: usize = 10;
+
+fn building(c: &mut Criterion) {
+    let r = record();
+    let config = triax_health::HealthConfig::default();
+    let mut g = c.benchmark_group("building");
+    g.throughput(Throughput::Elements(1));
+    for n in [1usize, 1000, 10_000] {
+        let id = SensorId::new("bench").expect("literal id");
+        let mut sensors: Vec<BuildingSensor> = (0..n)
+            .map(|_| {
+                // Loaded one by one, as the gateway's store does: separate allocations.
+                let corrector = Corrector::from_record(&r).expect("bench record loads");
+                let health = triax_health::SensorHealth::with_corrector(&r, &corrector, &config)
+                    .expect("bench record is judged");
+                let payload = RawBatch {
+                    header: BatchHeader {
+                        sensor_id: id.clone(),
+                        sequence: 1,
+                        timestamp_ns: 1_800_000_000_000_000_000,
+                        sample_rate_hz: 100.0,
+                    },
+                    temperature_c: None,
+                    samples: outputs()[..BUILDING_N].to_vec(),
+                }
+                .encode();
+                BuildingSensor {
+                    corrector: std::sync::Arc::new(corrector),
+                    kernel: SensorKernel::new(SensorSettings::default()),
+                    health,
+                    payload,
+                    timestamp_ns: 1_800_000_000_000_000_000,
+                }
+            })
+            .collect();
+        // The first sample's time sits after the prefix's id and sequence (PROTOCOL.md §2).
+        let ts_at = 7 + id.as_str().len() + 8;
+        let mut scratch = Scratch::default();
+        let mut out = Vec::with_capacity(4096);
+        for with_health in [false, true] {
+            let what = if with_health {
+                "kernel+health"
+            } else {
+                "kernel"
+            };
+            let mut i = 0;
+            g.bench_function(format!("{what}/{n}"), |b| {
+                b.iter(|| {
+                    let s = &mut sensors[i];
+                    i = (i + 1) % n;
+                    // Each sensor's stream goes on where its last batch ended.
+                    s.timestamp_ns += 100_000_000;
+                    s.payload[ts_at..ts_at + 8].copy_from_slice(&s.timestamp_ns.to_le_bytes());
+                    out.clear();
+                    let view = RawBatchView::parse(&s.payload).expect("valid batch");
+                    let corrector = s.corrector.clone();
+                    black_box(s.kernel.correct_batch(
+                        &view,
+                        Some(&corrector),
+                        0,
+                        &mut scratch,
+                        &mut out,
+                    ));
+                    if with_health {
+                        s.health.feed_view(&view);
+                    }
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench, building);
 criterion_main!(benches);

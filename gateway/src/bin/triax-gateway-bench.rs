@@ -47,6 +47,10 @@
 //!
 //! The subscriber decodes in full what it receives.
 //!
+//! Two variables of the bench's environment serve experiments: `TRIAX_BENCH_DECLARED_KEYS_MAX`
+//! (the gateway's declared-key budget) and `TRIAX_BENCH_RELAY_WORK_NS` (the relays busy for
+//! that long before each put, as a gateway's correction spaces its puts).
+//!
 //! Then the memory check: the gateway alone with `--rss-sensors` calibrations; the publisher
 //! sends a batch per sensor per second (a building's pace) for three rounds and on until every
 //! sensor is online; once the gateway has settled, its resident set (`VmRSS`, and the peak
@@ -904,6 +908,14 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
                 zenoh::key_expr::KeyExpr<'static>,
             );
             let declared: Mutex<std::collections::HashMap<SensorId, Declared>> = Mutex::default();
+            // Experiments: work of this many ns per batch before the put, as a gateway's
+            // correction spaces its puts (inherited from the bench's environment).
+            let work = Duration::from_nanos(
+                std::env::var("TRIAX_BENCH_RELAY_WORK_NS")
+                    .ok()
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or(0),
+            );
             let _sub = s
                 .declare_subscriber(keys::all_sensors(&building(), Stream::Raw))
                 .callback(move |sample| {
@@ -932,6 +944,12 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
                         });
                         entry.1.clone()
                     };
+                    if !work.is_zero() {
+                        let t0 = Instant::now();
+                        while t0.elapsed() < work {
+                            std::hint::spin_loop();
+                        }
+                    }
                     let payload = if system == System::KeyedRelayCorrected {
                         // The bench's own batches are valid.
                         zenoh::bytes::ZBytes::from(as_corrected(&sample.payload().to_bytes()))
