@@ -329,3 +329,63 @@ fn a_heavy_stream_written_ahead_and_past_the_page_cache_comes_back_bit_for_bit()
     assert_eq!(ck.as_deref(), Some(&b"ck b 4000"[..]));
     assert_eq!(got.len(), 11);
 }
+
+/// A crash after blocks were written ahead of a flush, with the page before the first direct
+/// page lost (as power loss can leave it: the direct pages reached the disk, the page cache's
+/// did not): opening keeps every flushed block, cuts at the hole, and serves nothing after it.
+#[test]
+fn a_crash_between_write_ahead_and_flush_keeps_what_was_flushed_and_cuts_at_the_hole() {
+    let dir = tempfile::tempdir().unwrap();
+    let batch = |seq: u64| -> Vec<u8> {
+        (0..300)
+            .flat_map(|i| (seq as f32 + i as f32 / 512.0).to_le_bytes())
+            .collect()
+    };
+    let flushed_end;
+    {
+        let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 64 << 20);
+        for seq in 0..100u64 {
+            let smp = batch(seq);
+            writer.append(&id("a"), kept(seq, &smp), (seq == 0).then_some(&b"x"[..]));
+        }
+        writer.flush().unwrap();
+        let log = newest_log(dir.path());
+        flushed_end = std::fs::metadata(&log).unwrap().len();
+        // Megabytes more, closed into blocks and written ahead, never flushed.
+        for seq in 100..6000u64 {
+            let smp = batch(seq);
+            let ck = (seq % 500 == 0).then_some(&b"y"[..]);
+            writer.append(&id("a"), kept(seq, &smp), ck);
+        }
+        assert!(std::fs::metadata(&log).unwrap().len() > flushed_end + (1 << 20));
+        // Dropped without a flush: a kill.
+    }
+    let log = newest_log(dir.path());
+    let mut bytes = std::fs::read(&log).unwrap();
+    let len = bytes.len() as u64;
+    let start = flushed_end as usize;
+    let hole_end = (start + 100).min(bytes.len());
+    bytes[start..hole_end].fill(0);
+    std::fs::write(&log, &bytes).unwrap();
+
+    let opened = open(dir.path(), u64::MAX, 64 << 20);
+    assert_eq!(opened.cut_bytes, len - flushed_end);
+    assert_eq!(std::fs::metadata(&log).unwrap().len(), flushed_end);
+    let (ck, got) = read(&opened.history, &Query::all(id("a")));
+    assert_eq!(ck.as_deref(), Some(&b"x"[..]));
+    assert_eq!(got.len(), 100);
+    for (i, (seq, smp)) in got.iter().enumerate() {
+        assert_eq!(*seq, i as u64);
+        assert!(*smp == batch(i as u64));
+    }
+}
+
+/// The newest segment's log in `dir`.
+fn newest_log(dir: &Path) -> std::path::PathBuf {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+        .max()
+        .unwrap()
+}
