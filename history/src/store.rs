@@ -773,7 +773,8 @@ fn note_sensor(segment_sensors: &mut BTreeSet<SensorId>, history: &History, sens
     }
 }
 
-/// Segments kept in the page cache: the one being written and the ones closed just before it.
+/// Segments whose pages may stay in the page cache (those written through it, and those queries
+/// read): the one being written and the ones closed just before it.
 const HOT_SEGMENTS: usize = 3;
 
 /// Most memory kept in spare block buffers.
@@ -993,8 +994,8 @@ impl Writer {
         }
         let next_id = {
             let segs = self.history.read();
-            // The newest segments stay in the page cache for the queries that want recent
-            // data; older ones leave it, and their pages take the next writes.
+            // What the page cache holds of the newest segments stays for the queries that
+            // want recent data; older ones leave it, and their pages take the next writes.
             if let Some(old) = segs.iter().rev().nth(HOT_SEGMENTS) {
                 segment::drop_cached(&dir, old.id);
             }
