@@ -3,10 +3,10 @@
 //! A history is written once and read rarely, a few seconds of it at a time. Through the page
 //! cache each byte is copied into a page the kernel allocates for it, and on a virtual machine a
 //! page the guest has not touched before costs a fault in the host as well: measured here,
-//! 2.5 ns a byte into fresh pages and 0.65 ns into recycled ones, against 0.15 ns for direct
-//! writes of 1 MiB (BENCHMARKS.md, "History on and off"). A direct write has a cost of its own
-//! per request (about 60 µs of the writer's CPU here, the device's round trip through the
-//! hypervisor), so it pays only when it is large. Hence: long runs of whole pages go straight to
+//! 2.5 ns of system time a byte into fresh pages and 0.45–0.65 ns into recycled ones, against
+//! 0.2 ns for direct writes of 1 MiB (BENCHMARKS.md, "History on and off"). A direct write has
+//! a cost of its own per request (about 60 µs of the caller's CPU here, the device's round trip
+//! through the hypervisor), so it pays only when it is large. Hence: long runs of whole pages go straight to
 //! the disk (`O_DIRECT`) from a staging buffer of [`STAGE_BYTES`]; what lies before the first
 //! page boundary and after the last, and every write shorter than [`DIRECT_MIN`], goes through
 //! the page cache as before. A building at its pace (about 1.2 MB a second at a thousand
@@ -154,7 +154,7 @@ impl Appender {
         for buf in bufs {
             let mut rest = &buf[..];
             while !rest.is_empty() {
-                // `drain` leaves at most a page staged.
+                // Allocated above; `drain` keeps it.
                 let stage = self.stage.as_mut().expect("stage allocated above");
                 let n = rest.len().min(stage.room());
                 stage.push(&rest[..n]);
@@ -178,7 +178,7 @@ impl Appender {
     }
 
     /// Writes the staged bytes: the whole pages among them directly when they are many, and
-    /// the rest through the page cache; but for `all`, the part after the last page boundary
+    /// the rest through the page cache; unless `all`, the part after the last page boundary
     /// stays staged, the start of the next direct run.
     fn drain(&mut self, all: bool) -> io::Result<()> {
         let Some(stage) = self.stage.as_mut() else {

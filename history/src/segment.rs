@@ -397,11 +397,6 @@ impl SegmentWriter {
         })
     }
 
-    /// Bytes of the log written, durable or not.
-    pub fn written_bytes(&self) -> u64 {
-        self.log.appended()
-    }
-
     /// The log's staging buffer, for the next segment (after a [`sync`](Self::sync)).
     pub fn take_stage(&mut self) -> Option<Stage> {
         self.log.take_stage()
@@ -410,11 +405,6 @@ impl SegmentWriter {
     /// Bytes of the log written directly since the last call.
     pub fn take_direct_bytes(&mut self) -> u64 {
         self.log.take_direct_bytes()
-    }
-
-    /// Whether long runs of the log still go to the disk directly.
-    pub fn is_direct(&self) -> bool {
-        self.log.is_direct()
     }
 
     /// Appends framed blocks (as [`crate::block::BlockBuilder::finish`] made them), not yet
@@ -440,8 +430,12 @@ impl SegmentWriter {
         Ok(())
     }
 
-    /// Makes every block written durable, then indexes them. Returns their entries.
+    /// Makes every block written durable, then indexes them. Returns their entries; with none
+    /// written since the last sync, touches nothing.
     pub fn sync(&mut self) -> Result<Vec<IndexEntry>, HistoryError> {
+        if self.unsynced.is_empty() {
+            return Ok(Vec::new());
+        }
         self.log
             .finish()
             .map_err(io("append to a log", &self.log_path))?;

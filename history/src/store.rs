@@ -945,6 +945,9 @@ impl Writer {
         let Some(id) = self.segment.as_ref().map(|s| s.id) else {
             return Ok(());
         };
+        if entries.is_empty() {
+            return Ok(());
+        }
         let mut segs = self.history.write();
         if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
             for e in &entries {
