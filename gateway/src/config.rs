@@ -1015,6 +1015,26 @@ mod tests {
         FileConfig::parse(text, Path::new("t.toml"))?.into_config()
     }
 
+    /// The configuration README.md shows, field by field, is one the gateway takes: a field
+    /// named there and not here (or a value out of range) would be refused at start.
+    #[test]
+    fn the_readmes_configuration_parses() {
+        let readme = include_str!("../../README.md");
+        let section = readme
+            .find("## The gateway: `triax-gateway`")
+            .expect("README has the gateway's section");
+        let start = readme[section..].find("```toml\n").expect("a TOML block") + section + 8;
+        let len = readme[start..].find("```").expect("the block ends");
+        // The one placeholder: a lab's public key, 64 hex digits.
+        let lab = triax_protocol::signing::LabSigningKey::from_bytes(&[7; 32]);
+        let key = triax_protocol::signing::to_hex(lab.verifying_key().as_bytes());
+        let text = readme[start..start + len].replace("<contents of lab.pub>", &key);
+        let c = parse(&text).unwrap();
+        let h = c.history.expect("history on");
+        assert!(h.direct_io);
+        assert_eq!(h.queue_bytes, 16 << 20);
+    }
+
     /// `[health]`: on by default with no gravity; a measured gravity or a latitude; every
     /// refusal names its field.
     #[test]
