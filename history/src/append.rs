@@ -6,10 +6,10 @@
 //! 2.5 ns of system time a byte into fresh pages and 0.45–0.65 ns into recycled ones, against
 //! 0.2 ns for direct writes of 1 MiB (BENCHMARKS.md, "History on and off"). A direct write has
 //! a cost of its own per request (about 60 µs of the caller's CPU here, the device's round trip
-//! through the hypervisor), so it pays only when it is large. Hence: long runs of whole pages go straight to
-//! the disk (`O_DIRECT`) from a staging buffer of [`STAGE_BYTES`]; what lies before the first
-//! page boundary and after the last, and every write shorter than [`DIRECT_MIN`], goes through
-//! the page cache as before. A building at its pace (about 1.2 MB a second at a thousand
+//! through the hypervisor), so it pays only when it is large. Hence: long runs of whole pages
+//! go straight to the disk (`O_DIRECT`) from a staging buffer of [`STAGE_BYTES`]; what lies
+//! before the first page boundary and after the last, and every write shorter than
+//! [`DIRECT_MIN`], goes through the page cache as before. A building at its pace (about 1.2 MB a second at a thousand
 //! sensors) writes one direct request a flush.
 //!
 //! **Invariant:** no page of the log is written both ways. A direct write starts at the page
@@ -94,9 +94,9 @@ impl Stage {
 }
 
 impl Appender {
-    /// Appends to `file` (opened with `append`, empty or holding `len` bytes), directly as well
-    /// when the file system allows it and `direct` is asked; with `stage` if one is at hand.
-    pub fn new(file: File, path: &Path, len: u64, direct: bool, stage: Option<Stage>) -> Appender {
+    /// Appends to `file` (new and empty, opened with `append`), directly as well when the file
+    /// system allows it and `direct` is asked; with `stage` if one is at hand.
+    pub fn new(file: File, path: &Path, direct: bool, stage: Option<Stage>) -> Appender {
         let direct = direct
             .then(|| {
                 OpenOptions::new()
@@ -109,7 +109,7 @@ impl Appender {
         Appender {
             file,
             direct,
-            appended: len,
+            appended: 0,
             stage: stage.filter(|s| s.len == 0),
             direct_bytes: 0,
         }
@@ -307,7 +307,7 @@ mod tests {
             .append(true)
             .open(&path)
             .unwrap();
-        (Appender::new(file, &path, 0, direct, None), path)
+        (Appender::new(file, &path, direct, None), path)
     }
 
     /// Appends writes of the given sizes, finishing after each group, and checks the file

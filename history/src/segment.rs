@@ -379,7 +379,7 @@ impl SegmentWriter {
                 .open(p)
                 .map_err(io("create a segment file", p))
         };
-        let log = Appender::new(open(&lp)?, &lp, 0, direct, stage);
+        let log = Appender::new(open(&lp)?, &lp, direct, stage);
         let idx = open(&ip)?;
         // The directory entry itself must survive a crash.
         File::open(dir)

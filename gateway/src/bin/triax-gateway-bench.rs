@@ -782,17 +782,11 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
             if cpu.is_empty() {
                 continue;
             }
-            let (lo, hi) = cpu
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
-                    (l.min(x), h.max(x))
-                });
-            let each: Vec<String> = cpu.iter().map(|x| format!("{x:.2}")).collect();
             println!(
-                "- {} / {} ({what}) at {n} sensors: CPU per batch {} (range {lo:.2}–{hi:.2}, {} rounds)",
+                "- {} / {} ({what}) at {n} sensors: CPU per batch {}, {} rounds)",
                 a.name(),
                 b.name(),
-                each.join(", "),
+                each_and_range(&cpu),
                 cpu.len()
             );
         }
@@ -1240,6 +1234,15 @@ fn history_on_off(results: &[(System, PhaseResult)]) -> Option<OnOff> {
     })
 }
 
+/// `v` listed and its range, to two decimals: `1.05, 1.12 (range 1.05–1.12` (the caller closes
+/// the parenthesis, after what it adds).
+fn each_and_range(v: &[f64]) -> String {
+    let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let each: Vec<String> = v.iter().map(|x| format!("{x:.2}")).collect();
+    format!("{} (range {lo:.2}–{hi:.2}", each.join(", "))
+}
+
 /// Each round's history on / off ratios, and their range.
 fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
     let all: Vec<OnOff> = rounds.iter().filter_map(|r| history_on_off(r)).collect();
@@ -1248,10 +1251,7 @@ fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
     }
     let line = |what: &str, f: &dyn Fn(&OnOff) -> f64| {
         let v: Vec<f64> = all.iter().map(f).collect();
-        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let each: Vec<String> = v.iter().map(|x| format!("{x:.2}")).collect();
-        println!("- {what}: {} (range {lo:.2}–{hi:.2})", each.join(", "));
+        println!("- {what}: {})", each_and_range(&v));
     };
     println!("\n## History on / off over {} rounds", all.len());
     line("unpaced", &|h| h.unpaced);
