@@ -24,7 +24,10 @@
 //! - `gateway-no-history`: the default gateway with its history off: what keeping every batch
 //!   on disk costs, in the same run;
 //! - `gateway-no-health`: the default gateway with its field health checks off: what they
-//!   cost, in the same run.
+//!   cost, in the same run;
+//! - `gateway-again`: the default gateway a second time, a process of its own like the first:
+//!   an A/A control. Its ratios to `gateway` within a round are what two processes of the
+//!   same binary differ by, the resolution of every other ratio of that round.
 //!
 //! For each:
 //!
@@ -238,6 +241,10 @@ enum System {
     GatewayBackpressure,
     GatewayNoHistory,
     GatewayNoHealth,
+    /// The gateway again, a second process of the same binary and settings: its ratio to
+    /// `gateway` in one round is the spread between two processes, the bench's own resolution
+    /// (an A/A control).
+    GatewayAgain,
 }
 
 impl System {
@@ -263,6 +270,7 @@ impl System {
             System::GatewayBackpressure => "gateway-backpressure",
             System::GatewayNoHistory => "gateway-no-history",
             System::GatewayNoHealth => "gateway-no-health",
+            System::GatewayAgain => "gateway-again",
         }
     }
 }
@@ -415,7 +423,8 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         System::Gateway
         | System::GatewayBackpressure
         | System::GatewayNoHistory
-        | System::GatewayNoHealth => {
+        | System::GatewayNoHealth
+        | System::GatewayAgain => {
             let n = args.sensors;
             let sp = store_path.clone();
             tokio::task::spawn_blocking(move || seed_store(&sp, n)).await??;
@@ -798,6 +807,7 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
         System::GatewayNoHistory,
         System::GatewayNoHealth,
         System::GatewayBackpressure,
+        System::GatewayAgain,
     ] {
         ratios(system, System::KeyedRelay, "against the floor");
     }
@@ -812,6 +822,11 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
         "history on / off",
     );
     ratios(System::Gateway, System::GatewayNoHealth, "health on / off");
+    ratios(
+        System::GatewayAgain,
+        System::Gateway,
+        "A/A, the bench's own spread",
+    );
 }
 
 /// A system under test in its own process, as it is deployed: its own runtime and threads.
@@ -964,7 +979,8 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
         System::Gateway
         | System::GatewayBackpressure
         | System::GatewayNoHistory
-        | System::GatewayNoHealth => {
+        | System::GatewayNoHealth
+        | System::GatewayAgain => {
             let store = store.context("--store")?;
             let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
             // The service's defaults: health checks on.
@@ -1191,15 +1207,22 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
             );
         }
     }
-    if let Some(h) = history_on_off(results) {
+    if let Some(h) = on_off(results, System::Gateway, System::GatewayNoHistory) {
         println!(
             "\nhistory on / off (gateway / gateway-no-history): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×, capacity from CPU (total / total) {:.2}; the history writer {:.2} µs a batch, {:.1} % of the gateway's CPU",
             h.unpaced, h.zero_loss, h.cpu, h.capacity_from_cpu, h.writer_us, h.writer_share * 100.0
         );
     }
+    if let Some(h) = on_off(results, System::GatewayAgain, System::Gateway) {
+        println!(
+            "\nA/A (gateway-again / gateway): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×, capacity from CPU (total / total) {:.2}",
+            h.unpaced, h.zero_loss, h.cpu, h.capacity_from_cpu
+        );
+    }
 }
 
-/// History on against off in one round of the throughput phases.
+/// One gateway against another in one round of the throughput phases: history on against
+/// off, or the A/A control.
 struct OnOff {
     unpaced: f64,
     zero_loss: f64,
@@ -1208,14 +1231,15 @@ struct OnOff {
     /// Off's CPU per batch over on's, the system under test and the bench's own process
     /// together: the capacity the CPU leaves, as a ratio.
     capacity_from_cpu: f64,
-    /// The history writer thread's CPU per batch, and its share of the gateway's.
+    /// The history writer thread's CPU per batch in the first, and its share of that
+    /// gateway's CPU.
     writer_us: f64,
     writer_share: f64,
 }
 
-fn history_on_off(results: &[(System, PhaseResult)]) -> Option<OnOff> {
+fn on_off(results: &[(System, PhaseResult)], a: System, b: System) -> Option<OnOff> {
     let get = |s: System| results.iter().find(|(x, _)| *x == s).map(|(_, r)| r);
-    let (on, off) = (get(System::Gateway)?, get(System::GatewayNoHistory)?);
+    let (on, off) = (get(a)?, get(b)?);
     let writer_us = on
         .cpu
         .threads
@@ -1243,27 +1267,42 @@ fn each_and_range(v: &[f64]) -> String {
     format!("{} (range {lo:.2}–{hi:.2}", each.join(", "))
 }
 
-/// Each round's history on / off ratios, and their range.
+/// Each round's history on / off ratios, and the A/A control's, with their ranges.
 fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
-    let all: Vec<OnOff> = rounds.iter().filter_map(|r| history_on_off(r)).collect();
-    if all.len() < 2 {
-        return;
+    for (a, b, title) in [
+        (
+            System::Gateway,
+            System::GatewayNoHistory,
+            "History on / off",
+        ),
+        (
+            System::GatewayAgain,
+            System::Gateway,
+            "A/A: gateway-again / gateway",
+        ),
+    ] {
+        let all: Vec<OnOff> = rounds.iter().filter_map(|r| on_off(r, a, b)).collect();
+        if all.len() < 2 {
+            continue;
+        }
+        let line = |what: &str, f: &dyn Fn(&OnOff) -> f64| {
+            let v: Vec<f64> = all.iter().map(f).collect();
+            println!("- {what}: {})", each_and_range(&v));
+        };
+        println!("\n## {title} over {} rounds", all.len());
+        line("unpaced", &|h| h.unpaced);
+        line("without loss", &|h| h.zero_loss);
+        line("CPU per batch, gateway process", &|h| h.cpu);
+        line("capacity from CPU (total / total)", &|h| {
+            h.capacity_from_cpu
+        });
+        if a == System::Gateway {
+            line("history writer, µs a batch", &|h| h.writer_us);
+            line("history writer, % of the gateway's CPU", &|h| {
+                h.writer_share * 100.0
+            });
+        }
     }
-    let line = |what: &str, f: &dyn Fn(&OnOff) -> f64| {
-        let v: Vec<f64> = all.iter().map(f).collect();
-        println!("- {what}: {})", each_and_range(&v));
-    };
-    println!("\n## History on / off over {} rounds", all.len());
-    line("unpaced", &|h| h.unpaced);
-    line("without loss", &|h| h.zero_loss);
-    line("CPU per batch, gateway process", &|h| h.cpu);
-    line("capacity from CPU (total / total)", &|h| {
-        h.capacity_from_cpu
-    });
-    line("history writer, µs a batch", &|h| h.writer_us);
-    line("history writer, % of the gateway's CPU", &|h| {
-        h.writer_share * 100.0
-    });
 }
 
 fn main() -> Result<()> {
@@ -1295,6 +1334,7 @@ fn main() -> Result<()> {
             System::Gateway,
             System::GatewayBackpressure,
             System::GatewayNoHistory,
+            System::GatewayAgain,
             System::GatewayNoHealth,
         ];
         let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
