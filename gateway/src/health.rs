@@ -74,6 +74,13 @@ struct Quality {
 }
 
 impl HealthFeed {
+    /// Starts loading the monitor's state (see `worker::prefetch`).
+    pub fn prefetch(&self) {
+        if let Some(monitor) = self.monitor.as_deref() {
+            crate::worker::prefetch(monitor);
+        }
+    }
+
     /// The feed of a sensor whose record `latch` names was found suspect before (the store's
     /// mark, loaded at start).
     pub fn new(latch: Option<(u64, i64)>) -> HealthFeed {

@@ -184,6 +184,11 @@ impl SensorEntry {
         self.corrector.load().is_some()
     }
 
+    /// The corrector in force, if any, borrowed: for a look, not to hold.
+    pub fn corrector_guard(&self) -> arc_swap::Guard<Option<Arc<Corrector>>> {
+        self.corrector.load()
+    }
+
     /// The corrector in force, if any: load once per batch.
     pub fn corrector(&self) -> Option<Arc<Corrector>> {
         self.corrector.load_full()

@@ -27,7 +27,9 @@
 //!   cost, in the same run;
 //! - `gateway-again`: the default gateway a second time, a process of its own like the first:
 //!   an A/A control. Its ratios to `gateway` within a round are what two processes of the
-//!   same binary differ by, the resolution of every other ratio of that round.
+//!   same binary differ by, the resolution of every other ratio of that round. With
+//!   `--again-exe` it runs from another build of this bench instead: an A/B of two builds,
+//!   paired round by round.
 //!
 //! For each:
 //!
@@ -133,6 +135,10 @@ struct Args {
     /// comparisons that need a missing one are left out.
     #[arg(long, value_delimiter = ',', value_enum)]
     systems: Vec<System>,
+    /// Run `gateway-again` from this executable, another build of this bench: each round then
+    /// pairs two builds of the gateway (an A/B), beside the A/A spread of earlier runs.
+    #[arg(long)]
+    again_exe: Option<std::path::PathBuf>,
     /// Internal: run as the system under test, in its own process.
     #[arg(long, hide = true, value_enum)]
     serve: Option<System>,
@@ -841,10 +847,17 @@ struct Server {
     dropped: Arc<AtomicU64>,
 }
 
+/// `--again-exe`, set once at start.
+static AGAIN_EXE: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+
 impl Server {
     fn spawn(system: System, store: Option<&std::path::Path>, port: u16) -> Result<Server> {
         use std::io::BufRead;
-        let mut cmd = std::process::Command::new(std::env::current_exe()?);
+        let exe = match AGAIN_EXE.get() {
+            Some(other) if system == System::GatewayAgain => other.clone(),
+            _ => std::env::current_exe()?,
+        };
+        let mut cmd = std::process::Command::new(exe);
         cmd.arg("--serve")
             .arg(system.name())
             .arg("--port")
@@ -1307,6 +1320,13 @@ fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
 
 fn main() -> Result<()> {
     let args = Args::parse();
+    if let Some(exe) = &args.again_exe {
+        if !exe.is_file() {
+            bail!("--again-exe {}: no such file", exe.display());
+        }
+        // Set once, here, before any server starts.
+        let _ = AGAIN_EXE.set(exe.clone());
+    }
     if args.serve.is_some() {
         // The system under test runs as the service does: same allocator settings, same
         // logging (to the parent's null device). Zenoh's runtimes follow `ZENOH_RUNTIME` if
