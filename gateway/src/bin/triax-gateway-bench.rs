@@ -828,11 +828,7 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
         "history on / off",
     );
     ratios(System::Gateway, System::GatewayNoHealth, "health on / off");
-    ratios(
-        System::GatewayAgain,
-        System::Gateway,
-        "A/A, the bench's own spread",
-    );
+    ratios(System::GatewayAgain, System::Gateway, again_label());
 }
 
 /// A system under test in its own process, as it is deployed: its own runtime and threads.
@@ -849,6 +845,14 @@ struct Server {
 
 /// `--again-exe`, set once at start.
 static AGAIN_EXE: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+
+/// What `gateway-again` against `gateway` measures in this run.
+fn again_label() -> &'static str {
+    match AGAIN_EXE.get() {
+        Some(_) => "A/B, the --again-exe build over this one",
+        None => "A/A, the bench's own spread",
+    }
+}
 
 impl Server {
     fn spawn(system: System, store: Option<&std::path::Path>, port: u16) -> Result<Server> {
@@ -1228,8 +1232,12 @@ fn report(args: &Args, paced: &Args, results: &[(System, PhaseResult)]) {
     }
     if let Some(h) = on_off(results, System::GatewayAgain, System::Gateway) {
         println!(
-            "\nA/A (gateway-again / gateway): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×, capacity from CPU (total / total) {:.2}",
-            h.unpaced, h.zero_loss, h.cpu, h.capacity_from_cpu
+            "\n{} (gateway-again / gateway): unpaced {:.2}, without loss {:.2}, CPU per batch {:.2}×, capacity from CPU (total / total) {:.2}",
+            again_label(),
+            h.unpaced,
+            h.zero_loss,
+            h.cpu,
+            h.capacity_from_cpu
         );
     }
 }
@@ -1288,11 +1296,7 @@ fn report_on_off_rounds(rounds: &[Vec<(System, PhaseResult)>]) {
             System::GatewayNoHistory,
             "History on / off",
         ),
-        (
-            System::GatewayAgain,
-            System::Gateway,
-            "A/A: gateway-again / gateway",
-        ),
+        (System::GatewayAgain, System::Gateway, again_label()),
     ] {
         let all: Vec<OnOff> = rounds.iter().filter_map(|r| on_off(r, a, b)).collect();
         if all.len() < 2 {
