@@ -74,11 +74,9 @@ struct Quality {
 }
 
 impl HealthFeed {
-    /// Starts loading the monitor's state (see `worker::prefetch`).
-    pub fn prefetch(&self) {
-        if let Some(monitor) = self.monitor.as_deref() {
-            crate::worker::prefetch(monitor);
-        }
+    /// The monitor of the record in force, once there is one.
+    pub fn monitor(&self) -> Option<&SensorHealth> {
+        self.monitor.as_deref()
     }
 
     /// The feed of a sensor whose record `latch` names was found suspect before (the store's

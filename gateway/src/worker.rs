@@ -604,7 +604,9 @@ impl SensorState {
         if let Some(corrector) = self.entry.corrector_guard().as_deref() {
             prefetch(corrector);
         }
-        self.health.prefetch();
+        if let Some(monitor) = self.health.monitor() {
+            prefetch(monitor);
+        }
     }
 
     /// Declares the sensor's keys once it is calibrated (see [`SensorKeys`]). An uncalibrated
@@ -915,7 +917,7 @@ pub fn correct_judged(
 /// Asks the processor to start loading the cache lines of `value`, at most
 /// [`PREFETCH_LINES_MAX`] of them; a no-op where there is no such hint.
 #[inline(always)]
-pub(crate) fn prefetch<T>(value: &T) {
+fn prefetch<T>(value: &T) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
