@@ -252,10 +252,13 @@ async fn a_flood_of_new_ids_cannot_lock_out_a_real_node_and_ages_out() {
         st.over_capacity, 0,
         "nobody was refused: flood ids displace each other"
     );
+    // Every flood id admitted has gone again, displaced by a newer one or, when the flood took
+    // longer than the expiry on a slow machine, aged out: how many of each depends on the pace.
     assert!(
-        st.displaced_sensors >= n_flood + 1 - 1000,
-        "{}",
-        st.displaced_sensors
+        st.displaced_sensors + st.expired_sensors >= n_flood + 1 - 1000,
+        "displaced {}, expired {}",
+        st.displaced_sensors,
+        st.expired_sensors
     );
     let node_status = status_of(&session, "hf", "real-node").await;
     assert_eq!(
