@@ -44,6 +44,7 @@ pub mod inbox;
 pub mod kernel;
 pub mod memory;
 pub mod metrics;
+pub mod outbox;
 pub mod push;
 pub mod replay;
 pub mod sensors;
@@ -221,6 +222,8 @@ pub struct Gateway {
     workers: Vec<std::thread::JoinHandle<()>>,
     /// The history's writer thread; none when the history is off.
     recorder: Option<history::Recorder>,
+    /// Corrected batches waiting for the end of their receive burst.
+    outbox: Arc<outbox::Outbox>,
     metrics_addr: Option<SocketAddr>,
     started_at: OffsetDateTime,
     /// The lock on the store (see [`claim_store`]), released last.
@@ -644,6 +647,7 @@ impl Gateway {
                 clock_watch_ms: h.clock_watch_ms,
             }),
             backfill: config.backfill.as_ref().map(|_| asker),
+            outbox: outbox::Outbox::new(session.clone(), counters.clone()),
         });
         let (inboxes, shards, subscriber) =
             start_intake(&config, &session, &counters, &shared).await?;
@@ -747,6 +751,7 @@ impl Gateway {
             inboxes,
             workers,
             recorder,
+            outbox: shared.outbox.clone(),
             metrics_addr,
             started_at,
             _claim: claim,
@@ -829,6 +834,8 @@ impl Gateway {
         if joined > 0 {
             tracing::error!(workers = joined, "worker threads ended abnormally");
         }
+        // What the last bursts left waiting, should their tasks not have run.
+        self.outbox.flush();
         // The workers have handed over their last batches: keep them.
         if let Some(mut recorder) = self.recorder.take() {
             let sink = recorder.sink.clone();

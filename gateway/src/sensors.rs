@@ -47,8 +47,9 @@ use triax_protocol::{Mode, SensorId};
 use crate::config::{Config, SensorSettings};
 use crate::health::{HealthSeed, PairSlot, Pairs};
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    // Each guarded value is replaced whole, never left half-written: valid after a panic.
+/// The lock, whoever held it last: each value the gateway guards so is replaced whole, never
+/// left half-written, so it is valid after a panic.
+pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
@@ -107,7 +108,7 @@ pub struct SensorEntry {
 pub const NO_HEALTH: u8 = u8::MAX;
 
 impl SensorEntry {
-    fn new(id: SensorId, settings: SensorSettings) -> SensorEntry {
+    pub(crate) fn new(id: SensorId, settings: SensorSettings) -> SensorEntry {
         SensorEntry {
             id,
             settings,

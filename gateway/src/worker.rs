@@ -28,6 +28,7 @@ use crate::health::{self, HealthFeed, PairSlot};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
 use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
+use crate::outbox::{Outbox, Outgoing};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
 use triax_protocol::{keys, BuildingId};
@@ -51,6 +52,8 @@ pub struct Shared {
     pub health: Option<health::Reporting>,
     /// Where gaps are reported for backfill; none when it is off.
     pub backfill: Option<backfill::Asker>,
+    /// Where corrected batches wait for the end of their receive burst.
+    pub outbox: Arc<Outbox>,
 }
 
 /// A place in the `declared_keys_max` budget, given back when dropped.
@@ -248,7 +251,10 @@ pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shard: Arc<Mutex<Shard>>, sh
                 lock_shard(&shard).handle(&shared, sample);
                 inbox.release();
             }
-            Next::Idle => lock_shard(&shard).sweep(&shared),
+            Next::Idle => {
+                lock_shard(&shard).sweep(&shared);
+                shared.outbox.flush();
+            }
             Next::Late(_) => {
                 shared.counters.dropped.fetch_add(1, Relaxed);
                 abandoned += 1;
@@ -361,23 +367,13 @@ impl Shard {
                 state.owe_checkpoint();
             }
         }
-        // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches on
-        // its own link, and catches up from the history; it never holds up the gateway or the
-        // other consumers.
-        if let Err(e) = shared
-            .session
-            .put(state.keys.corrected.key_expr(), corrected.payload)
-            .congestion_control(CongestionControl::Drop)
-            .wait()
-        {
-            shared.counters.publish_errors.fetch_add(1, Relaxed);
-            tracing::warn!(sensor, cause = %e, "corrected batch not published");
-        } else {
-            shared.counters.published_batches.fetch_add(1, Relaxed);
-            state
-                .entry
-                .note_published(view.header.sequence, view.header.timestamp_ns);
-        }
+        shared.outbox.send(Outgoing {
+            key: state.keys.corrected.key_expr().clone(),
+            payload: corrected.payload,
+            entry: state.entry.clone(),
+            sequence: view.header.sequence,
+            timestamp_ns: view.header.timestamp_ns,
+        });
         if let (Some(json), Some(key)) = (corrected.tilt, &state.keys.tilt) {
             match shared
                 .session

@@ -1,0 +1,245 @@
+//! Corrected batches published at the end of a receive burst rather than one by one.
+//!
+//! Zenoh's receive thread hands the gateway every batch of one socket read in turn. Put as
+//! each is corrected, the batches reach the transmit thread spaced by the correction, and it
+//! wakes and sends them one segment at a time; a relay that does no work in between has them
+//! all in one segment. So a batch corrected on a receive thread waits in the outbox, and a
+//! task queued on that thread's runtime publishes the outbox once the thread has gone through
+//! the read: Tokio runs a task spawned from a worker when the running one yields, and the
+//! receive task yields when its socket has nothing more (BENCHMARKS.md, "Where the cost goes").
+//!
+//! Invariants: a sensor's batches leave in the order they were corrected (one queue, taken
+//! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
+//! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
+//! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
+//! published at once, behind what waits; nothing is allocated per batch or per burst.
+
+use std::sync::atomic::AtomicBool;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Arc, Mutex};
+
+use zenoh::key_expr::KeyExpr;
+use zenoh::qos::CongestionControl;
+use zenoh::Wait;
+
+use crate::sensors::{lock, GatewayCounters, SensorEntry};
+
+/// One corrected batch, and what its publication updates.
+pub struct Outgoing {
+    pub key: KeyExpr<'static>,
+    pub payload: Vec<u8>,
+    pub entry: Arc<SensorEntry>,
+    pub sequence: u64,
+    pub timestamp_ns: i64,
+}
+
+/// Batches waiting for the end of their receive burst.
+pub struct Outbox {
+    session: zenoh::Session,
+    counters: Arc<GatewayCounters>,
+    waiting: Mutex<Vec<Outgoing>>,
+    /// Whether a publishing task is queued and has not yet taken the queue.
+    queued: AtomicBool,
+    /// Held while publishing, so that two publishers never interleave a sensor's batches; the
+    /// queue is swapped into it whole, and it keeps its room for the next one.
+    flushing: Mutex<Vec<Outgoing>>,
+}
+
+/// Most batches that wait for their burst's end; the one that finds this many publishes them.
+/// A burst of 64 already shares its segments; a longer wait would only add latency.
+pub const WAITING_MAX: usize = 64;
+
+impl Outbox {
+    pub fn new(session: zenoh::Session, counters: Arc<GatewayCounters>) -> Arc<Outbox> {
+        Arc::new(Outbox {
+            session,
+            counters,
+            waiting: Mutex::new(Vec::with_capacity(WAITING_MAX)),
+            queued: AtomicBool::new(false),
+            flushing: Mutex::new(Vec::with_capacity(WAITING_MAX)),
+        })
+    }
+
+    /// Publishes `out` at the end of the current receive burst, or now (behind whatever
+    /// waits) when not on a multi-threaded runtime or when [`WAITING_MAX`] batches wait.
+    pub fn send(self: &Arc<Self>, out: Outgoing) {
+        let n = {
+            let mut waiting = lock(&self.waiting);
+            waiting.push(out);
+            waiting.len()
+        };
+        // A single-threaded runtime would run the task only when its one task yields, and
+        // that may be a caller blocked on what this batch answers.
+        let runtime = tokio::runtime::Handle::try_current()
+            .ok()
+            .filter(|r| r.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
+        match runtime {
+            Some(runtime) if n < WAITING_MAX => {
+                if !self.queued.swap(true, Relaxed) {
+                    let outbox = self.clone();
+                    runtime.spawn(async move {
+                        // Cleared before the queue is taken: a batch added after the take
+                        // queues a new task.
+                        outbox.queued.store(false, Relaxed);
+                        outbox.flush();
+                    });
+                }
+            }
+            _ => self.flush(),
+        }
+    }
+
+    /// Publishes every waiting batch, in order.
+    pub fn flush(&self) {
+        let mut flushing = lock(&self.flushing);
+        std::mem::swap(&mut *flushing, &mut *lock(&self.waiting));
+        for out in flushing.drain(..) {
+            self.publish(out);
+        }
+    }
+
+    fn publish(&self, out: Outgoing) {
+        // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches
+        // on its own link, and catches up from the history; it never holds up the gateway or
+        // the other consumers.
+        match self
+            .session
+            .put(&out.key, out.payload)
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+        {
+            Ok(()) => {
+                self.counters.published_batches.fetch_add(1, Relaxed);
+                out.entry.note_published(out.sequence, out.timestamp_ns);
+            }
+            Err(e) => {
+                self.counters.publish_errors.fetch_add(1, Relaxed);
+                tracing::warn!(sensor = %out.entry.id, cause = %e, "corrected batch not published");
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use triax_protocol::SensorId;
+
+    use super::*;
+    use crate::SensorSettings;
+
+    /// A session on its own (no scouting, no listener): its own puts reach its own callback
+    /// subscriber synchronously, inside `put`.
+    async fn session() -> zenoh::Session {
+        let mut c = zenoh::Config::default();
+        for (k, v) in [
+            ("mode", "\"peer\""),
+            ("scouting/multicast/enabled", "false"),
+            ("listen/endpoints", "[]"),
+        ] {
+            c.insert_json5(k, v).expect("valid zenoh setting");
+        }
+        zenoh::open(c).await.expect("session opens")
+    }
+
+    fn outgoing(entry: &Arc<SensorEntry>, key: &KeyExpr<'static>, sequence: u64) -> Outgoing {
+        Outgoing {
+            key: key.clone(),
+            payload: sequence.to_le_bytes().to_vec(),
+            entry: entry.clone(),
+            sequence,
+            timestamp_ns: sequence as i64,
+        }
+    }
+
+    struct Bench {
+        outbox: Arc<Outbox>,
+        entry: Arc<SensorEntry>,
+        key: KeyExpr<'static>,
+        received: Arc<Mutex<Vec<u64>>>,
+        /// Told when the batch numbered [`LAST`] arrives.
+        all_arrived: Arc<tokio::sync::Notify>,
+        _sub: zenoh::pubsub::Subscriber<()>,
+    }
+
+    const LAST: u64 = 3 * WAITING_MAX as u64 + 9;
+
+    async fn bench() -> Bench {
+        let session = session().await;
+        let received = Arc::new(Mutex::new(Vec::new()));
+        let all_arrived = Arc::new(tokio::sync::Notify::new());
+        let (r, done) = (received.clone(), all_arrived.clone());
+        let sub = session
+            .declare_subscriber("t/out")
+            .callback(move |s| {
+                let b = s.payload().to_bytes();
+                let seq = u64::from_le_bytes(b[..8].try_into().expect("8 bytes"));
+                lock(&r).push(seq);
+                if seq == LAST {
+                    done.notify_one();
+                }
+            })
+            .await
+            .expect("subscriber");
+        let key = session.declare_keyexpr("t/out").await.expect("key");
+        let counters = Arc::new(GatewayCounters::default());
+        let id = SensorId::new("acc-1").expect("valid id");
+        Bench {
+            outbox: Outbox::new(session, counters),
+            entry: Arc::new(SensorEntry::new(id, SensorSettings::default())),
+            key,
+            received,
+            all_arrived,
+            _sub: sub,
+        }
+    }
+
+    #[test]
+    fn off_a_runtime_a_batch_leaves_at_once() {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .expect("runtime");
+        let b = rt.block_on(bench());
+        // This thread is no runtime's: as a correction worker's.
+        for seq in 0..3 {
+            b.outbox.send(outgoing(&b.entry, &b.key, seq));
+            assert_eq!(lock(&b.received).len(), seq as usize + 1);
+        }
+        assert_eq!(*lock(&b.received), [0, 1, 2]);
+        assert_eq!(b.outbox.counters.published_batches.load(Relaxed), 3);
+        assert_eq!(b.entry.counters.last_published_sequence.load(Relaxed), 2);
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_burst_waits_for_its_end_and_leaves_whole_and_in_order() {
+        let b = bench().await;
+        let (outbox, entry, key) = (b.outbox.clone(), b.entry.clone(), b.key.clone());
+        let received = b.received.clone();
+        let n = LAST + 1;
+        let burst = tokio::spawn(async move {
+            (0..n)
+                .map(|seq| {
+                    outbox.send(outgoing(&entry, &key, seq));
+                    lock(&received).len()
+                })
+                .collect::<Vec<_>>()
+        });
+        let seen_during = burst.await.expect("burst task ends");
+        // Nothing left before the 64th, which published all 64 (the task queued by the first
+        // waits behind the burst's own); what the last ones waited for left at the end.
+        let w = WAITING_MAX;
+        assert!(
+            seen_during[..w - 1].iter().all(|&k| k == 0),
+            "{seen_during:?}"
+        );
+        assert_eq!(seen_during[w - 1], w);
+        tokio::time::timeout(Duration::from_secs(60), b.all_arrived.notified())
+            .await
+            .expect("the burst's tail is published once it ends");
+        assert_eq!(*lock(&b.received), (0..n).collect::<Vec<_>>());
+        assert_eq!(b.outbox.counters.published_batches.load(Relaxed), n);
+    }
+}
