@@ -12,7 +12,8 @@
 //! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
 //! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
 //! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
-//! published at once, behind what waits; nothing is allocated per batch or per burst.
+//! published at once, behind what waits. The queue keeps its room; the task is the one
+//! allocation a burst costs (the corrected payload already is one a batch).
 
 use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;

@@ -31,6 +31,7 @@ use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::outbox::{Outbox, Outgoing};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
+use triax_protocol::keys::MAX_ID_LEN;
 use triax_protocol::{keys, BuildingId};
 
 /// What every worker shares.
@@ -205,13 +206,59 @@ struct SensorState {
     pairs: Vec<Arc<PairSlot>>,
 }
 
+/// A sensor's id as a shard's key, in the table's own slot: a key held apart (a `Box<str>`)
+/// was one more cache miss before a cold sensor's state could even be asked for, and its
+/// comparison a fifth of [`Shard::handle`]'s own time (BENCHMARKS.md, "A fifth look").
+/// Hashed and compared as the id's bytes, so a lookup borrows the `&[u8]` of the key it got.
+struct IdKey {
+    len: u8,
+    bytes: [u8; MAX_ID_LEN],
+}
+
+impl IdKey {
+    fn new(id: &SensorId) -> IdKey {
+        let id = id.as_str().as_bytes();
+        let mut bytes = [0; MAX_ID_LEN];
+        // A valid id has 1 to MAX_ID_LEN bytes.
+        bytes[..id.len()].copy_from_slice(id);
+        IdKey {
+            len: id.len() as u8,
+            bytes,
+        }
+    }
+
+    fn as_bytes(&self) -> &[u8] {
+        &self.bytes[..usize::from(self.len)]
+    }
+}
+
+impl std::borrow::Borrow<[u8]> for IdKey {
+    fn borrow(&self) -> &[u8] {
+        self.as_bytes()
+    }
+}
+
+impl std::hash::Hash for IdKey {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.as_bytes().hash(state);
+    }
+}
+
+impl PartialEq for IdKey {
+    fn eq(&self, other: &IdKey) -> bool {
+        self.as_bytes() == other.as_bytes()
+    }
+}
+
+impl Eq for IdKey {}
+
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
 pub const SHUTDOWN_DRAIN: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// The sensors of one shard, and the working memory their batches share.
 #[derive(Default)]
 pub struct Shard {
-    sensors: HashMap<Box<str>, Box<SensorState>>,
+    sensors: HashMap<IdKey, Box<SensorState>>,
     scratch: Scratch,
     /// Batches handled since the last sweep for forgotten sensors.
     since_sweep: u32,
@@ -305,14 +352,12 @@ impl Shard {
         } = self;
         let key = sample.key_expr().as_str();
         let sensor = keys::sensor_chunk(key);
-        // Looked up before the payload is parsed, so that the state loads meanwhile.
-        let known = match sensors.get(sensor) {
-            Some(state) if !state.entry.is_evicted() => {
-                state.prefetch();
-                true
-            }
-            _ => false,
-        };
+        // Looked up before the payload is parsed, so that the state loads meanwhile; asked for
+        // before the eviction flag is read, so that the flag's load is not waited for alone.
+        let known = sensors.get(sensor.as_bytes()).is_some_and(|state| {
+            state.prefetch();
+            !state.entry.is_evicted()
+        });
         let payload = sample.payload().to_bytes();
         let view = match RawBatchView::parse(&payload) {
             Ok(v) => v,
@@ -337,7 +382,7 @@ impl Shard {
             };
             match SensorState::new(shared, entry) {
                 Ok(s) => {
-                    sensors.insert(sensor.into(), Box::new(s));
+                    sensors.insert(IdKey::new(&s.entry.id), Box::new(s));
                     shared.counters.sensors_online.fetch_add(1, Relaxed);
                 }
                 Err(e) => {
@@ -348,7 +393,9 @@ impl Shard {
             }
         }
         // Inserted just above when missing.
-        let state = sensors.get_mut(sensor).expect("sensor state exists");
+        let state = sensors
+            .get_mut(sensor.as_bytes())
+            .expect("sensor state exists");
         let corrected = state.correct(shared, &view, scratch);
         if let Err(e) = state.establish(shared) {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
@@ -419,7 +466,7 @@ impl Shard {
             sensors, scratch, ..
         } = self;
         let state = sensors
-            .get_mut(sensor.as_str())
+            .get_mut(sensor.as_str().as_bytes())
             .filter(|s| !s.entry.is_evicted())?;
         // The first of each chunk: live batches may be kept between two chunks.
         run.checkpoint_due = true;
@@ -957,5 +1004,22 @@ mod tests {
             counts[w] += 1;
         }
         assert!(counts.iter().all(|&c| c > 150), "{counts:?}");
+    }
+
+    #[test]
+    fn a_shard_finds_a_sensor_by_its_ids_bytes_only() {
+        let ids =
+            ["acc-1", "acc-10", "a", &"x".repeat(MAX_ID_LEN)].map(|i| SensorId::new(i).unwrap());
+        let map: HashMap<IdKey, usize> = ids
+            .iter()
+            .enumerate()
+            .map(|(i, id)| (IdKey::new(id), i))
+            .collect();
+        for (i, id) in ids.iter().enumerate() {
+            assert_eq!(map.get(id.as_str().as_bytes()), Some(&i), "{id}");
+        }
+        for absent in ["acc-", "acc-100", "acc-1\0", ""] {
+            assert_eq!(map.get(absent.as_bytes()), None, "{absent:?}");
+        }
     }
 }
