@@ -240,7 +240,8 @@ mod tests {
         tokio::time::timeout(Duration::from_secs(60), b.all_arrived.notified())
             .await
             .expect("the burst's tail is published once it ends");
+        // The counters are counted after each put returns, so after its delivery: they are
+        // checked in the test above, where the put is this thread's.
         assert_eq!(*lock(&b.received), (0..n).collect::<Vec<_>>());
-        assert_eq!(b.outbox.counters.published_batches.load(Relaxed), n);
     }
 }
