@@ -251,6 +251,27 @@ impl Default for ReceiveBudget {
     }
 }
 
+thread_local! {
+    /// The budget of the receive thread this runs on (Zenoh's own threads, shared by every
+    /// session of the process).
+    static RECEIVE_BUDGET: std::cell::Cell<ReceiveBudget> =
+        const { std::cell::Cell::new(ReceiveBudget::new()) };
+}
+
+/// Whether a batch arriving `now` may be corrected in place on this thread.
+pub fn receive_budget_allows(now: Instant) -> bool {
+    RECEIVE_BUDGET.get().allows(now)
+}
+
+/// Work done in place on this thread from `started` until `ended`: a batch corrected, or the
+/// corrected batches of a burst published ([`crate::outbox`]), which a worker would otherwise
+/// have published.
+pub fn receive_budget_spent(started: Instant, ended: Instant) {
+    let mut budget = RECEIVE_BUDGET.get();
+    budget.spent(started, ended);
+    RECEIVE_BUDGET.set(budget);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -129,13 +129,6 @@ enum Intake {
 /// One shard per worker, shared by the worker and the receive threads.
 type Shards = Arc<Vec<Arc<std::sync::Mutex<worker::Shard>>>>;
 
-thread_local! {
-    /// The budget for correcting in place of the receive thread the callback runs on (Zenoh's
-    /// own threads, shared by every session of the process): see [`inbox::ReceiveBudget`].
-    static RECEIVE_BUDGET: std::cell::Cell<inbox::ReceiveBudget> =
-        const { std::cell::Cell::new(inbox::ReceiveBudget::new()) };
-}
-
 impl Intake {
     /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
     fn take(&self, sample: Sample) {
@@ -143,13 +136,13 @@ impl Intake {
         match self {
             Intake::Queues(inboxes, shards, shared) => {
                 let i = worker::shard(sensor, inboxes.len());
+                // The receive thread's budget for correcting in place: see
+                // [`inbox::ReceiveBudget`].
                 let started = std::time::Instant::now();
-                let mut budget = RECEIVE_BUDGET.get();
-                if budget.allows(started) && inboxes[i].try_claim() {
+                if inbox::receive_budget_allows(started) && inboxes[i].try_claim() {
                     worker::lock_shard(&shards[i]).handle(shared, sample);
                     inboxes[i].release();
-                    budget.spent(started, std::time::Instant::now());
-                    RECEIVE_BUDGET.set(budget);
+                    inbox::receive_budget_spent(started, std::time::Instant::now());
                 } else {
                     inboxes[i].push(sample);
                 }

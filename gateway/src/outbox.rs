@@ -18,11 +18,13 @@
 use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use crate::inbox;
 use crate::sensors::{lock, GatewayCounters, SensorEntry};
 
 /// One corrected batch, and what its publication updates.
@@ -82,7 +84,11 @@ impl Outbox {
                         // Cleared before the queue is taken: a batch added after the take
                         // queues a new task.
                         outbox.queued.store(false, Relaxed);
+                        let started = Instant::now();
                         outbox.flush();
+                        // Publishing is part of correcting in place: a worker's batch is
+                        // published by the worker.
+                        inbox::receive_budget_spent(started, Instant::now());
                     });
                 }
             }
