@@ -6,7 +6,7 @@
 //! all in one segment. So a batch corrected on a receive thread waits in the outbox, and a
 //! task queued on that thread's runtime publishes the outbox once the thread has gone through
 //! the read: Tokio runs a task spawned from a worker when the running one yields, and the
-//! receive task yields when its socket has nothing more (BENCHMARKS.md, "Where the cost goes").
+//! receive task yields when its socket has nothing more (BENCHMARKS.md, "A fifth look").
 //!
 //! Invariants: a sensor's batches leave in the order they were corrected (one queue, taken
 //! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
