@@ -12,8 +12,9 @@
 //! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
 //! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
 //! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
-//! published at once, behind what waits. The queue keeps its room; the task is the one
-//! allocation a burst costs (the corrected payload already is one a batch).
+//! published at once, behind what waits, unless a task already queued will take it with the
+//! rest. The queue keeps its room; the task is the one allocation a burst costs (the
+//! corrected payload already is one a batch).
 
 use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;
@@ -64,60 +65,74 @@ impl Outbox {
     }
 
     /// Publishes `out` at the end of the current receive burst, or now (behind whatever
-    /// waits) when not on a multi-threaded runtime or when [`WAITING_MAX`] batches wait.
+    /// waits) when [`WAITING_MAX`] batches wait, or when no task is queued and the caller is
+    /// not on a multi-threaded runtime to queue one.
     pub fn send(self: &Arc<Self>, out: Outgoing) {
         let n = {
             let mut waiting = lock(&self.waiting);
             waiting.push(out);
             waiting.len()
         };
+        if n >= WAITING_MAX {
+            return self.flush();
+        }
+        // A task queued and not yet started takes this batch with the others. The runtime is
+        // looked up only when one is to be queued: a lookup counts the runtime's handle up and
+        // down, a line every receive thread shares.
+        if self.queued.swap(true, Relaxed) {
+            return;
+        }
         // A single-threaded runtime would run the task only when its one task yields, and
         // that may be a caller blocked on what this batch answers.
         let runtime = tokio::runtime::Handle::try_current()
             .ok()
             .filter(|r| r.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
-        match runtime {
-            Some(runtime) if n < WAITING_MAX => {
-                if !self.queued.swap(true, Relaxed) {
-                    let outbox = self.clone();
-                    runtime.spawn(async move {
-                        // Cleared before the queue is taken: a batch added after the take
-                        // queues a new task.
-                        outbox.queued.store(false, Relaxed);
-                        let started = Instant::now();
-                        outbox.flush();
-                        // Publishing is part of correcting in place: a worker's batch is
-                        // published by the worker.
-                        inbox::receive_budget_spent(started, Instant::now());
-                    });
-                }
-            }
-            _ => self.flush(),
-        }
+        let Some(runtime) = runtime else {
+            self.queued.store(false, Relaxed);
+            return self.flush();
+        };
+        let outbox = self.clone();
+        runtime.spawn(async move {
+            // Cleared before the queue is taken: a batch added after the take queues a new
+            // task.
+            outbox.queued.store(false, Relaxed);
+            let started = Instant::now();
+            outbox.flush();
+            // Publishing is part of correcting in place: a worker's batch is published by
+            // the worker.
+            inbox::receive_budget_spent(started, Instant::now());
+        });
     }
 
     /// Publishes every waiting batch, in order.
     pub fn flush(&self) {
         let mut flushing = lock(&self.flushing);
         std::mem::swap(&mut *flushing, &mut *lock(&self.waiting));
+        if flushing.is_empty() {
+            return;
+        }
+        // One look at the clock for the lot: they leave within microseconds of one another.
+        let published_ns = crate::worker::now_ns();
         for out in flushing.drain(..) {
-            self.publish(out);
+            self.publish(out, published_ns);
         }
     }
 
-    fn publish(&self, out: Outgoing) {
+    fn publish(&self, out: Outgoing, published_ns: i64) {
         // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches
         // on its own link, and catches up from the history; it never holds up the gateway or
-        // the other consumers.
+        // the other consumers. The key is given up, not lent: lent, Zenoh would count it up
+        // and down again.
         match self
             .session
-            .put(&out.key, out.payload)
+            .put(out.key, out.payload)
             .congestion_control(CongestionControl::Drop)
             .wait()
         {
             Ok(()) => {
                 self.counters.published_batches.fetch_add(1, Relaxed);
-                out.entry.note_published(out.sequence, out.timestamp_ns);
+                out.entry
+                    .note_published(out.sequence, out.timestamp_ns, published_ns);
             }
             Err(e) => {
                 self.counters.publish_errors.fetch_add(1, Relaxed);

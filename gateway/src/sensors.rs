@@ -160,12 +160,13 @@ impl SensorEntry {
         }
     }
 
-    /// Records a corrected batch published, for the heartbeat.
-    pub fn note_published(&self, sequence: u64, timestamp_ns: i64) {
+    /// Records a corrected batch published at `published_ns` (ns since the Unix epoch), for
+    /// the heartbeat.
+    pub fn note_published(&self, sequence: u64, timestamp_ns: i64, published_ns: i64) {
         let c = &self.counters;
         c.last_published_sequence.store(sequence, Relaxed);
         c.last_published_timestamp_ns.store(timestamp_ns, Relaxed);
-        c.last_published_ns.store(crate::worker::now_ns(), Relaxed);
+        c.last_published_ns.store(published_ns, Relaxed);
     }
 
     pub fn note_late(&self, sequence: u64, timestamp_ns: i64) {

@@ -15,6 +15,7 @@ use std::sync::{Arc, Mutex};
 
 use triax_calibration::corrector::Corrector;
 use triax_calibration_store::Store;
+use triax_health::monitor::SensorHealth;
 use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
@@ -252,13 +253,91 @@ impl PartialEq for IdKey {
 
 impl Eq for IdKey {}
 
+/// A sensor's state in its shard's table, with where the parts it holds apart were at its
+/// last batch.
+///
+/// At a building's pace a sensor's state has left the cache since its last batch, and its
+/// parts hang on one another: the table's slot names the state, the state its entry, the
+/// entry its corrector. Loaded as the code reaches each, every one waits for the one before.
+/// The slot keeps their addresses as of the last batch, so that one look at the slot asks
+/// for all of them at once (BENCHMARKS.md, "A fourth look" and "A sixth look").
+struct Slot {
+    state: Box<SensorState>,
+    /// Addresses and sizes, hints for [`prefetch_bytes`] only and never read through: a part
+    /// replaced since (a new corrector, a new monitor) costs one useless load, not a fault.
+    apart: [(usize, usize); 4],
+}
+
+impl Slot {
+    fn new(state: SensorState) -> Slot {
+        let mut slot = Slot {
+            state: Box::new(state),
+            apart: [(0, 0); 4],
+        };
+        slot.remember_apart();
+        slot
+    }
+
+    fn prefetch(&self) {
+        prefetch_bytes(
+            std::ptr::from_ref::<SensorState>(&self.state) as usize,
+            std::mem::size_of::<SensorState>(),
+        );
+        for &(at, bytes) in &self.apart {
+            prefetch_bytes(at, bytes);
+        }
+    }
+
+    /// Notes where the state's parts are now, for the next batch's [`Slot::prefetch`].
+    fn remember_apart(&mut self) {
+        fn part<T>(value: Option<&T>) -> (usize, usize) {
+            value.map_or((0, 0), |v| {
+                (std::ptr::from_ref(v) as usize, std::mem::size_of::<T>())
+            })
+        }
+        let s = &*self.state;
+        let key = s.keys.corrected.key_expr().as_str();
+        self.apart = [
+            part(Some(&*s.entry)),
+            part(s.entry.corrector_guard().as_deref()),
+            // Its first bytes only: the rest waits for a block's end.
+            s.health.monitor().map_or((0, 0), |m| {
+                (
+                    std::ptr::from_ref(m) as usize,
+                    SensorHealth::PER_BATCH_BYTES,
+                )
+            }),
+            // The key's text, and the reference count just before it that publishing it
+            // increments.
+            ((key.as_ptr() as usize).saturating_sub(16), key.len() + 16),
+        ];
+    }
+}
+
+impl std::ops::Deref for Slot {
+    type Target = SensorState;
+
+    fn deref(&self) -> &SensorState {
+        &self.state
+    }
+}
+
+impl std::ops::DerefMut for Slot {
+    fn deref_mut(&mut self) -> &mut SensorState {
+        &mut self.state
+    }
+}
+
 /// Longest a worker goes on correcting its queued batches after the shutdown fired.
 pub const SHUTDOWN_DRAIN: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// The sensors of one shard, and the working memory their batches share.
 #[derive(Default)]
 pub struct Shard {
-    sensors: HashMap<IdKey, Box<SensorState>>,
+    /// foldhash rather than the standard SipHash: two lookups a batch, of a few bytes each.
+    /// Its seed is random per table and the table is bounded ([`SensorTable`]), so ids chosen
+    /// to collide cost a flooding node no more than its own batches.
+    sensors: HashMap<IdKey, Slot, foldhash::fast::RandomState>,
     scratch: Scratch,
     /// Batches handled since the last sweep for forgotten sensors.
     since_sweep: u32,
@@ -354,9 +433,9 @@ impl Shard {
         let sensor = keys::sensor_chunk(key);
         // Looked up before the payload is parsed, so that the state loads meanwhile; asked for
         // before the eviction flag is read, so that the flag's load is not waited for alone.
-        let known = sensors.get(sensor.as_bytes()).is_some_and(|state| {
-            state.prefetch();
-            !state.entry.is_evicted()
+        let known = sensors.get(sensor.as_bytes()).is_some_and(|slot| {
+            slot.prefetch();
+            !slot.entry.is_evicted()
         });
         let payload = sample.payload().to_bytes();
         let view = match RawBatchView::parse(&payload) {
@@ -382,7 +461,7 @@ impl Shard {
             };
             match SensorState::new(shared, entry) {
                 Ok(s) => {
-                    sensors.insert(IdKey::new(&s.entry.id), Box::new(s));
+                    sensors.insert(IdKey::new(&s.entry.id), Slot::new(s));
                     shared.counters.sensors_online.fetch_add(1, Relaxed);
                 }
                 Err(e) => {
@@ -393,9 +472,10 @@ impl Shard {
             }
         }
         // Inserted just above when missing.
-        let state = sensors
+        let slot = sensors
             .get_mut(sensor.as_bytes())
             .expect("sensor state exists");
+        let state = &mut **slot;
         let corrected = state.correct(shared, &view, scratch);
         if let Err(e) = state.establish(shared) {
             tracing::warn!(sensor, cause = %e, "cannot declare the sensor's keys: used undeclared");
@@ -447,6 +527,7 @@ impl Shard {
                 tracing::warn!(sensor, cause = %e, "health report not published");
             }
         }
+        slot.remember_apart();
     }
 
     /// Corrects and keeps late batches of `sensor` (a backfill, in sequence order, checked by
@@ -637,21 +718,6 @@ impl SensorState {
         })
     }
 
-    /// Starts loading what correcting a batch of this sensor reads, all at once: at a
-    /// building's pace a sensor's state has left the cache since its last batch, and each of
-    /// its parts, found only when the code reaches it, would otherwise be waited for in turn
-    /// (BENCHMARKS.md, "A fourth look").
-    fn prefetch(&self) {
-        prefetch(self);
-        prefetch(&*self.entry);
-        if let Some(corrector) = self.entry.corrector_guard().as_deref() {
-            prefetch(corrector);
-        }
-        if let Some(monitor) = self.health.monitor() {
-            prefetch(monitor);
-        }
-    }
-
     /// Declares the sensor's keys once it is calibrated (see [`SensorKeys`]). An uncalibrated
     /// sensor keeps plain keys however long it streams: ids anyone can make up must take no
     /// place in the budget (a flood of ids sending two batches each drove the gateway into the
@@ -715,8 +781,11 @@ impl SensorState {
             }
             Verdict::InOrder | Verdict::First => {}
         }
-        let corrector = self.entry.corrector();
-        let version = corrector.as_ref().map(|c| c.version());
+        // Borrowed for the batch: holding the corrector would count it up and down, on a
+        // line of its own.
+        let guard = self.entry.corrector_guard();
+        let corrector = guard.as_deref();
+        let version = corrector.map(Corrector::version);
         if version != self.last_version {
             match version {
                 Some(v) => {
@@ -735,7 +804,7 @@ impl SensorState {
         let outcome = correct_judged(
             &mut self.kernel,
             view,
-            corrector.as_deref(),
+            corrector,
             judged,
             suspect,
             scratch,
@@ -767,7 +836,7 @@ impl SensorState {
                 &shared.building,
                 &shared.store,
                 &self.entry,
-                corrector.as_deref(),
+                corrector,
                 view,
                 judged,
                 received_ns,
@@ -777,7 +846,7 @@ impl SensorState {
         });
 
         let mut tilt_json = None;
-        if let (Some(corrector), true) = (&corrector, self.keys.tilt.is_some()) {
+        if let (Some(corrector), true) = (corrector, self.keys.tilt.is_some()) {
             let t = *self.kernel.tilt_state();
             if t.ready && t.timestamp_ns >= self.next_tilt_ns {
                 let est = t.estimate(corrector);
@@ -957,17 +1026,15 @@ pub fn correct_judged(
     kernel.correct_batch(view, corrector, stream_flags | suspect, scratch, out)
 }
 
-/// Asks the processor to start loading the cache lines of `value`, at most
+/// Asks the processor to start loading the cache lines of the `bytes` bytes at `at`, at most
 /// [`PREFETCH_LINES_MAX`] of them; a no-op where there is no such hint.
 #[inline(always)]
-fn prefetch<T>(value: &T) {
+fn prefetch_bytes(at: usize, bytes: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = (value as *const T).cast::<i8>();
-        let lines = std::mem::size_of::<T>()
-            .div_ceil(64)
-            .min(PREFETCH_LINES_MAX);
+        let start = at as *const i8;
+        let lines = bytes.div_ceil(64).min(PREFETCH_LINES_MAX);
         for line in 0..lines {
             // SAFETY: a prefetch is a hint that never faults, whatever the address; SSE, the
             // only feature it needs, is part of every x86_64 processor.
@@ -975,11 +1042,11 @@ fn prefetch<T>(value: &T) {
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = value;
+    let _ = (at, bytes);
 }
 
-/// Lines one [`prefetch`] asks for: a sensor's health monitor (3.3 KB) whole, not more.
-const PREFETCH_LINES_MAX: usize = 64;
+/// Lines one [`prefetch_bytes`] asks for at most: a corrector (1.2 KB) whole.
+const PREFETCH_LINES_MAX: usize = 32;
 
 /// Now, ns since the Unix epoch.
 pub fn now_ns() -> i64 {

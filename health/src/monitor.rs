@@ -37,10 +37,22 @@ struct Stream {
 }
 
 /// The health of one sensor under one calibration record.
+///
+/// Laid out as declared, what every batch touches first: a batch reads and writes a few
+/// hundred bytes of a monitor's 3.3 KB, the rest is read once a block, and a caller that
+/// loads a monitor ahead of a batch (the gateway, at a building's pace, where a monitor has
+/// left the cache since its sensor's last batch) asks for [`SensorHealth::PER_BATCH_BYTES`]
+/// from its start.
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub struct SensorHealth {
-    sensor_id: SensorId,
+    // Every batch.
     version: u64,
+    blocks: u64,
+    stream: Option<Stream>,
+    acc: BlockAccumulator,
+    // A break in the stream, a block's end, a report.
+    sensor_id: SensorId,
     block_s: f64,
     quiet_var: f64,
     gate_var: f64,
@@ -48,14 +60,16 @@ pub struct SensorHealth {
     design: ChannelDesign,
     channels: [ChannelHealth; 3],
     gravity: GravityCheck,
-    acc: BlockAccumulator,
-    stream: Option<Stream>,
-    blocks: u64,
     discontinuities: u64,
     last_observation: Option<GravityObservation>,
 }
 
 impl SensorHealth {
+    /// How many bytes from a monitor's start a batch of up to a block touches: the record's
+    /// version, the block count, the stream's expectation and the block's running sums.
+    pub const PER_BATCH_BYTES: usize =
+        std::mem::offset_of!(SensorHealth, acc) + std::mem::size_of::<BlockAccumulator>();
+
     /// A monitor for `record`, which it loads into a corrector of its own.
     pub fn new(record: &CalibrationRecord, config: &HealthConfig) -> Result<Self, HealthError> {
         let corrector = Corrector::from_record(record)?;
@@ -316,5 +330,52 @@ impl SensorHealth {
         report.verdict = verdict;
         report.suspect_since_ns = since;
         report
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::mem::{offset_of, size_of};
+
+    use super::*;
+
+    /// What a batch touches lies in the first [`SensorHealth::PER_BATCH_BYTES`], and that is a
+    /// small part of the monitor: a field moved among the block-time ones would leave a
+    /// caller's load ahead short of it.
+    #[test]
+    fn a_batch_touches_the_first_bytes_only() {
+        let end = |offset: usize, size: usize| offset + size;
+        for (field, last_byte) in [
+            (
+                "version",
+                end(offset_of!(SensorHealth, version), size_of::<u64>()),
+            ),
+            (
+                "blocks",
+                end(offset_of!(SensorHealth, blocks), size_of::<u64>()),
+            ),
+            (
+                "stream",
+                end(
+                    offset_of!(SensorHealth, stream),
+                    size_of::<Option<Stream>>(),
+                ),
+            ),
+            (
+                "acc",
+                end(offset_of!(SensorHealth, acc), size_of::<BlockAccumulator>()),
+            ),
+        ] {
+            assert!(
+                last_byte <= SensorHealth::PER_BATCH_BYTES,
+                "{field} ends at {last_byte}"
+            );
+        }
+        assert!(
+            SensorHealth::PER_BATCH_BYTES * 4 < size_of::<SensorHealth>(),
+            "{} of {}",
+            SensorHealth::PER_BATCH_BYTES,
+            size_of::<SensorHealth>()
+        );
     }
 }
