@@ -269,13 +269,12 @@ struct Slot {
 }
 
 impl Slot {
+    /// A slot with no hints yet: its first batch, which made it, notes them at its end.
     fn new(state: SensorState) -> Slot {
-        let mut slot = Slot {
+        Slot {
             state: Box::new(state),
             apart: [(0, 0); 4],
-        };
-        slot.remember_apart();
-        slot
+        }
     }
 
     fn prefetch(&self) {
