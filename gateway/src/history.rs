@@ -24,9 +24,7 @@ use std::time::{Duration, Instant};
 pub use triax_history::Verdict;
 use triax_history::{History, Kept, Writer};
 use triax_protocol::messages::HistoryStatus;
-use triax_protocol::RawBatchView;
-
-use crate::sensors::SensorEntry;
+use triax_protocol::{InlineId, RawBatchView, SensorId};
 
 /// Batches queued that wake the writer before its flush is due, whatever their bytes (each
 /// entry costs about as much again as a 10-sample batch's samples): a few wake-ups a second at
@@ -49,7 +47,9 @@ struct Pending {
 
 /// One batch in [`Pending`]: its samples and checkpoint are ranges of the buffer.
 struct Waiting {
-    entry: Arc<SensorEntry>,
+    /// In place: the writer looks its sensor up by it, and a reference to the sensor's entry
+    /// would be one more line for it to fetch, and for the sensor's next batch to fetch back.
+    sensor: InlineId,
     kept: Kept<Range<usize>>,
     checkpoint: Option<Range<usize>>,
 }
@@ -106,12 +106,12 @@ struct SinkState {
 }
 
 impl Sink {
-    /// Offers a corrected batch: `view` as received, the verdict and the calibration version
+    /// Offers a corrected batch of `sensor`: `view` as received, the verdict and the calibration version
     /// it was corrected with, and the correction state before it when a checkpoint was due.
     /// False (and counted) when the queue is full or closed.
     pub fn offer(
         &self,
-        entry: &Arc<SensorEntry>,
+        sensor: &SensorId,
         view: &RawBatchView<'_>,
         verdict: Verdict,
         calibration_version: u64,
@@ -143,7 +143,7 @@ impl Sink {
             self.wake.notify_one();
         }
         p.batches.push(Waiting {
-            entry: entry.clone(),
+            sensor: InlineId::new(sensor),
             kept: Kept {
                 arrival: 0,
                 sequence: h.sequence,
@@ -310,7 +310,7 @@ fn run(mut writer: Writer, sink: &Sink, stop: &AtomicBool, flush_interval: Durat
         for w in &taken.batches {
             let kept = w.kept.with_samples(&taken.bytes[w.kept.samples.clone()]);
             let checkpoint = w.checkpoint.clone().map(|r| &taken.bytes[r]);
-            writer.append(&w.entry.id, kept, checkpoint);
+            writer.append(&w.sensor, kept, checkpoint);
             unflushed += 1;
         }
         taken.clear(sink.drain_bytes);

@@ -25,6 +25,7 @@ use zenoh::sample::Sample;
 use zenoh::Wait;
 
 use crate::backfill::{self, LateRun, Need};
+use crate::config::CorrectionMode;
 use crate::health::{self, HealthFeed, PairSlot};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
@@ -32,8 +33,7 @@ use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::outbox::{Outbox, Outgoing};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
-use triax_protocol::keys::MAX_ID_LEN;
-use triax_protocol::{keys, BuildingId};
+use triax_protocol::{keys, BuildingId, InlineId, SetKind};
 
 /// What every worker shares.
 pub struct Shared {
@@ -207,52 +207,6 @@ struct SensorState {
     pairs: Vec<Arc<PairSlot>>,
 }
 
-/// A sensor's id as a shard's key, in the table's own slot: a key held apart (a `Box<str>`)
-/// was one more cache miss before a cold sensor's state could even be asked for, and its
-/// comparison a fifth of [`Shard::handle`]'s own time (BENCHMARKS.md, "A fifth look").
-/// Hashed and compared as the id's bytes, so a lookup borrows the `&[u8]` of the key it got.
-struct IdKey {
-    len: u8,
-    bytes: [u8; MAX_ID_LEN],
-}
-
-impl IdKey {
-    fn new(id: &SensorId) -> IdKey {
-        let id = id.as_str().as_bytes();
-        let mut bytes = [0; MAX_ID_LEN];
-        // A valid id has 1 to MAX_ID_LEN bytes.
-        bytes[..id.len()].copy_from_slice(id);
-        IdKey {
-            len: id.len() as u8,
-            bytes,
-        }
-    }
-
-    fn as_bytes(&self) -> &[u8] {
-        &self.bytes[..usize::from(self.len)]
-    }
-}
-
-impl std::borrow::Borrow<[u8]> for IdKey {
-    fn borrow(&self) -> &[u8] {
-        self.as_bytes()
-    }
-}
-
-impl std::hash::Hash for IdKey {
-    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
-        self.as_bytes().hash(state);
-    }
-}
-
-impl PartialEq for IdKey {
-    fn eq(&self, other: &IdKey) -> bool {
-        self.as_bytes() == other.as_bytes()
-    }
-}
-
-impl Eq for IdKey {}
-
 /// A sensor's state in its shard's table, with where the parts it holds apart were at its
 /// last batch.
 ///
@@ -265,7 +219,7 @@ struct Slot {
     state: Box<SensorState>,
     /// Addresses and sizes, hints for [`prefetch_bytes`] only and never read through: a part
     /// replaced since (a new corrector, a new monitor) costs one useless load, not a fault.
-    apart: [(usize, usize); 4],
+    apart: [(usize, usize); 5],
 }
 
 impl Slot {
@@ -273,7 +227,7 @@ impl Slot {
     fn new(state: SensorState) -> Slot {
         Slot {
             state: Box::new(state),
-            apart: [(0, 0); 4],
+            apart: [(0, 0); 5],
         }
     }
 
@@ -296,9 +250,24 @@ impl Slot {
         }
         let s = &*self.state;
         let key = s.keys.corrected.key_expr().as_str();
+        let corrector = s.entry.corrector_guard();
+        // Its head and the set the sensor's mode corrects with; both sets in split mode.
+        let (head, set) = match (corrector.as_deref(), s.entry.settings.mode) {
+            (None, _) => ((0, 0), (0, 0)),
+            (Some(c), CorrectionMode::Split) => (part(Some(c)), (0, 0)),
+            (Some(c), mode) => {
+                let kind = match mode {
+                    CorrectionMode::Static => SetKind::Static,
+                    _ => SetKind::Dynamic,
+                };
+                let at = std::ptr::from_ref(c) as usize;
+                ((at, Corrector::HEAD_BYTES), part(Some(c.set(kind))))
+            }
+        };
         self.apart = [
             part(Some(&*s.entry)),
-            part(s.entry.corrector_guard().as_deref()),
+            head,
+            set,
             // Its first bytes only: the rest waits for a block's end.
             s.health.monitor().map_or((0, 0), |m| {
                 (
@@ -336,7 +305,7 @@ pub struct Shard {
     /// foldhash rather than the standard SipHash: two lookups a batch, of a few bytes each.
     /// Its seed is random per table and the table is bounded ([`SensorTable`]), so ids chosen
     /// to collide cost a flooding node no more than its own batches.
-    sensors: HashMap<IdKey, Slot, foldhash::fast::RandomState>,
+    sensors: HashMap<InlineId, Slot, foldhash::fast::RandomState>,
     scratch: Scratch,
     /// Batches handled since the last sweep for forgotten sensors.
     since_sweep: u32,
@@ -460,7 +429,7 @@ impl Shard {
             };
             match SensorState::new(shared, entry) {
                 Ok(s) => {
-                    sensors.insert(IdKey::new(&s.entry.id), Slot::new(s));
+                    sensors.insert(InlineId::new(&s.entry.id), Slot::new(s));
                     shared.counters.sensors_online.fetch_add(1, Relaxed);
                 }
                 Err(e) => {
@@ -481,7 +450,7 @@ impl Shard {
         }
         if let Some(sink) = &shared.history {
             let kept = sink.offer(
-                &state.entry,
+                &view.header.sensor_id,
                 &view,
                 corrected.verdict,
                 corrected.calibration_version,
@@ -583,7 +552,7 @@ impl Shard {
             run.checkpoint_due = false;
             if let Some(sink) = &shared.history {
                 let kept = sink.offer(
-                    &state.entry,
+                    sensor,
                     &view,
                     verdict,
                     version.unwrap_or(0),
@@ -1070,22 +1039,5 @@ mod tests {
             counts[w] += 1;
         }
         assert!(counts.iter().all(|&c| c > 150), "{counts:?}");
-    }
-
-    #[test]
-    fn a_shard_finds_a_sensor_by_its_ids_bytes_only() {
-        let ids =
-            ["acc-1", "acc-10", "a", &"x".repeat(MAX_ID_LEN)].map(|i| SensorId::new(i).unwrap());
-        let map: HashMap<IdKey, usize> = ids
-            .iter()
-            .enumerate()
-            .map(|(i, id)| (IdKey::new(id), i))
-            .collect();
-        for (i, id) in ids.iter().enumerate() {
-            assert_eq!(map.get(id.as_str().as_bytes()), Some(&i), "{id}");
-        }
-        for absent in ["acc-", "acc-100", "acc-1\0", ""] {
-            assert_eq!(map.get(absent.as_bytes()), None, "{absent:?}");
-        }
     }
 }

@@ -194,7 +194,11 @@ mod tests {
             verdict: Verdict::InOrder,
             samples: &samples[..],
         };
-        w.append(&triax_protocol::SensorId::new("s1").unwrap(), kept, None);
+        w.append(
+            &triax_protocol::InlineId::new(&triax_protocol::SensorId::new("s1").unwrap()),
+            kept,
+            None,
+        );
         w.flush().unwrap();
     }
 

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant, SystemTime};
 
-use triax_protocol::SensorId;
+use triax_protocol::{InlineId, SensorId};
 
 use crate::block::{BlockBuilder, BlockSummary, Kept};
 use crate::owner::{self, Owner, OwnerCheck};
@@ -272,12 +272,11 @@ impl History {
             history: history.clone(),
             segment: Some(writer_segment),
             segment_started: Instant::now(),
-            pending: HashMap::new(),
+            sensors: HashMap::default(),
             ready: Vec::new(),
             ready_bytes: 0,
             failed: None,
             next_arrival,
-            segment_sensors: BTreeSet::new(),
             spare: Vec::new(),
         };
         Ok(Opened {
@@ -737,39 +736,56 @@ pub struct Writer {
     history: Arc<History>,
     segment: Option<SegmentWriter>,
     segment_started: Instant,
-    pending: HashMap<SensorId, BlockBuilder>,
-    /// Blocks closed before the flush (a checkpoint or the size limit started a new one).
-    ready: Vec<(SensorId, BlockBuilder)>,
+    /// The sensors of the segment being written, with their open blocks: the segment's
+    /// `.sensors` file at its roll. Looked up every batch, so keyed in place and with a quick
+    /// hash (its seed is random per table, and the gateway bounds its sensors); a sensor stays
+    /// from its first batch of the segment to the segment's roll, so that a flush does not make
+    /// it a stranger again a second later.
+    sensors: HashMap<InlineId, SegmentSensor, foldhash::fast::RandomState>,
+    /// Blocks closed before the flush (a checkpoint or the size limit started a new one), by
+    /// their sensor's [`segment::sensor_hash`].
+    ready: Vec<(u64, BlockBuilder)>,
     /// Their bytes: past [`WRITE_AHEAD_BYTES`] they are written ahead of the flush.
     ready_bytes: usize,
     /// A write ahead of the flush failed: the flush reports it.
     failed: Option<HistoryError>,
     next_arrival: u64,
-    /// Sensors of the segment being written, for its `.sensors` file.
-    segment_sensors: BTreeSet<SensorId>,
     /// Buffers of blocks already written, for the next ones: a block a second per sensor would
     /// otherwise be an allocation (and, for large ones, a fresh mapping to fault in) each.
     spare: Vec<Vec<u8>>,
 }
 
-/// Names `sensor` in the segment being written (`segment_sensors`) and in the history's list of
-/// sensors.
-fn note_sensor(segment_sensors: &mut BTreeSet<SensorId>, history: &History, sensor: &SensorId) {
-    if segment_sensors.contains(sensor) {
-        return;
-    }
-    segment_sensors.insert(sensor.clone());
-    let known = history
-        .sensors
-        .read()
-        .unwrap_or_else(|p| p.into_inner())
-        .contains(sensor);
-    if !known {
-        history
+/// A sensor of the segment being written.
+#[derive(Debug)]
+struct SegmentSensor {
+    id: SensorId,
+    /// [`segment::sensor_hash`] of the id: the index's key for its blocks.
+    hash: u64,
+    /// The block its batches gather in until the flush; none since.
+    open: Option<BlockBuilder>,
+}
+
+impl SegmentSensor {
+    /// `sensor`, new to the segment; named in the history's list of sensors too.
+    fn admit(history: &History, sensor: &InlineId) -> SegmentSensor {
+        let id = sensor.to_sensor_id();
+        let known = history
             .sensors
-            .write()
+            .read()
             .unwrap_or_else(|p| p.into_inner())
-            .insert(sensor.clone());
+            .contains(&id);
+        if !known {
+            history
+                .sensors
+                .write()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(id.clone());
+        }
+        SegmentSensor {
+            hash: segment::sensor_hash(id.as_str()),
+            id,
+            open: None,
+        }
     }
 }
 
@@ -789,7 +805,7 @@ impl Writer {
     /// is the correction state before this batch: it starts a new block.
     pub fn append(
         &mut self,
-        sensor: &SensorId,
+        sensor: &InlineId,
         mut kept: Kept<&[u8]>,
         checkpoint: Option<&[u8]>,
     ) -> u64 {
@@ -800,29 +816,31 @@ impl Writer {
                 || b.len() >= BLOCK_BYTES_MAX
                 || b.summary.n_records >= BLOCK_BATCHES_MAX
         };
-        match self.pending.get_mut(sensor) {
+        let Writer {
+            history,
+            sensors,
+            ready,
+            ready_bytes,
+            spare,
+            ..
+        } = self;
+        let s = sensors
+            .entry(*sensor)
+            .or_insert_with(|| SegmentSensor::admit(history, sensor));
+        match &mut s.open {
             Some(b) if !closes(b) => b.push(&kept),
-            other => {
-                // A sensor with an open block is already named in the segment (a roll comes
-                // only after a flush, which closes every block): only a new block looks.
-                note_sensor(&mut self.segment_sensors, &self.history, sensor);
-                let buf = self.spare.pop().unwrap_or_default();
-                let mut fresh = BlockBuilder::in_buffer(buf, sensor, checkpoint);
+            open => {
+                let buf = spare.pop().unwrap_or_default();
+                let mut fresh = BlockBuilder::in_buffer(buf, &s.id, checkpoint);
                 fresh.push(&kept);
-                match other {
-                    Some(b) => {
-                        let old = std::mem::replace(b, fresh);
-                        self.ready_bytes += old.len();
-                        self.ready.push((sensor.clone(), old));
-                    }
-                    None => {
-                        self.pending.insert(sensor.clone(), fresh);
-                    }
-                }
-                if self.ready_bytes >= WRITE_AHEAD_BYTES {
-                    self.write_ahead();
+                if let Some(old) = open.replace(fresh) {
+                    *ready_bytes += old.len();
+                    ready.push((s.hash, old));
                 }
             }
+        }
+        if self.ready_bytes >= WRITE_AHEAD_BYTES {
+            self.write_ahead();
         }
         let c = &self.history.counters;
         c.written_batches.fetch_add(1, Relaxed);
@@ -838,8 +856,9 @@ impl Writer {
 
     /// Batches kept in memory, not yet on disk.
     pub fn pending_batches(&self) -> usize {
-        self.pending
+        self.sensors
             .values()
+            .filter_map(|s| s.open.as_ref())
             .chain(self.ready.iter().map(|(_, b)| b))
             .map(|b| b.summary.n_records as usize)
             .sum()
@@ -848,9 +867,13 @@ impl Writer {
     /// Writes every pending block, makes it durable, publishes it to readers, then rolls the
     /// segment and applies retention when due.
     pub fn flush(&mut self) -> Result<(), HistoryError> {
-        let mut blocks: Vec<(SensorId, BlockBuilder)> = std::mem::take(&mut self.ready);
+        let mut blocks = std::mem::take(&mut self.ready);
         self.ready_bytes = 0;
-        blocks.extend(self.pending.drain());
+        blocks.extend(
+            self.sensors
+                .values_mut()
+                .filter_map(|s| Some((s.hash, s.open.take()?))),
+        );
         if !blocks.is_empty() {
             self.write_blocks(blocks)?;
         }
@@ -891,17 +914,13 @@ impl Writer {
     }
 
     /// Appends blocks to the segment's log, not yet durable.
-    fn write_blocks(&mut self, blocks: Vec<(SensorId, BlockBuilder)>) -> Result<(), HistoryError> {
+    fn write_blocks(&mut self, blocks: Vec<(u64, BlockBuilder)>) -> Result<(), HistoryError> {
         let mut frames = Vec::with_capacity(blocks.len());
         let mut meta = Vec::with_capacity(blocks.len());
-        for (sensor, b) in blocks {
+        for (sensor_hash, b) in blocks {
             let (frame, summary) = b.finish();
             // Blocks are closed at 1 MiB: the length fits.
-            meta.push((
-                segment::sensor_hash(sensor.as_str()),
-                frame.len() as u32,
-                summary,
-            ));
+            meta.push((sensor_hash, frame.len() as u32, summary));
             frames.push(frame);
         }
         if self.segment.is_none() {
@@ -982,9 +1001,11 @@ impl Writer {
         let stage = closing_segment.as_mut().and_then(SegmentWriter::take_stage);
         let closing = closing_segment.map(|s| s.id);
         if let Some(id) = closing {
-            let ids: Vec<SensorId> = std::mem::take(&mut self.segment_sensors)
-                .into_iter()
-                .collect();
+            let mut ids: Vec<SensorId> = self.sensors.values().map(|s| s.id.clone()).collect();
+            ids.sort_unstable();
+            // A segment rolls after a flush, which closed every block; one still open would be
+            // written to the next segment, which names its sensor then.
+            self.sensors.retain(|_, s| s.open.is_some());
             let meta = self
                 .history
                 .read()

@@ -5,7 +5,11 @@
 use std::path::Path;
 
 use triax_history::{Block, History, HistoryConfig, Kept, Opened, Query, Verdict};
-use triax_protocol::SensorId;
+use triax_protocol::{InlineId, SensorId};
+
+fn inline(s: &str) -> InlineId {
+    InlineId::new(&id(s))
+}
 
 fn id(s: &str) -> SensorId {
     SensorId::new(s).unwrap()
@@ -78,7 +82,7 @@ fn flushed_batches_come_back_by_time_sequence_and_arrival_across_segments_and_re
                 // A checkpoint every 100 batches, as the gateway's every 10 s of data.
                 let ck = (seq % 100 == 0).then(|| format!("ck {s} {seq}").into_bytes());
                 let smp = samples(seed, seq);
-                writer.append(&id(s), kept(seq, &smp), ck.as_deref());
+                writer.append(&inline(s), kept(seq, &smp), ck.as_deref());
             }
             if seq % 10 == 9 {
                 writer.flush().unwrap();
@@ -137,7 +141,7 @@ fn flushed_batches_come_back_by_time_sequence_and_arrival_across_segments_and_re
     drop(h);
     let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 32 << 10);
     let smp = samples(1, 1000);
-    let arrival = writer.append(&id("a"), kept(1000, &smp), None);
+    let arrival = writer.append(&inline("a"), kept(1000, &smp), None);
     assert_eq!(arrival, a[999] + 3, "after c's last batch");
 }
 
@@ -148,7 +152,11 @@ fn a_torn_end_is_cut_and_everything_flushed_before_it_kept() {
         let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 64 << 20);
         for seq in 0..50u64 {
             let smp = samples(1, seq);
-            writer.append(&id("a"), kept(seq, &smp), (seq == 0).then_some(&b"x"[..]));
+            writer.append(
+                &inline("a"),
+                kept(seq, &smp),
+                (seq == 0).then_some(&b"x"[..]),
+            );
             writer.flush().unwrap();
         }
     }
@@ -191,7 +199,7 @@ fn a_damaged_block_is_reported_and_the_rest_served() {
     } = open(dir.path(), u64::MAX, 64 << 20);
     for seq in 0..3u64 {
         let smp = samples(1, seq);
-        writer.append(&id("a"), kept(seq, &smp), None);
+        writer.append(&inline("a"), kept(seq, &smp), None);
         writer.flush().unwrap();
     }
     // Flip one sample bit of the middle block, on disk.
@@ -225,7 +233,7 @@ fn retention_keeps_the_size_cap_oldest_first() {
     for seq in 0..5000u64 {
         let smp = samples(1, seq);
         writer.append(
-            &id("a"),
+            &inline("a"),
             kept(seq, &smp),
             (seq % 50 == 0).then_some(&b"ck"[..]),
         );
@@ -289,7 +297,7 @@ fn a_heavy_stream_written_ahead_and_past_the_page_cache_comes_back_bit_for_bit()
             for (k, s) in sensors.iter().enumerate() {
                 let smp = batch(k as u32, seq);
                 let ck = (seq % 2000 == 0).then(|| format!("ck {s} {seq}").into_bytes());
-                writer.append(&id(s), kept(seq, &smp), ck.as_deref());
+                writer.append(&inline(s), kept(seq, &smp), ck.as_deref());
             }
             if seq % 1500 == 1499 {
                 // Megabytes were written ahead since the last flush, none of it served yet.
@@ -346,7 +354,11 @@ fn a_crash_between_write_ahead_and_flush_keeps_what_was_flushed_and_cuts_at_the_
         let Opened { mut writer, .. } = open(dir.path(), u64::MAX, 64 << 20);
         for seq in 0..100u64 {
             let smp = batch(seq);
-            writer.append(&id("a"), kept(seq, &smp), (seq == 0).then_some(&b"x"[..]));
+            writer.append(
+                &inline("a"),
+                kept(seq, &smp),
+                (seq == 0).then_some(&b"x"[..]),
+            );
         }
         writer.flush().unwrap();
         let log = newest_log(dir.path());
@@ -355,7 +367,7 @@ fn a_crash_between_write_ahead_and_flush_keeps_what_was_flushed_and_cuts_at_the_
         for seq in 100..6000u64 {
             let smp = batch(seq);
             let ck = (seq % 500 == 0).then_some(&b"y"[..]);
-            writer.append(&id("a"), kept(seq, &smp), ck);
+            writer.append(&inline("a"), kept(seq, &smp), ck);
         }
         assert!(std::fs::metadata(&log).unwrap().len() > flushed_end + (1 << 20));
         // Dropped without a flush: a kill.

@@ -156,6 +156,77 @@ id_type!(
     "sensor"
 );
 
+/// A sensor's id held in place, with no allocation behind it: the key of a table looked up
+/// every batch. A key that points to its text elsewhere (a [`SensorId`]) is, at a building's
+/// pace, one more cold line to wait for before the lookup can even compare (BENCHMARKS.md,
+/// "A fifth look"). Hashed and compared as the id's bytes, so that a table keyed by it is
+/// looked up with the `&[u8]` of any id.
+#[derive(Clone, Copy)]
+pub struct InlineId {
+    len: u8,
+    bytes: [u8; MAX_ID_LEN],
+}
+
+impl InlineId {
+    pub fn new(id: &SensorId) -> InlineId {
+        let id = id.as_str().as_bytes();
+        let mut bytes = [0; MAX_ID_LEN];
+        // A valid id has 1 to MAX_ID_LEN bytes.
+        bytes[..id.len()].copy_from_slice(id);
+        InlineId {
+            len: id.len() as u8,
+            bytes,
+        }
+    }
+
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.bytes[..usize::from(self.len)]
+    }
+
+    /// The id it holds.
+    pub fn to_sensor_id(&self) -> SensorId {
+        // Made from a valid id, whose characters are all ASCII.
+        SensorId(String::from_utf8_lossy(self.as_bytes()).into_owned())
+    }
+}
+
+impl From<&SensorId> for InlineId {
+    fn from(id: &SensorId) -> InlineId {
+        InlineId::new(id)
+    }
+}
+
+impl std::borrow::Borrow<[u8]> for InlineId {
+    fn borrow(&self) -> &[u8] {
+        self.as_bytes()
+    }
+}
+
+// As the bytes' own: `Borrow<[u8]>` asks that a lookup by bytes hash alike.
+impl std::hash::Hash for InlineId {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.as_bytes().hash(state);
+    }
+}
+
+impl PartialEq for InlineId {
+    fn eq(&self, other: &InlineId) -> bool {
+        self.as_bytes() == other.as_bytes()
+    }
+}
+
+impl Eq for InlineId {}
+
+impl fmt::Debug for InlineId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "InlineId({:?})",
+            String::from_utf8_lossy(self.as_bytes())
+        )
+    }
+}
+
 /// A concrete Triax key.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
 pub enum Key {
@@ -429,6 +500,23 @@ pub fn all_heartbeats() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_inline_id_is_found_by_its_bytes_only() {
+        let ids = ["acc-1", "acc-10", "a", &"x".repeat(MAX_ID_LEN)].map(s);
+        let map: std::collections::HashMap<InlineId, usize> = ids
+            .iter()
+            .enumerate()
+            .map(|(i, id)| (InlineId::new(id), i))
+            .collect();
+        for (i, id) in ids.iter().enumerate() {
+            assert_eq!(map.get(id.as_str().as_bytes()), Some(&i), "{id}");
+            assert_eq!(&InlineId::new(id).to_sensor_id(), id);
+        }
+        for absent in ["acc-", "acc-100", "acc-1\0", ""] {
+            assert_eq!(map.get(absent.as_bytes()), None, "{absent:?}");
+        }
+    }
 
     fn b(s: &str) -> BuildingId {
         BuildingId::new(s).unwrap()

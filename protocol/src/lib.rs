@@ -25,5 +25,5 @@ pub use batch::{
     DecodeError, Mode, RawBatch, RawBatchView,
 };
 pub use json::{from_json, to_json, to_json_pretty, JsonError, JsonMessage, JSON_FORMAT_VERSION};
-pub use keys::{BuildingId, IdError, Key, KeyError, SensorId};
+pub use keys::{BuildingId, IdError, InlineId, Key, KeyError, SensorId};
 pub use record::{CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind};
