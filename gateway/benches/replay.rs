@@ -20,7 +20,7 @@ use triax_gateway::{Config, SensorTable};
 use triax_history::{History, HistoryConfig, Kept, Verdict};
 use triax_protocol::batch::{BatchHeader, RawBatch};
 use triax_protocol::record::sample;
-use triax_protocol::{BuildingId, RawBatchView, SensorId};
+use triax_protocol::{BuildingId, InlineId, RawBatchView, SensorId};
 
 const SECONDS: u64 = 1200;
 const SENSORS: usize = 10;
@@ -91,7 +91,7 @@ fn fixture(n: usize) -> Fixture {
                 verdict: Verdict::InOrder,
                 samples: view.sample_bytes(),
             };
-            writer.append(id, kept, checkpoint);
+            writer.append(&InlineId::new(id), kept, checkpoint);
             out.clear();
             correct_judged(
                 kernel,
