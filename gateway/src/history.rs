@@ -106,9 +106,9 @@ struct SinkState {
 }
 
 impl Sink {
-    /// Offers a corrected batch of `sensor`: `view` as received, the verdict and the calibration version
-    /// it was corrected with, and the correction state before it when a checkpoint was due.
-    /// False (and counted) when the queue is full or closed.
+    /// Offers a corrected batch of `sensor`: `view` as received, the verdict and the
+    /// calibration version it was corrected with, and the correction state before it when a
+    /// checkpoint was due. False (and counted) when the queue is full or closed.
     pub fn offer(
         &self,
         sensor: &SensorId,
