@@ -401,3 +401,65 @@ fn newest_log(dir: &Path) -> std::path::PathBuf {
         .max()
         .unwrap()
 }
+
+/// The writer keeps a sensor from flush to flush rather than meeting it anew after each, and
+/// forgets it at a roll: every closed segment's list of sensors is exactly the sensors its index
+/// holds blocks of, for sensors that stream through several flushes and segments, stop, or
+/// start late.
+#[test]
+fn each_closed_segment_names_exactly_the_sensors_it_holds() {
+    use std::collections::BTreeSet;
+    use triax_history::segment;
+    let dir = tempfile::tempdir().unwrap();
+    let Opened {
+        mut writer,
+        history,
+        ..
+    } = open(dir.path(), u64::MAX, 2500);
+    for round in 0..16u64 {
+        let streaming: &[&str] = match round {
+            0..=2 => &["a", "b"],
+            3..=9 => &["a"],
+            _ => &["a", "c"],
+        };
+        for (i, s) in streaming.iter().enumerate() {
+            for k in 0..5 {
+                let seq = round * 5 + k;
+                let smp = samples(i as u32, seq);
+                writer.append(&inline(s), kept(seq, &smp), None);
+            }
+        }
+        writer.flush().unwrap();
+    }
+    drop(writer);
+    drop(history);
+    let mut ids: Vec<u64> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| {
+            let p = e.unwrap().path();
+            let stem = p.file_stem()?.to_str()?.to_owned();
+            (p.extension()? == "log").then(|| stem.parse().unwrap())
+        })
+        .collect();
+    ids.sort_unstable();
+    // The newest is still open; every other one closed, with its meta.
+    let closed = &ids[..ids.len() - 1];
+    assert!(closed.len() >= 4, "{ids:?}");
+    let mut named_over_all = BTreeSet::new();
+    for &seg in closed {
+        let meta = segment::read_meta(dir.path(), seg).unwrap();
+        let named: BTreeSet<u64> = meta
+            .sensors
+            .iter()
+            .map(|s| segment::sensor_hash(s.as_str()))
+            .collect();
+        let held: BTreeSet<u64> = segment::read_index(dir.path(), seg)
+            .unwrap()
+            .iter()
+            .map(|e| e.sensor_hash)
+            .collect();
+        assert_eq!(named, held, "segment {seg}: {:?}", meta.sensors);
+        named_over_all.extend(meta.sensors);
+    }
+    assert_eq!(named_over_all, [id("a"), id("b"), id("c")].into());
+}
