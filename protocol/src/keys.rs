@@ -190,12 +190,6 @@ impl InlineId {
     }
 }
 
-impl From<&SensorId> for InlineId {
-    fn from(id: &SensorId) -> InlineId {
-        InlineId::new(id)
-    }
-}
-
 impl std::borrow::Borrow<[u8]> for InlineId {
     fn borrow(&self) -> &[u8] {
         self.as_bytes()
