@@ -246,7 +246,19 @@ async fn a_flood_of_new_ids_cannot_lock_out_a_real_node_and_ages_out() {
         (sent, sent),
         "every batch of the real nodes arrives"
     );
+    // The real nodes' last batches may overtake the flood's last ones on another worker: wait
+    // until every id sent has been seen, admitted or refused, before counting what became of them.
+    wait_until_async("every flood id to be judged", || async {
+        let st = status(&session, "hf").await;
+        st.admitted_sensors + st.over_capacity >= n_flood + 1
+    })
+    .await;
     let st = status(&session, "hf").await;
+    assert_eq!(
+        st.admitted_sensors,
+        n_flood + 1,
+        "every flood id and the real node"
+    );
     assert!(st.total_sensors <= 1000, "{} sensors", st.total_sensors);
     assert_eq!(
         st.over_capacity, 0,
