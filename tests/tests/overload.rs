@@ -88,10 +88,14 @@ async fn slow_consumer_run(overload: Overload, building: &str) {
         .map(|(_, p)| CorrectedBatch::decode(p).unwrap().header.sequence)
         .collect();
     assert_eq!(seqs, (0..n).collect::<Vec<_>>(), "every batch, in order");
+    // Held back by the slow consumer, the fast one would get a batch per 200 ms at best: the
+    // whole stream in a minute. Free of it, in the 3 s the node takes to send, and on a loaded
+    // machine not many times that.
+    let span = fast[fast.len() - 1].0 - fast[0].0;
     let freeze = fast.windows(2).map(|w| w[1].0 - w[0].0).max().unwrap();
     assert!(
-        freeze < Duration::from_millis(500),
-        "{overload:?}: the fast consumer waited {freeze:?} between two batches"
+        span < Duration::from_millis(200) * n as u32 / 4,
+        "{overload:?}: the fast consumer took {span:?} for {n} batches (longest wait {freeze:?})"
     );
     assert_eq!(
         counters.dropped.load(Relaxed),
@@ -104,6 +108,7 @@ async fn slow_consumer_run(overload: Overload, building: &str) {
         "the slow consumer cannot have kept up ({slow_got})"
     );
     // Everything the slow consumer missed is in the history, as the live stream carried it.
+    wait_history_holds(&node, building, "stall", n - 1).await;
     let replies = node
         .get(format!("triax/{building}/history/stall"))
         .consolidation(zenoh::query::ConsolidationMode::None)
@@ -192,10 +197,10 @@ async fn status_answers_and_publishing_goes_on_while_a_consumer_stalls() {
     let answered = std::thread::spawn(move || {
         let replies = querier
             .get(Key::Status(BuildingId::new("o3").unwrap()).to_string())
-            .timeout(Duration::from_secs(2))
+            .timeout(Duration::from_secs(15))
             .wait()
             .unwrap();
-        let reply = replies.recv_timeout(Duration::from_secs(2)).unwrap();
+        let reply = replies.recv_timeout(Duration::from_secs(15)).unwrap();
         reply.map(|r| r.result().is_ok())
     })
     .join()

@@ -191,7 +191,8 @@ async fn a_flood_of_new_ids_cannot_lock_out_a_real_node_and_ages_out() {
     seed_store(&store, &[sample::record("cal-1", 1)]);
     let mut cfg = config("hf", &store);
     cfg.max_sensors = 1000;
-    cfg.unknown_sensor_expiry = Duration::from_secs(2);
+    // Long enough that the real node, silent while the checks below run, is not forgotten.
+    cfg.unknown_sensor_expiry = Duration::from_secs(5);
     let gw = start(cfg).await;
     let session = client(&gw.endpoint).await;
     let real = Arc::new(AtomicU64::new(0));
@@ -272,9 +273,18 @@ async fn a_flood_of_new_ids_cannot_lock_out_a_real_node_and_ages_out() {
         st.displaced_sensors,
         st.expired_sensors
     );
+    // The real node speaks once more, so that its status is read well within the expiry.
+    node.put(raw("real-node", sent, vec![[0.1, 0.2, 9.8]; 10]))
+        .await
+        .unwrap();
+    wait_until_async("the real node's last batch", || async {
+        real.load(Relaxed) == sent + 1
+    })
+    .await;
     let node_status = status_of(&session, "hf", "real-node").await;
     assert_eq!(
-        node_status.batches, sent,
+        node_status.batches,
+        sent + 1,
         "the real node kept its entry and counters"
     );
     // Silence: what the flood admitted ages out; the calibrated sensor stays.

@@ -139,6 +139,8 @@ async fn replay_in_force_is_byte_for_byte_the_live_stream() {
     assert!(decoded
         .iter()
         .any(|b| b.batch_flags & flags::OUTSIDE_FREQUENCY != 0));
+    let last = decoded.last().unwrap().header.sequence;
+    wait_history_holds(&session, "hr", "incl", last).await;
     // A range starting two and a half minutes in, past two checkpoints.
     let from_ns = decoded[150].header.timestamp_ns;
     let mut request = HistoryRequest::sensor(&b("hr"), &s("incl"));
