@@ -664,17 +664,8 @@ impl Gateway {
                 shutdown.clone(),
             )));
         }
-        tasks.extend(
-            serve_queries(&config, &session, &shared, &store, started_at, &shutdown).await?,
-        );
-        tasks.push(tokio::spawn(heartbeat::run(
-            session.clone(),
-            config.building.clone(),
-            config.gateway_name.clone(),
-            table.clone(),
-            shutdown.clone(),
-        )));
-
+        // Pushes are taken before status is answered: a gateway that answers status takes
+        // pushes too (its declarations reach the router in order).
         let updater = Arc::new(push::Updater::new(
             config.building.clone(),
             config.gateway_name.clone(),
@@ -688,6 +679,17 @@ impl Gateway {
                 .await
                 .map_err(zenoh_err("declare the calibration push queryable"))?,
         );
+        tasks.extend(
+            serve_queries(&config, &session, &shared, &store, started_at, &shutdown).await?,
+        );
+        tasks.push(tokio::spawn(heartbeat::run(
+            session.clone(),
+            config.building.clone(),
+            config.gateway_name.clone(),
+            table.clone(),
+            shutdown.clone(),
+        )));
+
         tasks.push(catchup::spawn(
             session.clone(),
             updater.clone(),

@@ -307,7 +307,8 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
     );
     let mut cfg = config("b8k", &store);
     cfg.declared_keys_max = 2;
-    cfg.declared_keys_idle = std::time::Duration::from_millis(1000);
+    let idle = std::time::Duration::from_millis(3000);
+    cfg.declared_keys_idle = idle;
     cfg.workers = 2;
     assert_ne!(
         triax_gateway::worker::shard("silent", 2),
@@ -346,6 +347,7 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
         assert!(seq < 2000, "the silent sensor never declared its keys");
         tokio::time::sleep(std::time::Duration::from_millis(2)).await;
     }
+    let fell_silent = std::time::Instant::now();
     for i in 0..20 {
         send("streaming", i).await;
     }
@@ -353,7 +355,11 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
         declared("streaming").await.is_some()
     })
     .await;
-    assert_eq!(declared("streaming").await, Some(false), "no room yet");
+    let streaming = declared("streaming").await;
+    // Only while the first is not yet idle: on a stalled machine it may already have moved.
+    if fell_silent.elapsed() < idle {
+        assert_eq!(streaming, Some(false), "no room yet");
+    }
     // The first falls silent; the second keeps streaming.
     let mut i = 20;
     let deadline = tokio::time::Instant::now() + TIMEOUT;

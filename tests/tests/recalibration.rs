@@ -172,9 +172,9 @@ async fn wait_gateways(session: &zenoh::Session, building: &str, sensor: &str, n
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    // Matching says "at least one". For more, wait until `n` gateways answer a status query
-    // (each declares its push queryable right after its status queryable), then settle briefly
-    // so the push declarations have crossed the router too; the acknowledgements count them.
+    // Matching says "at least one". For more, wait until `n` gateways answer a status query:
+    // each declares its push queryable before its status queryable, on the same link, so the
+    // router that routed the status query knows the push queryables too.
     if n > 1 {
         while status_replies(session, building).await < n {
             assert!(
@@ -183,7 +183,6 @@ async fn wait_gateways(session: &zenoh::Session, building: &str, sensor: &str, n
             );
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
-        tokio::time::sleep(Duration::from_millis(300)).await;
     }
 }
 

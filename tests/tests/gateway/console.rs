@@ -525,7 +525,7 @@ async fn console_in_a_browser() {
              if (rows.length !== 6) return null;
              const m = Object.fromEntries(rows.map(r => [r.dataset.sensor, r.dataset.states]));
              return m['acc-01'].includes('gaps') && m['acc-02'].includes('rejects')
-                && m['acc-03'].includes('flagged') ? m : null;",
+                && m['acc-02'].includes('gaps') && m['acc-03'].includes('flagged') ? m : null;",
         )
         .await;
     let state = |s: &str| {
