@@ -318,7 +318,7 @@ async fn python_client_round_trips_through_a_gateway() {
     drop((raw_sub, corrected_sub));
     session.close().await.unwrap();
     stop.send(()).unwrap();
-    tokio::time::timeout(Duration::from_secs(10), gateway)
+    tokio::time::timeout(util::TIMEOUT, gateway)
         .await
         .expect("gateway stops on shutdown")
         .unwrap()
@@ -506,7 +506,7 @@ impl FollowSite {
     async fn close(self) {
         self.node.close().await.unwrap();
         self.stop.send(()).unwrap();
-        tokio::time::timeout(Duration::from_secs(10), self.gateway)
+        tokio::time::timeout(util::TIMEOUT, self.gateway)
             .await
             .expect("gateway stops on shutdown")
             .unwrap()
@@ -688,7 +688,7 @@ async fn a_stalled_python_follower_catches_up_and_loses_nothing() {
             .iter()
             .all(|id| written.get(id).map_or(0, Vec::len) >= rounds as usize)
     };
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    let deadline = tokio::time::Instant::now() + util::TIMEOUT;
     while !(complete(&steady_file) && complete(&stalled_file)) {
         for (name, child) in [("steady", &mut steady), ("stalled", &mut stalled)] {
             if let Some(status) = child.0.try_wait().unwrap() {
@@ -749,6 +749,8 @@ async fn streamed_history(
             .unwrap();
     }
     util::collect(&sub, n_batches as usize - 1).await;
+    let last = (0..n_batches).filter(|&s| s != skipped).max().unwrap();
+    util::wait_history_holds(&session, building, sensor, last).await;
     let request = triax_client::HistoryRequest::sensor(
         &BuildingId::new(building).unwrap(),
         &SensorId::new(sensor).unwrap(),

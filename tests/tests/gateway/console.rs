@@ -520,7 +520,7 @@ async fn console_in_a_browser() {
     let states = browser
         .wait(
             "the fleet view to list six sensors with gaps and flags seen",
-            Duration::from_secs(30),
+            TIMEOUT,
             "const rows = [...document.querySelectorAll('tr.sensor')];
              if (rows.length !== 6) return null;
              const m = Object.fromEntries(rows.map(r => [r.dataset.sensor, r.dataset.states]));
@@ -600,7 +600,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "acc-01's forged alert shown as unverified",
-            Duration::from_secs(20),
+            TIMEOUT,
             "const r = document.querySelector('tr.sensor[data-sensor=\"acc-01\"]');
              return r && r.dataset.states.includes('unverified');",
         )
@@ -627,7 +627,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "acc-04's alert on the fleet view",
-            Duration::from_secs(20),
+            TIMEOUT,
             "const r = document.querySelector('tr.sensor[data-sensor=\"acc-04\"]');
              return r && r.dataset.states.includes('exceeded');",
         )
@@ -654,7 +654,7 @@ async fn console_in_a_browser() {
     let count = browser
         .wait(
             "the sensor known from an alert only",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const rows = document.querySelectorAll('tr.sensor');
              return rows.length === 7 ? document.querySelector('section.building[data-building=demo] .sensor-count').textContent : null;",
         )
@@ -664,7 +664,7 @@ async fn console_in_a_browser() {
     let shown = browser
         .wait(
             "the hostile alert in the alerts view",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const r = document.querySelector('tr.alert[data-sensor=\"acc-03\"]');
              return r && [r.querySelector('.statement').textContent, r.textContent,
                           document.querySelectorAll('#alerts img, #alerts script, #alerts b').length,
@@ -714,7 +714,7 @@ async fn console_in_a_browser() {
     let history = browser
         .wait(
             "the history around acc-04's alert",
-            Duration::from_secs(20),
+            TIMEOUT,
             "const p = document.getElementById('plot');
              const line = document.getElementById('status-line').textContent;
              return p && p.dataset.source === 'history' && Number(p.dataset.buckets) > 50
@@ -730,7 +730,7 @@ async fn console_in_a_browser() {
     let forward = browser
         .wait(
             "the history one step forward",
-            Duration::from_secs(20),
+            TIMEOUT,
             &format!(
                 "const p = document.getElementById('plot');
                  const line = document.getElementById('status-line').textContent;
@@ -755,27 +755,40 @@ async fn console_in_a_browser() {
     browser.assert_no_errors("stepping the history");
 
     // A live plot that opens with the recent past (read from the history) and moves.
-    let opened = std::time::Instant::now();
+    let opened_ns = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as f64;
     browser.go(&format!("{}#/sensor/demo/acc-04", console.url));
-    browser
+    let filled = browser
         .wait(
             "the live window filled from the history",
-            Duration::from_secs(8),
-            // 30 s over the plot's width: more than 12 s of buckets is more than arrived since.
+            TIMEOUT,
+            // 30 s over the plot's width: more than 12 s of buckets.
             "const p = document.getElementById('plot');
              if (!p || !p.dataset.endNs) return null;
              const c = document.getElementById('canvas-x').clientWidth;
-             return Number(p.dataset.buckets) > 0.4 * c;",
+             return Number(p.dataset.buckets) > 0.4 * c
+                 ? [Number(p.dataset.endNs), Number(p.dataset.buckets), c] : null;",
         )
         .await;
+    // A bucket holds 30 s / width of the stream, so the oldest data shown is at least this old:
+    // from before the page opened, whenever the wait ended.
+    let (end_ns, buckets, width) = (
+        filled[0].as_f64().unwrap(),
+        filled[1].as_f64().unwrap(),
+        filled[2].as_f64().unwrap(),
+    );
+    let oldest_ns = end_ns - buckets * 30e9 / width;
     assert!(
-        opened.elapsed() < Duration::from_secs(12),
-        "more than 12 s of stream in less: it predates the page"
+        oldest_ns < opened_ns - 5e9,
+        "the window starts {:.1} s after the page opened: not from the history",
+        (oldest_ns - opened_ns) * 1e-9
     );
     let first = browser
         .wait(
             "live frames for acc-04",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const p = document.getElementById('plot');
              return p && Number(p.dataset.frames) >= 2 ? [Number(p.dataset.frames), Number(p.dataset.endNs), Number(p.dataset.buckets)] : null;",
         )
@@ -783,7 +796,7 @@ async fn console_in_a_browser() {
     let moved = browser
         .wait(
             "the live plot to move",
-            Duration::from_secs(10),
+            TIMEOUT,
             &format!(
                 "const p = document.getElementById('plot');
                  return Number(p.dataset.frames) >= {} + 3 && Number(p.dataset.endNs) > {} ? Number(p.dataset.endNs) : null;",
@@ -821,7 +834,7 @@ async fn console_in_a_browser() {
     let record = browser
         .wait(
             "the calibration record",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const r = document.getElementById('record'); return r && r.querySelector('dl') ? r.textContent : null;",
         )
         .await;
@@ -854,7 +867,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "tilt points for incl-01",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const p = document.getElementById('plot'); const t = document.getElementById('tilt-plot');
              return p && Number(p.dataset.tiltPoints) >= 2 && !t.hidden;",
         )
@@ -862,7 +875,7 @@ async fn console_in_a_browser() {
     let k = browser
         .wait(
             "incl-01's coverage factor",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const h = document.getElementById('sensor-header').textContent;
              const l = document.getElementById('legend').textContent;
              return h.includes('k = ') && l.includes('k = ') ? [h, l] : null;",
@@ -885,7 +898,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "a gap in acc-01's live plot",
-            Duration::from_secs(15),
+            TIMEOUT,
             "const p = document.getElementById('plot'); return p && Number(p.dataset.gaps) >= 1;",
         )
         .await;
@@ -895,7 +908,7 @@ async fn console_in_a_browser() {
     let flagged = browser
         .wait(
             "acc-03's flagged state and share in its view",
-            Duration::from_secs(15),
+            TIMEOUT,
             "const h = document.getElementById('sensor-header');
              const f = document.getElementById('flagged-share');
              return h && h.querySelector('.badge.flagged') && f ? f.textContent : null;",
@@ -912,7 +925,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "the fleet view",
-            Duration::from_secs(10),
+            TIMEOUT,
             "return document.querySelectorAll('tr.sensor').length > 0",
         )
         .await;
@@ -931,7 +944,7 @@ async fn console_in_a_browser() {
         let error = browser
             .wait(
                 &format!("the sensor view to refuse {link}"),
-                Duration::from_secs(10),
+                TIMEOUT,
                 &format!(
                     "if (!location.hash.endsWith({link:?})) location.hash = '#/sensor/demo/acc-04?' + {link:?};
                      const e = document.querySelector('#sensor #status-line[data-error]');
@@ -957,7 +970,7 @@ async fn console_in_a_browser() {
     let span = browser
         .wait(
             "a 7 s history view",
-            Duration::from_secs(20),
+            TIMEOUT,
             "const s = document.getElementById('span');
              const line = document.getElementById('status-line').textContent;
              return s && line.startsWith('history:') ? s.options[s.selectedIndex].textContent : null;",
@@ -1000,7 +1013,7 @@ async fn console_in_a_browser() {
     let at = browser
         .wait(
             "the typed time in the link",
-            Duration::from_secs(10),
+            TIMEOUT,
             &format!(
                 "const a = new URLSearchParams(location.hash.split('?')[1] || '').get('at');
                  return a && a !== '{seven_at}' && document.getElementById('at').value;"
@@ -1015,7 +1028,7 @@ async fn console_in_a_browser() {
     let refusal = browser
         .wait(
             "the refusal of a bad sensor id",
-            Duration::from_secs(10),
+            TIMEOUT,
             "const c = document.getElementById('conn');
              return c.dataset.state === 'refused' ? c.textContent : null;",
         )
@@ -1039,7 +1052,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "the gateway shown down",
-            Duration::from_secs(15),
+            TIMEOUT,
             "const b = document.querySelector('section.building[data-building=demo]');
              return b && b.dataset.state === 'down' && document.getElementById('conn').dataset.state === 'open';",
         )
@@ -1049,7 +1062,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "the gateway shown up again",
-            Duration::from_secs(20),
+            TIMEOUT,
             "const b = document.querySelector('section.building[data-building=demo]');
              return b && b.dataset.state === 'up' && document.querySelectorAll('tr.sensor').length === 7;",
         )
@@ -1058,7 +1071,7 @@ async fn console_in_a_browser() {
     browser
         .wait(
             "live frames again after the gateway came back",
-            Duration::from_secs(15),
+            TIMEOUT,
             "const p = document.getElementById('plot'); return p && Number(p.dataset.frames) >= 3;",
         )
         .await;

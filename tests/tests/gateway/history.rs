@@ -620,11 +620,14 @@ async fn retention_holds_the_size_cap_and_counts_what_it_deleted() {
             .is_some_and(|h| h.written_batches == 3000 && h.queued_batches == 0)
     })
     .await;
-    // One more flush interval, so the last flush has applied retention.
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    // The last flush applies retention once it has written.
+    wait_until_async("retention to hold the cap", || async {
+        status(&session, "ht").await.history.is_some_and(|h| {
+            h.bytes <= h.max_bytes && h.deleted_segments >= 2 && h.deleted_bytes > 0
+        })
+    })
+    .await;
     let h = status(&session, "ht").await.history.unwrap();
-    assert!(h.bytes <= h.max_bytes, "{h:?}");
-    assert!(h.deleted_segments >= 2 && h.deleted_bytes > 0, "{h:?}");
     let on_disk: u64 = std::fs::read_dir(&history_dir)
         .unwrap()
         .map(|e| e.unwrap().metadata().unwrap().len())
@@ -924,6 +927,7 @@ async fn a_consumer_beyond_the_site_router_recovers_a_30_s_cut() {
         }
         seq
     };
+    let cut_at = seq;
     let (sent, ()) = tokio::join!(streaming, router.restart_after(down));
     // After the link is back, everything arrives: the stretch from the history, then live.
     let total = 2 * sent as usize;
@@ -947,9 +951,12 @@ async fn a_consumer_beyond_the_site_router_recovers_a_30_s_cut() {
             "{id}: every batch once, in order"
         );
     }
+    // 30 of the 32 s streamed after the cut were cut off, whatever pace the machine allowed.
+    let streamed_after_cut = 2 * (sent - cut_at);
+    let recovered = follower.counters().recovered.load(Relaxed);
     assert!(
-        follower.counters().recovered.load(Relaxed) >= 2 * 250,
-        "the cut came from the history"
+        recovered >= streamed_after_cut * 3 / 4,
+        "the cut came from the history: {recovered} of {streamed_after_cut} recovered"
     );
     drop(follower);
     far.close().await.unwrap();
