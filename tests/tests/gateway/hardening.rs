@@ -394,6 +394,7 @@ async fn streaming_resumes_after_a_router_restart_and_the_lost_stretch_is_a_gap(
     // The gateway saw the node's lost stretch as a gap and flagged the batch after it. The
     // consumer may have missed that very batch (the gateway published it before the consumer's
     // own link was back): the history has it, as every batch the gateway took.
+    wait_history_holds(&consumer, "rr", "rr-1", *seqs.last().unwrap()).await;
     let st = status(&consumer, "rr").await;
     let sensor = st
         .sensors

@@ -179,16 +179,20 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     let fault_ns = EPOCH_NS + 60 * SECOND_NS + 250_000_000;
     let mut nodes = [Node::new(OK, 1, EPOCH_NS), Node::new(STUCK, 2, EPOCH_NS)];
     nodes[1].field.inject(fault_ns, Fault::Stuck { channel: 1 });
-    send(&session, &mut nodes, 180).await;
-    let last = nodes[0].sequence - 1;
-    wait_until("the last batches published", || {
-        [OK, STUCK].iter().all(|s| {
-            batches(&corrected, s)
-                .iter()
-                .any(|(b, _)| b.header.sequence == last)
+    // Three minutes of sensor time, thirty seconds at a time: each stretch arrives before the
+    // next is sent, so no queue on the way overflows whatever the machine's pace.
+    for _ in 0..6 {
+        send(&session, &mut nodes, 30).await;
+        let last = nodes[0].sequence - 1;
+        wait_until("the stretch's last batches published", || {
+            [OK, STUCK].iter().all(|s| {
+                batches(&corrected, s)
+                    .iter()
+                    .any(|(b, _)| b.header.sequence == last)
+            })
         })
-    })
-    .await;
+        .await;
+    }
     wait_until("a suspect report", || {
         reports(&health, STUCK)
             .iter()

@@ -223,6 +223,7 @@ async fn a_recalibration_is_replayed_in_force_or_with_the_latest() {
             .is_some_and(|h| h.written_batches == 40)
     })
     .await;
+    wait_history_holds(&session, "hc", "rc", 39).await;
     let in_force = read_history(&session, &request).await;
     assert_eq!(versions(&in_force), [[1u64; 20], [2; 20]].concat());
     request.calibration = Some("latest".into());
@@ -547,9 +548,15 @@ async fn a_node_that_restarts_its_numbering_is_followed_by_time() {
         expected,
         "each run whole, once, in order"
     );
-    // Byte for byte what the history holds, in its order.
-    let kept = read_history(&consumer, &HistoryRequest::sensor(&b("hn"), &s("rn"))).await;
+    // Byte for byte what the history holds, in its order, once it holds as many (the last
+    // batches handed came live, and may be a flush ahead of the disk).
     let payloads: Vec<&Vec<u8>> = handed.0["rn"].iter().map(|(_, _, p)| p).collect();
+    let request = HistoryRequest::sensor(&b("hn"), &s("rn"));
+    wait_until_async("the history to hold every batch handed", || async {
+        read_history(&consumer, &request).await.len() >= payloads.len()
+    })
+    .await;
+    let kept = read_history(&consumer, &request).await;
     assert_eq!(payloads, kept.iter().collect::<Vec<_>>());
     drop(follower);
     // A follower resumed from a saved position goes on in run 1, although run 0 also had
