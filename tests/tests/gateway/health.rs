@@ -93,6 +93,21 @@ fn reports(got: &Received, sensor: &str) -> Vec<SensorHealthReport> {
         .collect()
 }
 
+/// Waits until batch `sequence` of every sensor of `sensors` has been published.
+async fn wait_published(corrected: &Received, sensors: &[&str], sequence: u64) {
+    wait_until(
+        &format!("batch {sequence} of {sensors:?} published"),
+        || {
+            sensors.iter().all(|s| {
+                batches(corrected, s)
+                    .iter()
+                    .any(|(b, _)| b.header.sequence == sequence)
+            })
+        },
+    )
+    .await;
+}
+
 fn batches(got: &Received, sensor: &str) -> Vec<(CorrectedBatch, Vec<u8>)> {
     got.lock()
         .unwrap()
@@ -184,14 +199,7 @@ async fn a_frozen_channel_makes_its_record_suspect_and_flags_its_samples() {
     for _ in 0..6 {
         send(&session, &mut nodes, 30).await;
         let last = nodes[0].sequence - 1;
-        wait_until("the stretch's last batches published", || {
-            [OK, STUCK].iter().all(|s| {
-                batches(&corrected, s)
-                    .iter()
-                    .any(|(b, _)| b.header.sequence == last)
-            })
-        })
-        .await;
+        wait_published(&corrected, &[OK, STUCK], last).await;
     }
     wait_until("a suspect report", || {
         reports(&health, STUCK)
@@ -471,14 +479,7 @@ async fn a_co_located_pair_finds_a_horizontal_gain_change() {
         // one sensor's worker may then run ahead of the other's by more than the pair holds
         // (8 segments, 40 s). Both are let through a stretch before the next one is sent.
         if (sequence + 1) % STRETCH == 0 || sequence + 1 == BATCHES {
-            wait_until("both sensors' stretch corrected", || {
-                [A, B].iter().all(|s| {
-                    batches(&corrected, s)
-                        .iter()
-                        .any(|(b, _)| b.header.sequence == sequence)
-                })
-            })
-            .await;
+            wait_published(&corrected, &[A, B], sequence).await;
         }
     }
     wait_until("both sensors reported suspect", || {
