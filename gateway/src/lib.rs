@@ -10,8 +10,9 @@
 //! Data flow:
 //!
 //! ```text
-//! triax/<b>/raw/* ─► Zenoh callback ─► Inbox (bounded, drop-oldest) ─► worker thread (per
-//!   sensor shard): sequence, SensorKernel (correct, flags), tilt ─► triax/<b>/corrected/<s>
+//! triax/<b>/raw/* ─► Zenoh callback ─► intake: the receive burst, per shard ─► the shard,
+//!   in place, or its Inbox (bounded, drop-oldest) and worker thread: sequence, SensorKernel
+//!   (correct, flags), tilt ─► outbox, at the burst's end ─► triax/<b>/corrected/<s>
 //!   (under backpressure the callback runs the shard itself)       triax/<b>/tilt/<s>
 //! triax/<b>/status ◄─ queryable (GatewayStatus JSON)      http://<metrics>/metrics (Prometheus)
 //! triax/<b>/calibration/push/* ◄─ queryable: verify, store, swap, ack ─► calibration/ack/<s>
@@ -22,7 +23,7 @@
 //! - [`sensors`]: the in-memory table of sensors, with each one's corrector snapshot, swapped
 //!   atomically between batches ([`SensorTable::install`]).
 //! - [`kernel`]: the allocation-free sample path; the mode rules and the frequency detector.
-//! - [`tilt`], [`sequence`], [`filter`], [`inbox`]: its parts.
+//! - [`tilt`], [`sequence`], [`filter`], [`inbox`], `intake`, [`outbox`]: its parts.
 //! - [`worker`], [`status`], [`metrics`], [`shutdown`]: the service around it.
 //! - [`memory`]: keeping the resident set near what is used (10 000 sensors in under 50 MB).
 //! - [`push`], [`catchup`]: signed calibration updates from the lab, pushed or caught up.
@@ -41,6 +42,7 @@ pub mod health;
 pub mod heartbeat;
 pub mod history;
 pub mod inbox;
+mod intake;
 pub mod kernel;
 pub mod memory;
 pub mod metrics;
@@ -64,7 +66,6 @@ use time::OffsetDateTime;
 use tokio::task::JoinHandle;
 use triax_calibration::corrector::Corrector;
 use triax_calibration_store::{Store, StoreError};
-use triax_protocol::keys::{self, Stream};
 use triax_protocol::signing::TrustedKeys;
 use triax_protocol::{to_json, Key};
 use zenoh::sample::Sample;
@@ -116,60 +117,6 @@ fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError 
     }
 }
 
-/// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
-enum Intake {
-    /// Drop-oldest: corrected right here when the sensor's inbox is empty and this receive
-    /// thread's budget allows, else queued for the sensor's worker (`inbox` module: correcting
-    /// in place).
-    Queues(Arc<Vec<Arc<Inbox<Sample>>>>, Shards, Arc<worker::Shared>),
-    /// Backpressure: the sensor's shard, always run right here on the receive thread.
-    Shards(Shards, Arc<worker::Shared>),
-}
-
-/// One shard per worker, shared by the worker and the receive threads.
-type Shards = Arc<Vec<Arc<std::sync::Mutex<worker::Shard>>>>;
-
-impl Intake {
-    /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
-    fn take(&self, sample: Sample) {
-        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
-        match self {
-            Intake::Queues(inboxes, shards, shared) => {
-                let i = worker::shard(sensor, inboxes.len());
-                // The receive thread's budget for correcting in place: see
-                // [`inbox::ReceiveBudget`].
-                let started = std::time::Instant::now();
-                if inbox::receive_budget_allows(started) && inboxes[i].try_claim() {
-                    worker::lock_shard(&shards[i]).handle(shared, sample);
-                    inboxes[i].release();
-                    inbox::receive_budget_spent(started, std::time::Instant::now());
-                } else {
-                    inboxes[i].push(sample);
-                }
-            }
-            Intake::Shards(shards, shared) => {
-                let i = worker::shard(sensor, shards.len());
-                worker::lock_shard(&shards[i]).handle(shared, sample);
-            }
-        }
-    }
-}
-
-/// Counts a raw payload whose key is not a concrete raw key of this building (a wildcard put
-/// reaches every building's subscription) and skips it; logs the first of each reason and then
-/// every thousandth.
-fn refuse_key(counters: &GatewayCounters, reason: keys::RawKeyRefusal, key: &str) {
-    let n = counters.refuse_key(reason);
-    if n == 1 || n % 1000 == 0 {
-        tracing::warn!(
-            key,
-            reason = reason.as_str(),
-            refused = n,
-            "raw payload on a key that is not one of this building's sensors skipped"
-        );
-    }
-}
-
 /// Closes every worker's inbox: its worker stops once it has taken what is queued, until
 /// `drain_until`.
 fn close_all(inboxes: &[Arc<Inbox<Sample>>], drain_until: std::time::Instant) {
@@ -210,7 +157,8 @@ pub struct Gateway {
     trigger: ShutdownTrigger,
     subscriber: Option<zenoh::pubsub::Subscriber<()>>,
     tasks: Vec<JoinHandle<()>>,
-    /// Drop-oldest only: the workers' inboxes and threads.
+    /// Drop-oldest only: the receive bursts' queues, the workers' inboxes and threads.
+    queues: Option<Arc<intake::Queues>>,
     inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
     workers: Vec<std::thread::JoinHandle<()>>,
     /// The history's writer thread; none when the history is off.
@@ -399,58 +347,6 @@ async fn open_history(config: &Config) -> Result<Option<history::Recorder>, Gate
     Ok(Some(recorder))
 }
 
-/// The worker inboxes (drop-oldest) or the shards (backpressure), and the raw subscription
-/// that feeds them.
-async fn start_intake(
-    config: &Config,
-    session: &zenoh::Session,
-    counters: &Arc<GatewayCounters>,
-    shared: &Arc<worker::Shared>,
-) -> Result<
-    (
-        Arc<Vec<Arc<Inbox<Sample>>>>,
-        Shards,
-        zenoh::pubsub::Subscriber<()>,
-    ),
-    GatewayError,
-> {
-    // Under backpressure nothing is queued: the receive callback runs the shards itself.
-    let n_inboxes = match config.overload {
-        Overload::DropOldest => config.workers,
-        Overload::Backpressure => 0,
-    };
-    let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
-        (0..n_inboxes)
-            .map(|_| {
-                Arc::new(Inbox::new(
-                    config.queue_capacity_batches,
-                    counters.dropped.clone(),
-                ))
-            })
-            .collect(),
-    );
-    let shards: Shards = Arc::new((0..config.workers).map(|_| Default::default()).collect());
-    let intake = match config.overload {
-        Overload::DropOldest => Intake::Queues(inboxes.clone(), shards.clone(), shared.clone()),
-        Overload::Backpressure => Intake::Shards(shards.clone(), shared.clone()),
-    };
-    let received = counters.clone();
-    let building = config.building.clone();
-    let subscriber = session
-        .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
-        .callback(move |sample: Sample| {
-            received.received_batches.fetch_add(1, Relaxed);
-            let key = sample.key_expr().as_str();
-            match keys::raw_sensor_of(key, &building) {
-                Ok(_) => intake.take(sample),
-                Err(reason) => refuse_key(&received, reason, key),
-            }
-        })
-        .await
-        .map_err(zenoh_err("subscribe to raw streams"))?;
-    Ok((inboxes, shards, subscriber))
-}
-
 /// Answers status queries until shutdown.
 async fn serve_status(
     session: &zenoh::Session,
@@ -560,7 +456,7 @@ async fn serve_metrics(
 /// already started end.
 fn start_workers(
     inboxes: &Arc<Vec<Arc<Inbox<Sample>>>>,
-    shards: &Shards,
+    shards: &worker::Shards,
     shared: &Arc<worker::Shared>,
 ) -> Result<Vec<std::thread::JoinHandle<()>>, GatewayError> {
     let mut workers = Vec::new();
@@ -642,8 +538,12 @@ impl Gateway {
             backfill: config.backfill.as_ref().map(|_| asker),
             outbox: outbox::Outbox::new(session.clone(), counters.clone()),
         });
-        let (inboxes, shards, subscriber) =
-            start_intake(&config, &session, &counters, &shared).await?;
+        let intake::Started {
+            inboxes,
+            shards,
+            queues,
+            subscriber,
+        } = intake::start(&config, &session, &counters, &shared).await?;
         let mut tasks = Vec::new();
         if let Some(settings) = config.backfill.clone() {
             let ctx = backfill::Context {
@@ -743,6 +643,7 @@ impl Gateway {
             trigger,
             subscriber: Some(subscriber),
             tasks,
+            queues,
             inboxes,
             workers,
             recorder,
@@ -806,6 +707,11 @@ impl Gateway {
         // Stop intake first; a batch still in Zenoh's hands after that finds its inbox closed
         // and is counted as dropped.
         drop(self.subscriber.take());
+        // What the last burst left waiting, should its task not have run: to the shards
+        // while their inboxes still take it.
+        if let Some(queues) = &self.queues {
+            queues.hand_over();
+        }
         close_all(
             &self.inboxes,
             std::time::Instant::now() + worker::SHUTDOWN_DRAIN,

@@ -12,8 +12,8 @@
 //! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
 //! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
 //! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
-//! published at once, behind what waits, unless a task already queued will take it with the
-//! rest. The queue keeps its room; the task is the one allocation a burst costs (the
+//! published at once, behind what waits, unless a task already queued, or a burst being
+//! corrected ([`Outbox::gathered`], the intake's), will take it with the rest. The queue keeps its room; the task is the one allocation a burst costs (the
 //! corrected payload already is one a batch).
 
 use std::sync::atomic::AtomicBool;
@@ -49,6 +49,16 @@ pub struct Outbox {
     flushing: Mutex<Vec<Outgoing>>,
 }
 
+/// The runtime to queue a burst's task on: the caller's, when it is multi-threaded. A
+/// single-threaded runtime would run the task only when its one task yields, and that may be a
+/// caller blocked on what the burst answers. Looked up only when a task is to be queued: a
+/// lookup counts the runtime's handle up and down, a line every receive thread shares.
+pub fn burst_runtime() -> Option<tokio::runtime::Handle> {
+    tokio::runtime::Handle::try_current()
+        .ok()
+        .filter(|r| r.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
+}
+
 /// Most batches that wait for their burst's end; the one that finds this many publishes them.
 /// A burst of 64 already shares its segments; a longer wait would only add latency.
 pub const WAITING_MAX: usize = 64;
@@ -76,18 +86,11 @@ impl Outbox {
         if n >= WAITING_MAX {
             return self.flush();
         }
-        // A task queued and not yet started takes this batch with the others. The runtime is
-        // looked up only when one is to be queued: a lookup counts the runtime's handle up and
-        // down, a line every receive thread shares.
+        // A task queued and not yet started takes this batch with the others.
         if self.queued.swap(true, Relaxed) {
             return;
         }
-        // A single-threaded runtime would run the task only when its one task yields, and
-        // that may be a caller blocked on what this batch answers.
-        let runtime = tokio::runtime::Handle::try_current()
-            .ok()
-            .filter(|r| r.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
-        let Some(runtime) = runtime else {
+        let Some(runtime) = burst_runtime() else {
             self.queued.store(false, Relaxed);
             return self.flush();
         };
@@ -102,6 +105,20 @@ impl Outbox {
             // the worker.
             inbox::receive_budget_spent(started, Instant::now());
         });
+    }
+
+    /// Runs `f` and then publishes every waiting batch: what `f` corrects leaves together,
+    /// and no task is queued for it.
+    pub fn gathered<R>(&self, f: impl FnOnce() -> R) -> R {
+        // Whoever set the flag queues or runs the task that clears it; else it is ours to
+        // clear. Set, it makes a worker's batch wait for this flush rather than go alone.
+        let ours = !self.queued.swap(true, Relaxed);
+        let r = f();
+        if ours {
+            self.queued.store(false, Relaxed);
+        }
+        self.flush();
+        r
     }
 
     /// Publishes every waiting batch, in order.

@@ -314,6 +314,14 @@ pub struct Shard {
     waiting_since: Option<std::time::Instant>,
 }
 
+/// How many batches ahead of its turn a burst's batch has its sensor's state asked for
+/// ([`Shard::handle_burst`]): a state is about a dozen lines, and the processor tracks a few
+/// dozen misses at once.
+const BURST_AHEAD: usize = 4;
+
+/// One shard per worker, shared by the worker and the receive threads.
+pub type Shards = Arc<Vec<Arc<Mutex<Shard>>>>;
+
 /// Batches between two looks at the clock for a sweep.
 const SWEEP_CHECK_BATCHES: u32 = 256;
 /// Least time between two sweeps of a shard.
@@ -342,7 +350,7 @@ pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shard: Arc<Mutex<Shard>>, sh
     loop {
         match inbox.take_or_idle(Some(SWEEP_INTERVAL)) {
             Next::Item(sample) => {
-                lock_shard(&shard).handle(&shared, sample);
+                lock_shard(&shard).handle(&shared, &sample);
                 inbox.release();
             }
             Next::Idle => {
@@ -390,9 +398,31 @@ fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
 }
 
 impl Shard {
+    /// Corrects and publishes a receive burst's batches of this shard, in order, each
+    /// sensor's state asked for [`BURST_AHEAD`] batches before its turn, so that its loads
+    /// overlap with the correction of the batches before it.
+    pub fn handle_burst(&mut self, shared: &Shared, samples: &[Sample]) {
+        for sample in samples.iter().take(BURST_AHEAD) {
+            self.prefetch(sample);
+        }
+        for (i, sample) in samples.iter().enumerate() {
+            if let Some(ahead) = samples.get(i + BURST_AHEAD) {
+                self.prefetch(ahead);
+            }
+            self.handle(shared, sample);
+        }
+    }
+
+    fn prefetch(&self, sample: &Sample) {
+        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+        if let Some(slot) = self.sensors.get(sensor.as_bytes()) {
+            slot.prefetch();
+        }
+    }
+
     /// Corrects and publishes one raw batch; a bad one is counted and skipped. The batch's key
     /// is a concrete raw key of the building, checked at intake.
-    pub fn handle(&mut self, shared: &Shared, sample: Sample) {
+    pub fn handle(&mut self, shared: &Shared, sample: &Sample) {
         self.sweep_now_and_then(shared);
         let Shard {
             sensors, scratch, ..

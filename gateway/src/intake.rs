@@ -1,0 +1,348 @@
+//! Raw batches from Zenoh's receive callback to their sensors' shards.
+//!
+//! Under backpressure the callback runs the sensor's shard itself. Under drop-oldest (the
+//! default) a batch arriving on a receive thread waits for the end of its receive burst, as the
+//! corrected batches wait in the [`outbox`](crate::outbox): a task queued on that thread's
+//! runtime then hands the burst over shard by shard. A shard whose inbox is empty and free is
+//! claimed once for all its batches of the burst and corrected in place
+//! ([`Shard::handle_burst`](crate::worker::Shard::handle_burst)), within the receive thread's
+//! [`ReceiveBudget`](crate::inbox::ReceiveBudget); otherwise its batches join its inbox for the
+//! worker.
+//!
+//! Why wait: at a building's pace every batch finds its sensor's state out of the cache, and
+//! handled one by one as it arrived, each batch waited for its own loads. A burst known whole
+//! lets each sensor's state be asked for while the batches before it are corrected, and the
+//! claims, locks and clock reads are paid once a shard and burst instead of once a batch
+//! (BENCHMARKS.md, "An eighth look").
+//!
+//! Invariants: a sensor's batches reach its shard in the order they arrived (one queue per
+//! shard, taken whole and handed over under `handling`, and an inbox that holds a shard's
+//! earlier batches keeps its later ones); at most [`BURST_MAX`] batches wait, for at most one
+//! burst; a batch that arrives off a multi-threaded Tokio runtime (a local put, on its caller's
+//! thread) is handed over at once with whatever waits; at the gateway's stop what waits is
+//! handed over before the inboxes close ([`Queues::hand_over`]).
+
+use std::sync::atomic::AtomicBool;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use triax_protocol::keys::{self, Stream};
+use zenoh::sample::Sample;
+
+use crate::inbox::{self, Inbox};
+use crate::sensors::{lock, GatewayCounters};
+use crate::worker::{self, Shards};
+use crate::{zenoh_err, Config, GatewayError, Overload};
+
+/// Most batches that wait for the end of their burst; the one that finds this many hands them
+/// over at once. As many as the outbox holds ([`crate::outbox::WAITING_MAX`]).
+pub const BURST_MAX: usize = crate::outbox::WAITING_MAX;
+
+/// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
+pub(crate) enum Intake {
+    /// Drop-oldest: the burst's queues, handed to the shards at its end.
+    Queues(Arc<Queues>),
+    /// Backpressure: the sensor's shard, always run right here on the receive thread.
+    Shards(Shards, Arc<worker::Shared>),
+}
+
+impl Intake {
+    /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
+    fn take(&self, sample: Sample) {
+        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+        match self {
+            Intake::Queues(queues) => {
+                let i = worker::shard(sensor, queues.inboxes.len());
+                queues.take(i, sample);
+            }
+            Intake::Shards(shards, shared) => {
+                let i = worker::shard(sensor, shards.len());
+                worker::lock_shard(&shards[i]).handle(shared, &sample);
+            }
+        }
+    }
+}
+
+/// The drop-oldest intake: each shard's inbox, and the batches of the current burst.
+pub(crate) struct Queues {
+    pub inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    shards: Shards,
+    shared: Arc<worker::Shared>,
+    burst: Burst<Sample>,
+}
+
+impl Queues {
+    fn take(self: &Arc<Self>, shard: usize, sample: Sample) {
+        match self.burst.push(shard, sample) {
+            Pushed::Waits => {}
+            Pushed::Full => self.hand_over(),
+            Pushed::First => match crate::outbox::burst_runtime() {
+                Some(runtime) => {
+                    let queues = self.clone();
+                    runtime.spawn(async move {
+                        // Cleared before the burst is taken: a batch added after the take
+                        // queues a new task.
+                        queues.burst.task_started();
+                        queues.hand_over();
+                    });
+                }
+                None => {
+                    self.burst.task_started();
+                    self.hand_over();
+                }
+            },
+        }
+    }
+
+    /// Hands every waiting batch to its shard: corrected here when the shard's inbox is free
+    /// and this thread's budget allows, else queued for its worker; then publishes what was
+    /// corrected.
+    pub fn hand_over(&self) {
+        let outbox = &self.shared.outbox;
+        let mut started = Instant::now();
+        outbox.gathered(|| {
+            self.burst.take(|i, samples| {
+                if inbox::receive_budget_allows(started) && self.inboxes[i].try_claim() {
+                    worker::lock_shard(&self.shards[i]).handle_burst(&self.shared, samples);
+                    self.inboxes[i].release();
+                    let ended = Instant::now();
+                    inbox::receive_budget_spent(started, ended);
+                    started = ended;
+                } else {
+                    for sample in samples.drain(..) {
+                        self.inboxes[i].push(sample);
+                    }
+                }
+            });
+        });
+        // Publishing is part of correcting in place: a worker's batch is published by the
+        // worker.
+        inbox::receive_budget_spent(started, Instant::now());
+    }
+}
+
+/// Batches waiting for the end of their burst, one queue per shard.
+pub struct Burst<T> {
+    waiting: Mutex<Waiting<T>>,
+    /// Whether a task that takes the burst is queued and has not yet started.
+    queued: AtomicBool,
+    /// Held while a burst is handed over, so that two never interleave a shard's batches; the
+    /// queues are swapped into it whole and keep their room for the next burst.
+    handling: Mutex<Vec<Vec<T>>>,
+}
+
+struct Waiting<T> {
+    per_shard: Vec<Vec<T>>,
+    len: usize,
+}
+
+/// What [`Burst::push`] asks of its caller.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Pushed {
+    /// A task queued earlier takes this batch with the others.
+    Waits,
+    /// The first of a burst: queue a task that calls [`Burst::task_started`] and then takes
+    /// the burst (or do both now, with no runtime to queue it on).
+    First,
+    /// [`BURST_MAX`] batches wait: take them now.
+    Full,
+}
+
+impl<T> Burst<T> {
+    pub fn new(shards: usize) -> Burst<T> {
+        let queues = || (0..shards).map(|_| Vec::with_capacity(BURST_MAX)).collect();
+        Burst {
+            waiting: Mutex::new(Waiting {
+                per_shard: queues(),
+                len: 0,
+            }),
+            queued: AtomicBool::new(false),
+            handling: Mutex::new(queues()),
+        }
+    }
+
+    pub fn push(&self, shard: usize, item: T) -> Pushed {
+        let len = {
+            let mut waiting = lock(&self.waiting);
+            waiting.per_shard[shard].push(item);
+            waiting.len += 1;
+            waiting.len
+        };
+        if len >= BURST_MAX {
+            Pushed::Full
+        } else if self.queued.swap(true, Relaxed) {
+            Pushed::Waits
+        } else {
+            Pushed::First
+        }
+    }
+
+    /// The queued task started: a batch pushed from now on queues another.
+    pub fn task_started(&self) {
+        self.queued.store(false, Relaxed);
+    }
+
+    /// Takes every waiting batch and hands each shard's, in arrival order, to `f`, which
+    /// leaves the queue empty or has it cleared.
+    pub fn take(&self, mut f: impl FnMut(usize, &mut Vec<T>)) {
+        let mut handling = lock(&self.handling);
+        {
+            let mut waiting = lock(&self.waiting);
+            if waiting.len == 0 {
+                return;
+            }
+            waiting.len = 0;
+            std::mem::swap(&mut *handling, &mut waiting.per_shard);
+        }
+        for (i, items) in handling.iter_mut().enumerate() {
+            if !items.is_empty() {
+                f(i, items);
+                items.clear();
+            }
+        }
+    }
+}
+
+/// Counts a raw payload whose key is not a concrete raw key of this building (a wildcard put
+/// reaches every building's subscription) and skips it; logs the first of each reason and then
+/// every thousandth.
+fn refuse_key(counters: &GatewayCounters, reason: keys::RawKeyRefusal, key: &str) {
+    let n = counters.refuse_key(reason);
+    if n == 1 || n % 1000 == 0 {
+        tracing::warn!(
+            key,
+            reason = reason.as_str(),
+            refused = n,
+            "raw payload on a key that is not one of this building's sensors skipped"
+        );
+    }
+}
+
+/// What [`start`] sets up.
+pub(crate) struct Started {
+    /// One per worker; none under backpressure.
+    pub inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    pub shards: Shards,
+    /// Drop-oldest only.
+    pub queues: Option<Arc<Queues>>,
+    pub subscriber: zenoh::pubsub::Subscriber<()>,
+}
+
+/// The worker inboxes (drop-oldest) or the shards (backpressure), and the raw subscription
+/// that feeds them.
+pub(crate) async fn start(
+    config: &Config,
+    session: &zenoh::Session,
+    counters: &Arc<GatewayCounters>,
+    shared: &Arc<worker::Shared>,
+) -> Result<Started, GatewayError> {
+    // Under backpressure nothing is queued: the receive callback runs the shards itself.
+    let n_inboxes = match config.overload {
+        Overload::DropOldest => config.workers,
+        Overload::Backpressure => 0,
+    };
+    let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
+        (0..n_inboxes)
+            .map(|_| {
+                Arc::new(Inbox::new(
+                    config.queue_capacity_batches,
+                    counters.dropped.clone(),
+                ))
+            })
+            .collect(),
+    );
+    let shards: Shards = Arc::new((0..config.workers).map(|_| Default::default()).collect());
+    let (intake, queues) = match config.overload {
+        Overload::DropOldest => {
+            let queues = Arc::new(Queues {
+                inboxes: inboxes.clone(),
+                shards: shards.clone(),
+                shared: shared.clone(),
+                burst: Burst::new(inboxes.len()),
+            });
+            (Intake::Queues(queues.clone()), Some(queues))
+        }
+        Overload::Backpressure => (Intake::Shards(shards.clone(), shared.clone()), None),
+    };
+    let received = counters.clone();
+    let building = config.building.clone();
+    let subscriber = session
+        .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
+        .callback(move |sample: Sample| {
+            received.received_batches.fetch_add(1, Relaxed);
+            let key = sample.key_expr().as_str();
+            match keys::raw_sensor_of(key, &building) {
+                Ok(_) => intake.take(sample),
+                Err(reason) => refuse_key(&received, reason, key),
+            }
+        })
+        .await
+        .map_err(zenoh_err("subscribe to raw streams"))?;
+    Ok(Started {
+        inboxes,
+        shards,
+        queues,
+        subscriber,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_burst_is_taken_whole_in_order_per_shard() {
+        let burst = Burst::new(2);
+        assert_eq!(burst.push(0, 1), Pushed::First);
+        assert_eq!(burst.push(1, 2), Pushed::Waits);
+        assert_eq!(burst.push(0, 3), Pushed::Waits);
+        burst.task_started();
+        let mut seen = Vec::new();
+        burst.take(|i, items| seen.push((i, std::mem::take(items))));
+        assert_eq!(seen, [(0, vec![1, 3]), (1, vec![2])]);
+        // Taken: nothing twice, and the next push starts a new burst.
+        burst.take(|_, _| panic!("taken twice"));
+        assert_eq!(burst.push(1, 4), Pushed::First);
+    }
+
+    #[test]
+    fn a_full_burst_is_taken_at_once() {
+        let burst = Burst::new(1);
+        for n in 1..BURST_MAX {
+            assert_ne!(burst.push(0, n), Pushed::Full, "batch {n}");
+        }
+        assert_eq!(burst.push(0, BURST_MAX), Pushed::Full);
+        let mut n = 0;
+        burst.take(|_, items| n = items.len());
+        assert_eq!(n, BURST_MAX);
+    }
+
+    /// Two threads push, two take: every shard's items come out in the order they went in,
+    /// none lost, none twice.
+    #[test]
+    fn concurrent_bursts_keep_each_shards_order() {
+        const N: usize = 20_000;
+        let burst = Arc::new(Burst::new(2));
+        let taken: Arc<Mutex<[Vec<usize>; 2]>> = Arc::default();
+        let pusher = |shard: usize| {
+            let (burst, taken) = (burst.clone(), taken.clone());
+            std::thread::spawn(move || {
+                for n in 0..N {
+                    if burst.push(shard, n) != Pushed::Waits {
+                        burst.task_started();
+                        burst.take(|i, items| lock(&taken)[i].append(items));
+                    }
+                }
+            })
+        };
+        let (a, b) = (pusher(0), pusher(1));
+        a.join().expect("pusher 0");
+        b.join().expect("pusher 1");
+        burst.take(|i, items| lock(&taken)[i].append(items));
+        let taken = lock(&taken);
+        for (shard, items) in taken.iter().enumerate() {
+            assert_eq!(*items, (0..N).collect::<Vec<_>>(), "shard {shard}");
+        }
+    }
+}
