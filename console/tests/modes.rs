@@ -12,6 +12,7 @@ use triax_protocol::messages::{
     BuildingModes, ModalDirection, ModalEstimate, ModalVerdict, ModeReport, ModeShapeComponent,
 };
 use triax_protocol::{to_json, BuildingId, SensorId};
+use zenoh::qos::CongestionControl;
 
 const WINDOW_NS: i64 = 1_800_000_000_000;
 
@@ -105,7 +106,14 @@ async fn modes_trend_and_shapes_over_http_and_in_a_browser() {
     let t0_ns = (now_ns() - 8 * WINDOW_NS) / WINDOW_NS * WINDOW_NS;
     let put = |m: BuildingModes| {
         let session = site.session.clone();
-        async move { session.put("triax/hq/modes", to_json(&m)).await.unwrap() }
+        async move {
+            // As the modes service publishes: a full link waits rather than drops.
+            session
+                .put("triax/hq/modes", to_json(&m))
+                .congestion_control(CongestionControl::Block)
+                .await
+                .unwrap()
+        }
     };
     // The first window until the console has it: its subscription is then in place. The same
     // window again replaces itself.
@@ -128,6 +136,7 @@ async fn modes_trend_and_shapes_over_http_and_in_a_browser() {
     put(window("hq", 6, t0_ns, true)).await;
     site.session
         .put("triax/hq/modes", to_json(&window("b2", 7, t0_ns, false)))
+        .congestion_control(CongestionControl::Block)
         .await
         .unwrap();
     let v = console

@@ -66,7 +66,7 @@ impl Intake {
 
 /// The drop-oldest intake: each shard's inbox, and the batches of the current burst.
 pub(crate) struct Queues {
-    pub inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
     shards: Shards,
     shared: Arc<worker::Shared>,
     burst: Burst<Sample>,

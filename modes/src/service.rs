@@ -32,6 +32,7 @@ use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::messages::Alert;
 use triax_protocol::signing::{sign_alert, LabSigningKey};
 use triax_protocol::{to_json, BuildingId, Key};
+use zenoh::qos::CongestionControl;
 
 use crate::building::{identify_window, Building, BuildingState};
 use triax_modal::{Identification, ModalError};
@@ -339,7 +340,12 @@ async fn conclude(
         }
     }
     let key = Key::Modes(building.id.clone()).to_string();
-    if let Err(e) = session.put(&key, to_json(m)).await {
+    // Zenoh's default for a put drops it when a link's queue is full: a window, a few a hour,
+    // and an alert must wait instead, as `triax-alert`'s alerts do.
+    let put = session
+        .put(&key, to_json(m))
+        .congestion_control(CongestionControl::Block);
+    if let Err(e) = put.await {
         tracing::error!(key = %key, cause = %e, "modes not published");
     }
     for alert in &outcome.alerts {
@@ -359,7 +365,10 @@ async fn publish_alert(session: &zenoh::Session, alert: &Alert, key: &LabSigning
     );
     let signed = sign_alert(alert, key);
     let expr = Key::Alert(alert.building.clone(), alert.sensor_id.clone()).to_string();
-    if let Err(e) = session.put(&expr, to_json(&signed)).await {
+    let put = session
+        .put(&expr, to_json(&signed))
+        .congestion_control(CongestionControl::Block);
+    if let Err(e) = put.await {
         tracing::error!(key = %expr, cause = %e, "alert not published");
     }
 }

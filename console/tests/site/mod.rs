@@ -208,6 +208,7 @@ impl Site {
         };
         self.session
             .put(format!("triax/hq/alert/{sensor}"), payload)
+            .congestion_control(zenoh::qos::CongestionControl::Block)
             .await
             .unwrap();
     }
