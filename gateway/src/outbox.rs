@@ -13,8 +13,9 @@
 //! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
 //! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
 //! published at once, behind what waits, unless a task already queued, or a burst being
-//! corrected ([`Outbox::gathered`], the intake's), will take it with the rest. The queue keeps its room; the task is the one allocation a burst costs (the
-//! corrected payload already is one a batch).
+//! corrected ([`Outbox::gathered`], the intake's), will take it with the rest. The queue keeps
+//! its room; the task is the one allocation a burst costs (the corrected payload already is one
+//! a batch).
 
 use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;

@@ -329,6 +329,7 @@ pub fn zenoh_cause(e: &(dyn std::error::Error + Send + Sync)) -> String {
 /// 1 MiB a link), which absorbs a healthy consumer's hiccups, and no wait at all, so that a full
 /// link costs its put nothing.
 pub const PUBLISHER_TX_QUEUE_BATCHES: u32 = 16;
+pub const PUBLISHER_WAIT_BEFORE_DROP_US: u32 = 0;
 
 /// Receive buffers (a batch each: 64 KiB on TCP) Zenoh keeps per link for reuse, for
 /// [`ZenohSettings::to_publisher_config`]: its default keeps one. A session that holds received
@@ -336,7 +337,6 @@ pub const PUBLISHER_TX_QUEUE_BATCHES: u32 = 16;
 /// would otherwise have Zenoh allocate and zero a fresh buffer for that read. Only buffers
 /// needed at once are ever allocated.
 pub const RECEIVE_BUFFERS_KEPT: u32 = 8;
-pub const PUBLISHER_WAIT_BEFORE_DROP_US: u32 = 0;
 
 /// A TCP port on 127.0.0.1 that was free a moment ago, for demos, tests and benches that start
 /// a Zenoh listener other sessions must connect to: Zenoh 1.10's stable API does not report the
