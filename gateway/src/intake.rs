@@ -15,29 +15,25 @@
 //! claims, locks and clock reads are paid once a shard and burst instead of once a batch
 //! (BENCHMARKS.md, "An eighth look").
 //!
-//! Invariants: a sensor's batches reach its shard in the order they arrived (one queue per
-//! shard, taken whole and handed over under `handling`, and an inbox that holds a shard's
-//! earlier batches keeps its later ones); at most [`BURST_MAX`] batches wait, for at most one
-//! burst; a batch that arrives off a multi-threaded Tokio runtime (a local put, on its caller's
-//! thread) is handed over at once with whatever waits; at the gateway's stop what waits is
-//! handed over before the inboxes close ([`Queues::hand_over`]).
+//! Invariants: a sensor's batches reach its shard in the order they arrived (a [`Burst`]
+//! queue per shard, and an inbox that holds a shard's earlier batches keeps its later ones); at
+//! most [`BURST_MAX`](burst::BURST_MAX) batches wait, for at most one burst; a batch that
+//! arrives off a multi-threaded Tokio runtime (a local put, on its caller's thread) is handed
+//! over at once with whatever waits; at the gateway's stop what waits is handed over before the
+//! inboxes close ([`Queues::hand_over`]).
 
-use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use triax_protocol::keys::{self, Stream};
 use zenoh::sample::Sample;
 
+use crate::burst::{self, Burst, Pushed};
 use crate::inbox::{self, Inbox};
-use crate::sensors::{lock, GatewayCounters};
+use crate::sensors::GatewayCounters;
 use crate::worker::{self, Shards};
 use crate::{zenoh_err, Config, GatewayError, Overload};
-
-/// Most batches that wait for the end of their burst; the one that finds this many hands them
-/// over at once. As many as the outbox holds ([`crate::outbox::WAITING_MAX`]).
-pub const BURST_MAX: usize = crate::outbox::WAITING_MAX;
 
 /// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
 pub(crate) enum Intake {
@@ -77,7 +73,7 @@ impl Queues {
         match self.burst.push(shard, sample) {
             Pushed::Waits => {}
             Pushed::Full => self.hand_over(),
-            Pushed::First => match crate::outbox::burst_runtime() {
+            Pushed::First => match burst::runtime() {
                 Some(runtime) => {
                     let queues = self.clone();
                     runtime.spawn(async move {
@@ -119,88 +115,6 @@ impl Queues {
         // Publishing is part of correcting in place: a worker's batch is published by the
         // worker.
         inbox::receive_budget_spent(started, Instant::now());
-    }
-}
-
-/// Batches waiting for the end of their burst, one queue per shard.
-pub struct Burst<T> {
-    waiting: Mutex<Waiting<T>>,
-    /// Whether a task that takes the burst is queued and has not yet started.
-    queued: AtomicBool,
-    /// Held while a burst is handed over, so that two never interleave a shard's batches; the
-    /// queues are swapped into it whole and keep their room for the next burst.
-    handling: Mutex<Vec<Vec<T>>>,
-}
-
-struct Waiting<T> {
-    per_shard: Vec<Vec<T>>,
-    len: usize,
-}
-
-/// What [`Burst::push`] asks of its caller.
-#[derive(Debug, PartialEq, Eq)]
-pub enum Pushed {
-    /// A task queued earlier takes this batch with the others.
-    Waits,
-    /// The first of a burst: queue a task that calls [`Burst::task_started`] and then takes
-    /// the burst (or do both now, with no runtime to queue it on).
-    First,
-    /// [`BURST_MAX`] batches wait: take them now.
-    Full,
-}
-
-impl<T> Burst<T> {
-    pub fn new(shards: usize) -> Burst<T> {
-        let queues = || (0..shards).map(|_| Vec::with_capacity(BURST_MAX)).collect();
-        Burst {
-            waiting: Mutex::new(Waiting {
-                per_shard: queues(),
-                len: 0,
-            }),
-            queued: AtomicBool::new(false),
-            handling: Mutex::new(queues()),
-        }
-    }
-
-    pub fn push(&self, shard: usize, item: T) -> Pushed {
-        let len = {
-            let mut waiting = lock(&self.waiting);
-            waiting.per_shard[shard].push(item);
-            waiting.len += 1;
-            waiting.len
-        };
-        if len >= BURST_MAX {
-            Pushed::Full
-        } else if self.queued.swap(true, Relaxed) {
-            Pushed::Waits
-        } else {
-            Pushed::First
-        }
-    }
-
-    /// The queued task started: a batch pushed from now on queues another.
-    pub fn task_started(&self) {
-        self.queued.store(false, Relaxed);
-    }
-
-    /// Takes every waiting batch and hands each shard's, in arrival order, to `f`, which
-    /// leaves the queue empty or has it cleared.
-    pub fn take(&self, mut f: impl FnMut(usize, &mut Vec<T>)) {
-        let mut handling = lock(&self.handling);
-        {
-            let mut waiting = lock(&self.waiting);
-            if waiting.len == 0 {
-                return;
-            }
-            waiting.len = 0;
-            std::mem::swap(&mut *handling, &mut waiting.per_shard);
-        }
-        for (i, items) in handling.iter_mut().enumerate() {
-            if !items.is_empty() {
-                f(i, items);
-                items.clear();
-            }
-        }
     }
 }
 
@@ -285,64 +199,4 @@ pub(crate) async fn start(
         queues,
         subscriber,
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_burst_is_taken_whole_in_order_per_shard() {
-        let burst = Burst::new(2);
-        assert_eq!(burst.push(0, 1), Pushed::First);
-        assert_eq!(burst.push(1, 2), Pushed::Waits);
-        assert_eq!(burst.push(0, 3), Pushed::Waits);
-        burst.task_started();
-        let mut seen = Vec::new();
-        burst.take(|i, items| seen.push((i, std::mem::take(items))));
-        assert_eq!(seen, [(0, vec![1, 3]), (1, vec![2])]);
-        // Taken: nothing twice, and the next push starts a new burst.
-        burst.take(|_, _| panic!("taken twice"));
-        assert_eq!(burst.push(1, 4), Pushed::First);
-    }
-
-    #[test]
-    fn a_full_burst_is_taken_at_once() {
-        let burst = Burst::new(1);
-        for n in 1..BURST_MAX {
-            assert_ne!(burst.push(0, n), Pushed::Full, "batch {n}");
-        }
-        assert_eq!(burst.push(0, BURST_MAX), Pushed::Full);
-        let mut n = 0;
-        burst.take(|_, items| n = items.len());
-        assert_eq!(n, BURST_MAX);
-    }
-
-    /// Two threads push, two take: every shard's items come out in the order they went in,
-    /// none lost, none twice.
-    #[test]
-    fn concurrent_bursts_keep_each_shards_order() {
-        const N: usize = 20_000;
-        let burst = Arc::new(Burst::new(2));
-        let taken: Arc<Mutex<[Vec<usize>; 2]>> = Arc::default();
-        let pusher = |shard: usize| {
-            let (burst, taken) = (burst.clone(), taken.clone());
-            std::thread::spawn(move || {
-                for n in 0..N {
-                    if burst.push(shard, n) != Pushed::Waits {
-                        burst.task_started();
-                        burst.take(|i, items| lock(&taken)[i].append(items));
-                    }
-                }
-            })
-        };
-        let (a, b) = (pusher(0), pusher(1));
-        a.join().expect("pusher 0");
-        b.join().expect("pusher 1");
-        burst.take(|i, items| lock(&taken)[i].append(items));
-        let taken = lock(&taken);
-        for (shard, items) in taken.iter().enumerate() {
-            assert_eq!(*items, (0..N).collect::<Vec<_>>(), "shard {shard}");
-        }
-    }
 }

@@ -23,7 +23,7 @@
 //! - [`sensors`]: the in-memory table of sensors, with each one's corrector snapshot, swapped
 //!   atomically between batches ([`SensorTable::install`]).
 //! - [`kernel`]: the allocation-free sample path; the mode rules and the frequency detector.
-//! - [`tilt`], [`sequence`], [`filter`], [`inbox`], `intake`, [`outbox`]: its parts.
+//! - [`tilt`], [`sequence`], [`filter`], [`inbox`], `intake`, [`outbox`], `burst`: its parts.
 //! - [`worker`], [`status`], [`metrics`], [`shutdown`]: the service around it.
 //! - [`memory`]: keeping the resident set near what is used (10 000 sensors in under 50 MB).
 //! - [`push`], [`catchup`]: signed calibration updates from the lab, pushed or caught up.
@@ -34,6 +34,7 @@
 //! is used from blocking tasks only.
 
 pub mod backfill;
+mod burst;
 pub mod catchup;
 pub mod config;
 pub mod demo;

@@ -8,26 +8,26 @@
 //! the read: Tokio runs a task spawned from a worker when the running one yields, and the
 //! receive task yields when its socket has nothing more (BENCHMARKS.md, "A fifth look").
 //!
-//! Invariants: a sensor's batches leave in the order they were corrected (one queue, taken
-//! whole and published under `flushing`); at most [`WAITING_MAX`] batches wait, for at most
-//! one burst (the worker's idle sweep and the gateway's stop publish what a task never took);
-//! a batch corrected off a multi-threaded Tokio runtime (on a correction worker's thread) is
-//! published at once, behind what waits, unless a task already queued, or a burst being
-//! corrected ([`Outbox::gathered`], the intake's), will take it with the rest. The queue keeps
-//! its room; the task is the one allocation a burst costs (the corrected payload already is one
-//! a batch).
+//! Invariants: a sensor's batches leave in the order they were corrected (one [`Burst`]
+//! queue, taken whole and published under its lock); at most [`BURST_MAX`](burst::BURST_MAX)
+//! batches wait, for at most one burst (the worker's idle sweep and the gateway's stop publish
+//! what a task never took); a batch corrected off a multi-threaded Tokio runtime (on a
+//! correction worker's thread) is published at once, behind what waits, unless a task already
+//! queued, or a burst being corrected ([`Outbox::gathered`], the intake's), will take it with
+//! the rest. The queue keeps its room; the task is the one allocation a burst costs (the
+//! corrected payload already is one a batch).
 
-use std::sync::atomic::AtomicBool;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use crate::burst::{self, Burst, Pushed};
 use crate::inbox;
-use crate::sensors::{lock, GatewayCounters, SensorEntry};
+use crate::sensors::{GatewayCounters, SensorEntry};
 
 /// One corrected batch, and what its publication updates.
 pub struct Outgoing {
@@ -42,81 +42,56 @@ pub struct Outgoing {
 pub struct Outbox {
     session: zenoh::Session,
     counters: Arc<GatewayCounters>,
-    waiting: Mutex<Vec<Outgoing>>,
-    /// Whether a publishing task is queued and has not yet taken the queue.
-    queued: AtomicBool,
-    /// Held while publishing, so that two publishers never interleave a sensor's batches; the
-    /// queue is swapped into it whole, and it keeps its room for the next one.
-    flushing: Mutex<Vec<Outgoing>>,
+    /// One queue: a sensor's batches are published in the order they were corrected.
+    waiting: Burst<Outgoing>,
 }
-
-/// The runtime to queue a burst's task on: the caller's, when it is multi-threaded. A
-/// single-threaded runtime would run the task only when its one task yields, and that may be a
-/// caller blocked on what the burst answers. Looked up only when a task is to be queued: a
-/// lookup counts the runtime's handle up and down, a line every receive thread shares.
-pub fn burst_runtime() -> Option<tokio::runtime::Handle> {
-    tokio::runtime::Handle::try_current()
-        .ok()
-        .filter(|r| r.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
-}
-
-/// Most batches that wait for their burst's end; the one that finds this many publishes them.
-/// A burst of 64 already shares its segments; a longer wait would only add latency.
-pub const WAITING_MAX: usize = 64;
 
 impl Outbox {
     pub fn new(session: zenoh::Session, counters: Arc<GatewayCounters>) -> Arc<Outbox> {
         Arc::new(Outbox {
             session,
             counters,
-            waiting: Mutex::new(Vec::with_capacity(WAITING_MAX)),
-            queued: AtomicBool::new(false),
-            flushing: Mutex::new(Vec::with_capacity(WAITING_MAX)),
+            waiting: Burst::new(1),
         })
     }
 
     /// Publishes `out` at the end of the current receive burst, or now (behind whatever
-    /// waits) when [`WAITING_MAX`] batches wait, or when no task is queued and the caller is
+    /// waits) when [`BURST_MAX`](burst::BURST_MAX) batches wait, or when no task is queued and the caller is
     /// not on a multi-threaded runtime to queue one.
     pub fn send(self: &Arc<Self>, out: Outgoing) {
-        let n = {
-            let mut waiting = lock(&self.waiting);
-            waiting.push(out);
-            waiting.len()
-        };
-        if n >= WAITING_MAX {
-            return self.flush();
+        match self.waiting.push(0, out) {
+            Pushed::Waits => {}
+            Pushed::Full => self.flush(),
+            Pushed::First => match burst::runtime() {
+                Some(runtime) => {
+                    let outbox = self.clone();
+                    runtime.spawn(async move {
+                        // Cleared before the queue is taken: a batch added after the take
+                        // queues a new task.
+                        outbox.waiting.task_started();
+                        let started = Instant::now();
+                        outbox.flush();
+                        // Publishing is part of correcting in place: a worker's batch is
+                        // published by the worker.
+                        inbox::receive_budget_spent(started, Instant::now());
+                    });
+                }
+                None => {
+                    self.waiting.task_started();
+                    self.flush();
+                }
+            },
         }
-        // A task queued and not yet started takes this batch with the others.
-        if self.queued.swap(true, Relaxed) {
-            return;
-        }
-        let Some(runtime) = burst_runtime() else {
-            self.queued.store(false, Relaxed);
-            return self.flush();
-        };
-        let outbox = self.clone();
-        runtime.spawn(async move {
-            // Cleared before the queue is taken: a batch added after the take queues a new
-            // task.
-            outbox.queued.store(false, Relaxed);
-            let started = Instant::now();
-            outbox.flush();
-            // Publishing is part of correcting in place: a worker's batch is published by
-            // the worker.
-            inbox::receive_budget_spent(started, Instant::now());
-        });
     }
 
     /// Runs `f` and then publishes every waiting batch: what `f` corrects leaves together,
-    /// and no task is queued for it.
+    /// and no task is queued for it. Meanwhile a worker's batch waits for this flush rather
+    /// than go alone.
     pub fn gathered<R>(&self, f: impl FnOnce() -> R) -> R {
-        // Whoever set the flag queues or runs the task that clears it; else it is ours to
-        // clear. Set, it makes a worker's batch wait for this flush rather than go alone.
-        let ours = !self.queued.swap(true, Relaxed);
+        let ours = self.waiting.announce();
         let r = f();
         if ours {
-            self.queued.store(false, Relaxed);
+            self.waiting.task_started();
         }
         self.flush();
         r
@@ -124,16 +99,13 @@ impl Outbox {
 
     /// Publishes every waiting batch, in order.
     pub fn flush(&self) {
-        let mut flushing = lock(&self.flushing);
-        std::mem::swap(&mut *flushing, &mut *lock(&self.waiting));
-        if flushing.is_empty() {
-            return;
-        }
-        // One look at the clock for the lot: they leave within microseconds of one another.
-        let published_ns = crate::worker::now_ns();
-        for out in flushing.drain(..) {
-            self.publish(out, published_ns);
-        }
+        self.waiting.take(|_, batches| {
+            // One look at the clock for the lot: they leave within microseconds of one another.
+            let published_ns = crate::worker::now_ns();
+            for out in batches.drain(..) {
+                self.publish(out, published_ns);
+            }
+        });
     }
 
     fn publish(&self, out: Outgoing, published_ns: i64) {
@@ -167,6 +139,10 @@ mod tests {
     use triax_protocol::SensorId;
 
     use super::*;
+    use std::sync::Mutex;
+
+    use crate::burst::BURST_MAX;
+    use crate::sensors::lock;
     use crate::SensorSettings;
 
     /// A session on its own (no scouting, no listener): its own puts reach its own callback
@@ -203,7 +179,7 @@ mod tests {
         _sub: zenoh::pubsub::Subscriber<()>,
     }
 
-    const LAST: u64 = 3 * WAITING_MAX as u64 + 9;
+    const LAST: u64 = 3 * BURST_MAX as u64 + 9;
 
     async fn bench() -> Bench {
         let session = session().await;
@@ -270,7 +246,7 @@ mod tests {
         let seen_during = burst.await.expect("burst task ends");
         // Nothing left before the 64th, which published all 64 (the task queued by the first
         // waits behind the burst's own); what the last ones waited for left at the end.
-        let w = WAITING_MAX;
+        let w = BURST_MAX;
         assert!(
             seen_during[..w - 1].iter().all(|&k| k == 0),
             "{seen_during:?}"
