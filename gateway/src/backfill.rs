@@ -18,7 +18,8 @@
 //! between the batches around the hole) and anything else is counted
 //! (`backfill.rejected_replies`) and skipped. What an answer lacked is asked again while the
 //! last answer brought something ([`ATTEMPTS`]), and all fills together go at most
-//! `[backfill] max_batches_per_s`, so that an outage's return does not crowd out the live stream. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
+//! `[backfill] max_batches_per_s`, so that an outage's return does not crowd out the live
+//! stream. Batches are corrected in chunks of [`CHUNK`] under the shard's lock
 //! ([`crate::worker::Shard::correct_late`]) and published after it, so that a live batch waits
 //! for at most one chunk's correction, with a kernel of their own restored from the state
 //! before the gap (a cold one after the gateway's restart, as the live path was then): the live
