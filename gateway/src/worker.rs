@@ -232,18 +232,13 @@ impl Slot {
     }
 
     fn prefetch(&self) {
-        self.hints().prefetch();
-    }
-
-    /// Where the state and its parts are, to be asked for later without the table.
-    fn hints(&self) -> Hints {
-        let mut at = [(0, 0); 6];
-        at[0] = (
+        prefetch_bytes(
             std::ptr::from_ref::<SensorState>(&self.state) as usize,
             std::mem::size_of::<SensorState>(),
         );
-        at[1..].copy_from_slice(&self.apart);
-        Hints(at)
+        for &(at, bytes) in &self.apart {
+            prefetch_bytes(at, bytes);
+        }
     }
 
     /// Notes where the state's parts are now, for the next batch's [`Slot::prefetch`].
@@ -324,23 +319,6 @@ pub struct Shard {
 /// dozen misses at once.
 const BURST_AHEAD: usize = 4;
 
-/// Batches of a burst whose sensors are looked up together, before the first is handled.
-const LOOKED_UP_TOGETHER: usize = 16;
-
-/// A slot's [`Slot::hints`]: addresses and sizes, never read through. Taken before a chunk's
-/// first batch is handled, they may be stale by a later one's turn (a part replaced, a new
-/// sensor not yet in the table): a useless load, or none, never a fault.
-#[derive(Clone, Copy, Default)]
-struct Hints([(usize, usize); 6]);
-
-impl Hints {
-    fn prefetch(&self) {
-        for &(at, bytes) in &self.0 {
-            prefetch_bytes(at, bytes);
-        }
-    }
-}
-
 /// One shard per worker, shared by the worker and the receive threads.
 pub type Shards = Arc<Vec<Arc<Mutex<Shard>>>>;
 
@@ -420,37 +398,26 @@ fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
 }
 
 impl Shard {
-    /// Corrects and publishes a receive burst's batches of this shard, in order. Their
-    /// sensors are looked up first, [`LOOKED_UP_TOGETHER`] at a time, and each sensor's state
-    /// is asked for [`BURST_AHEAD`] batches before its turn, so that its loads overlap with
-    /// the correction of the batches before it.
+    /// Corrects and publishes a receive burst's batches of this shard, in order, each
+    /// sensor's state asked for [`BURST_AHEAD`] batches before its turn, so that its loads
+    /// overlap with the correction of the batches before it.
     pub fn handle_burst(&mut self, shared: &Shared, samples: &[Sample]) {
-        for chunk in samples.chunks(LOOKED_UP_TOGETHER) {
-            // The table's loads back to back: independent of one another, they overlap,
-            // where one at a time, between corrections, each was waited for alone.
-            let mut hints = [Hints::default(); LOOKED_UP_TOGETHER];
-            for (h, sample) in hints.iter_mut().zip(chunk) {
-                *h = self.hints(sample);
+        for sample in samples.iter().take(BURST_AHEAD) {
+            self.prefetch(sample);
+        }
+        for (i, sample) in samples.iter().enumerate() {
+            if let Some(ahead) = samples.get(i + BURST_AHEAD) {
+                self.prefetch(ahead);
             }
-            let hints = &hints[..chunk.len()];
-            for h in hints.iter().take(BURST_AHEAD) {
-                h.prefetch();
-            }
-            for (i, sample) in chunk.iter().enumerate() {
-                if let Some(ahead) = hints.get(i + BURST_AHEAD) {
-                    ahead.prefetch();
-                }
-                self.handle(shared, sample);
-            }
+            self.handle(shared, sample);
         }
     }
 
-    /// The hints of a batch's sensor; none for a sensor not met yet.
-    fn hints(&self, sample: &Sample) -> Hints {
+    fn prefetch(&self, sample: &Sample) {
         let sensor = keys::sensor_chunk(sample.key_expr().as_str());
-        self.sensors
-            .get(sensor.as_bytes())
-            .map_or_else(Hints::default, Slot::hints)
+        if let Some(slot) = self.sensors.get(sensor.as_bytes()) {
+            slot.prefetch();
+        }
     }
 
     /// Corrects and publishes one raw batch; a bad one is counted and skipped. The batch's key

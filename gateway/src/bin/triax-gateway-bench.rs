@@ -124,7 +124,8 @@ struct Args {
     #[arg(long, value_delimiter = ',')]
     building_sensors: Vec<usize>,
     /// Rounds of the throughput phases and of the building profile: every system (at every
-    /// sensor count) in turn, each round's ratios reported, then their range.
+    /// sensor count) in turn, each round's ratios reported, then their range. The building
+    /// profile runs every other round's systems in reverse order.
     #[arg(long, default_value_t = 1)]
     rounds: usize,
     /// Skip the throughput and latency phases (run only the building profile and the memory
@@ -1365,7 +1366,8 @@ fn main() -> Result<()> {
         if !args.no_throughput {
             let mut rounds = Vec::new();
             let mut paced = args.clone();
-            // Rounds of every system in turn, as for the building profile below.
+            // Rounds of every system in turn, as for the building profile below, but always
+            // in one order: the paced phase offers the load the relay, run first, carried.
             for round in 1..=args.rounds.max(1) {
                 let mut results: Vec<(System, PhaseResult)> = Vec::new();
                 for system in all.into_iter().filter(|s| wanted(*s)) {
@@ -1387,15 +1389,21 @@ fn main() -> Result<()> {
         if !args.building_sensors.is_empty() {
             let mut results = Vec::new();
             // Rounds of every system in turn, so that each ratio is taken within one round,
-            // minutes apart at most, whatever else loads the machine meanwhile.
+            // minutes apart at most, whatever else loads the machine meanwhile. Every other
+            // round runs them in reverse order: a build run second in its round cost a few per
+            // cent more than the same build run first (BENCHMARKS.md, "A ninth look").
             for round in 1..=args.rounds.max(1) {
+                // The plain relay works out routes per message: the keyed relay is the
+                // baseline.
+                let mut systems: Vec<System> = all
+                    .into_iter()
+                    .filter(|s| *s != System::Relay && wanted(*s))
+                    .collect();
+                if round % 2 == 0 {
+                    systems.reverse();
+                }
                 for &n in &args.building_sensors {
-                    // The plain relay works out routes per message: the keyed relay is the
-                    // baseline.
-                    for system in all
-                        .into_iter()
-                        .filter(|s| *s != System::Relay && wanted(*s))
-                    {
+                    for &system in &systems {
                         let r = building_profile(system, n, args.seconds).await?;
                         results.push((round, system, r));
                     }
