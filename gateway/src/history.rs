@@ -11,11 +11,10 @@
 //! so a batch is durable at most one interval, plus one sync, after it was corrected. It wakes
 //! for that, for a query's sync, or when [`DRAIN_BATCHES`] or a sixteenth of the queue's bytes
 //! are waiting ([`Sink::offer`] wakes it then, once): not on a timer of its own. It used to
-//! take the queue every 20 ms, and those
-//! fifty wake-ups a second were most of its cost at a building's pace, and most of a host's
-//! running a hundred gateways (BENCHMARKS.md). A history query first asks for a flush of
-//! everything queued so far ([`Sink::sync`]), so a consumer that noticed a gap finds the
-//! batches it missed even if they arrived a moment ago.
+//! take the queue every 20 ms, and those fifty wake-ups a second were most of its cost at a
+//! building's pace, and most of a host's running a hundred gateways (BENCHMARKS.md). A history
+//! query first asks for a flush of everything queued so far ([`Sink::sync`]), so a consumer
+//! that noticed a gap finds the batches it missed even if they arrived a moment ago.
 
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
