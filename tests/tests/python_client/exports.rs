@@ -7,6 +7,7 @@
 //! an export fails or is killed.
 
 use std::collections::BTreeMap;
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
@@ -18,7 +19,7 @@ use triax_protocol::record::{sample, CalibrationRecord};
 use triax_protocol::signing::LabSigningKey;
 use triax_protocol::{to_json, BuildingId, CorrectedBatch, RawBatch, SensorId};
 
-use super::{python_interpreter, util};
+use super::{python_interpreter, run_pyarrow_script, util};
 
 /// 2027-01-15T23:59:30Z: the stream crosses UTC midnight 30 s in.
 const T0_NS: i64 = 1_800_057_570_000_000_000;
@@ -310,14 +311,9 @@ async fn exports_are_exactly_right_in_the_users_tools() {
         );
     }
 
-    let out = Command::new(&py)
-        .args(["-c", READ_EXPORTS])
-        .arg(&pq)
-        .arg(&root)
-        .arg(&xml)
-        .args(["XX", "EX1", "2027-01-15T23:00:00Z", "2027-01-16T01:00:00Z"])
-        .output()
-        .expect("python runs");
+    let window = ["XX", "EX1", "2027-01-15T23:00:00Z", "2027-01-16T01:00:00Z"].map(OsStr::new);
+    let args = [pq.as_os_str(), root.as_os_str(), xml.as_os_str()];
+    let out = run_pyarrow_script(&py, READ_EXPORTS, &[&args[..], &window[..]].concat());
     assert!(
         out.status.success(),
         "the users' tools could not read the exports: {}",
@@ -607,14 +603,11 @@ async fn a_killed_export_leaves_the_earlier_file_whole() {
     let out = dir.path().join("kx.parquet");
     let earlier = b"an earlier export".to_vec();
     let rows = |path: &Path| -> Option<u64> {
-        let o = Command::new(&py)
-            .args([
-                "-c",
-                "import sys, pyarrow.parquet as pq; print(pq.read_metadata(sys.argv[1]).num_rows)",
-            ])
-            .arg(path)
-            .output()
-            .unwrap();
+        let o = run_pyarrow_script(
+            &py,
+            "import sys, pyarrow.parquet as pq; print(pq.read_metadata(sys.argv[1]).num_rows)",
+            &[path.as_os_str()],
+        );
         o.status
             .success()
             .then(|| String::from_utf8_lossy(&o.stdout).trim().parse().unwrap())
