@@ -168,25 +168,43 @@ fn time_text(t: OffsetDateTime) -> String {
     t.format(&Rfc3339).unwrap_or_else(|_| t.to_string())
 }
 
-/// One line per record; `current` marks that version.
+/// One line per record; `current` marks that version. Columns as wide as their widest entry:
+/// a time to the nanosecond is 30 characters, one to the second 20.
 fn write_table(
     out: &mut dyn Write,
     records: &[CalibrationRecord],
     current: Option<u64>,
 ) -> io::Result<()> {
-    let sensor_width = records
+    let rows: Vec<[String; 4]> = records
         .iter()
-        .map(|r| r.sensor_id.as_str().len())
-        .chain(["SENSOR".len()])
-        .max()
-        .unwrap_or(0);
+        .map(|r| {
+            [
+                r.sensor_id.as_str().to_owned(),
+                time_text(r.issued_at),
+                time_text(r.valid_from),
+                r.valid_until.map_or_else(|| "-".to_owned(), time_text),
+            ]
+        })
+        .collect();
+    let width = |column: usize, title: &str| {
+        rows.iter()
+            .map(|row| row[column].len())
+            .chain([title.len()])
+            .max()
+            .unwrap_or(0)
+    };
+    let (w_sensor, w_issued, w_from, w_until) = (
+        width(0, "SENSOR"),
+        width(1, "ISSUED"),
+        width(2, "VALID FROM"),
+        width(3, "VALID UNTIL"),
+    );
     writeln!(
         out,
-        "{:<sensor_width$}  {:>7}  {:<20}  {:<20}  {:<20}  CERTIFICATE",
+        "{:<w_sensor$}  {:>7}  {:<w_issued$}  {:<w_from$}  {:<w_until$}  CERTIFICATE",
         "SENSOR", "VERSION", "ISSUED", "VALID FROM", "VALID UNTIL"
     )?;
-    for r in records {
-        let until = r.valid_until.map_or_else(|| "-".to_owned(), time_text);
+    for (r, [sensor, issued, from, until]) in records.iter().zip(&rows) {
         let mark = if Some(r.version) == current {
             "  (current)"
         } else {
@@ -194,13 +212,8 @@ fn write_table(
         };
         writeln!(
             out,
-            "{:<sensor_width$}  {:>7}  {:<20}  {:<20}  {:<20}  {}{mark}",
-            r.sensor_id.as_str(),
-            r.version,
-            time_text(r.issued_at),
-            time_text(r.valid_from),
-            until,
-            r.certificate.id
+            "{sensor:<w_sensor$}  {:>7}  {issued:<w_issued$}  {from:<w_from$}  {until:<w_until$}  {}{mark}",
+            r.version, r.certificate.id
         )?;
     }
     Ok(())

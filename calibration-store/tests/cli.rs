@@ -64,6 +64,32 @@ fn subcommands_parse() {
     ));
 }
 
+/// Times to the nanosecond (as `triax-lab fit` stamps them) are 30 characters, wider than the
+/// columns' titles: every row's certificate still starts under its title.
+#[test]
+fn the_list_stays_a_table_with_nanosecond_times() {
+    let (_dir, store) = new_store();
+    store.put(&record("s1", 1)).unwrap().unwrap();
+    let mut precise = record("sensor-long-name", 2);
+    precise.issued_at += time::Duration::nanoseconds(123_456_789);
+    precise.valid_from += time::Duration::nanoseconds(123_456_789);
+    store.put(&precise).unwrap().unwrap();
+
+    let (result, text) = output(&store, &["list"]);
+    result.unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    let column = lines[0].find("CERTIFICATE").unwrap();
+    assert_eq!(lines[1].find("SAMPLE-s1-1"), Some(column), "{text}");
+    assert_eq!(
+        lines[2].find("SAMPLE-sensor-long-name-2"),
+        Some(column),
+        "{text}"
+    );
+    assert!(lines[2].contains(".123456789Z"), "{text}");
+    let until = lines[0].find("VALID UNTIL").unwrap();
+    assert_eq!(lines[1].find(" -  ").map(|i| i + 1), Some(until), "{text}");
+}
+
 #[test]
 fn list_show_history_export_import_print_for_people() {
     let (_dir, store) = new_store();
