@@ -311,9 +311,16 @@ async fn exports_are_exactly_right_in_the_users_tools() {
         );
     }
 
-    let window = ["XX", "EX1", "2027-01-15T23:00:00Z", "2027-01-16T01:00:00Z"].map(OsStr::new);
-    let args = [pq.as_os_str(), root.as_os_str(), xml.as_os_str()];
-    let out = run_pyarrow_script(&py, READ_EXPORTS, &[&args[..], &window[..]].concat());
+    let args = [
+        pq.as_os_str(),
+        root.as_os_str(),
+        xml.as_os_str(),
+        OsStr::new("XX"),
+        OsStr::new("EX1"),
+        OsStr::new("2027-01-15T23:00:00Z"),
+        OsStr::new("2027-01-16T01:00:00Z"),
+    ];
+    let out = run_pyarrow_script(&py, READ_EXPORTS, &args);
     assert!(
         out.status.success(),
         "the users' tools could not read the exports: {}",
