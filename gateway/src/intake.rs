@@ -27,14 +27,37 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::Instant;
 
-use triax_protocol::keys::{self, Stream};
-use zenoh::sample::Sample;
+use triax_protocol::keys::{self, InlineId, Stream};
+use zenoh::bytes::ZBytes;
 
 use crate::burst::{self, Burst, Pushed};
 use crate::inbox::{self, Inbox};
 use crate::sensors::GatewayCounters;
 use crate::worker::{self, Shards};
 use crate::{zenoh_err, Config, GatewayError, Overload};
+
+/// A raw batch as it arrived: its sensor (the key's last chunk, checked at intake) and its
+/// payload, copied out of Zenoh's receive buffer.
+///
+/// Why a copy: a Zenoh sample holds the whole buffer its link read it into (48 KiB), and
+/// Zenoh keeps one for each link; a sample held past the link's next read (until the end of
+/// its burst, or in a worker's inbox) had Zenoh allocate and zero a fresh buffer for that read,
+/// 500 a second at a building's pace, and a full inbox could hold a buffer per batch
+/// (BENCHMARKS.md, "A tenth look"). A batch's copy is its own size, about 150 bytes.
+#[derive(Debug)]
+pub struct Arrival {
+    pub sensor: InlineId,
+    pub payload: Box<[u8]>,
+}
+
+impl Arrival {
+    fn copy(sensor: InlineId, payload: &ZBytes) -> Arrival {
+        Arrival {
+            sensor,
+            payload: payload.to_bytes().into(),
+        }
+    }
+}
 
 /// Where Zenoh's receive callback puts a raw batch, by [`Overload`] policy.
 pub(crate) enum Intake {
@@ -45,17 +68,17 @@ pub(crate) enum Intake {
 }
 
 impl Intake {
-    /// Hands a batch to its sensor's shard; its key was checked by `keys::raw_sensor_of`.
-    fn take(&self, sample: Sample) {
-        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
+    /// Hands a batch to its sensor's shard.
+    fn take(&self, arrival: Arrival) {
+        let sensor = arrival.sensor.as_str();
         match self {
             Intake::Queues(queues) => {
                 let i = worker::shard(sensor, queues.inboxes.len());
-                queues.take(i, sample);
+                queues.take(i, arrival);
             }
             Intake::Shards(shards, shared) => {
                 let i = worker::shard(sensor, shards.len());
-                worker::lock_shard(&shards[i]).handle(shared, &sample);
+                worker::lock_shard(&shards[i]).handle(shared, &arrival);
             }
         }
     }
@@ -63,15 +86,15 @@ impl Intake {
 
 /// The drop-oldest intake: each shard's inbox, and the batches of the current burst.
 pub(crate) struct Queues {
-    inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    inboxes: Arc<Vec<Arc<Inbox<Arrival>>>>,
     shards: Shards,
     shared: Arc<worker::Shared>,
-    burst: Burst<Sample>,
+    burst: Burst<Arrival>,
 }
 
 impl Queues {
-    fn take(self: &Arc<Self>, shard: usize, sample: Sample) {
-        match self.burst.push(shard, sample) {
+    fn take(self: &Arc<Self>, shard: usize, arrival: Arrival) {
+        match self.burst.push(shard, arrival) {
             Pushed::Waits => {}
             Pushed::Full => self.hand_over(),
             Pushed::First => match burst::runtime() {
@@ -99,16 +122,16 @@ impl Queues {
         let outbox = &self.shared.outbox;
         let mut started = Instant::now();
         outbox.gathered(|| {
-            self.burst.take(|i, samples| {
+            self.burst.take(|i, arrivals| {
                 if inbox::receive_budget_allows(started) && self.inboxes[i].try_claim() {
-                    worker::lock_shard(&self.shards[i]).handle_burst(&self.shared, samples);
+                    worker::lock_shard(&self.shards[i]).handle_burst(&self.shared, arrivals);
                     self.inboxes[i].release();
                     let ended = Instant::now();
                     inbox::receive_budget_spent(started, ended);
                     started = ended;
                 } else {
-                    for sample in samples.drain(..) {
-                        self.inboxes[i].push(sample);
+                    for arrival in arrivals.drain(..) {
+                        self.inboxes[i].push(arrival);
                     }
                 }
             });
@@ -137,7 +160,7 @@ fn refuse_key(counters: &GatewayCounters, reason: keys::RawKeyRefusal, key: &str
 /// What [`start`] sets up.
 pub(crate) struct Started {
     /// One per worker; none under backpressure.
-    pub inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    pub inboxes: Arc<Vec<Arc<Inbox<Arrival>>>>,
     pub shards: Shards,
     /// Drop-oldest only.
     pub queues: Option<Arc<Queues>>,
@@ -157,7 +180,7 @@ pub(crate) async fn start(
         Overload::DropOldest => config.workers,
         Overload::Backpressure => 0,
     };
-    let inboxes: Arc<Vec<Arc<Inbox<Sample>>>> = Arc::new(
+    let inboxes: Arc<Vec<Arc<Inbox<Arrival>>>> = Arc::new(
         (0..n_inboxes)
             .map(|_| {
                 Arc::new(Inbox::new(
@@ -184,11 +207,13 @@ pub(crate) async fn start(
     let building = config.building.clone();
     let subscriber = session
         .declare_subscriber(keys::all_sensors(&config.building, Stream::Raw))
-        .callback(move |sample: Sample| {
+        .callback(move |sample: zenoh::sample::Sample| {
             received.received_batches.fetch_add(1, Relaxed);
             let key = sample.key_expr().as_str();
-            match keys::raw_sensor_of(key, &building) {
-                Ok(_) => intake.take(sample),
+            // A chunk `raw_sensor_of` accepts is a valid id, which `InlineId::parse` takes.
+            match keys::raw_sensor_of(key, &building).map(InlineId::parse) {
+                Ok(Some(sensor)) => intake.take(Arrival::copy(sensor, sample.payload())),
+                Ok(None) => refuse_key(&received, keys::RawKeyRefusal::Malformed, key),
                 Err(reason) => refuse_key(&received, reason, key),
             }
         })

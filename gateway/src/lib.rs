@@ -69,7 +69,6 @@ use triax_calibration::corrector::Corrector;
 use triax_calibration_store::{Store, StoreError};
 use triax_protocol::signing::TrustedKeys;
 use triax_protocol::{to_json, Key};
-use zenoh::sample::Sample;
 
 pub use catchup::{CatchUpError, CatchUpReport};
 pub use config::{
@@ -120,7 +119,7 @@ fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError 
 
 /// Closes every worker's inbox: its worker stops once it has taken what is queued, until
 /// `drain_until`.
-fn close_all(inboxes: &[Arc<Inbox<Sample>>], drain_until: std::time::Instant) {
+fn close_all(inboxes: &[Arc<Inbox<intake::Arrival>>], drain_until: std::time::Instant) {
     for inbox in inboxes {
         inbox.close(drain_until);
     }
@@ -160,7 +159,7 @@ pub struct Gateway {
     tasks: Vec<JoinHandle<()>>,
     /// Drop-oldest only: the receive bursts' queues, the workers' inboxes and threads.
     queues: Option<Arc<intake::Queues>>,
-    inboxes: Arc<Vec<Arc<Inbox<Sample>>>>,
+    inboxes: Arc<Vec<Arc<Inbox<intake::Arrival>>>>,
     workers: Vec<std::thread::JoinHandle<()>>,
     /// The history's writer thread; none when the history is off.
     recorder: Option<history::Recorder>,
@@ -456,7 +455,7 @@ async fn serve_metrics(
 /// Starts one worker thread per inbox; on failure, closes every inbox so that the threads
 /// already started end.
 fn start_workers(
-    inboxes: &Arc<Vec<Arc<Inbox<Sample>>>>,
+    inboxes: &Arc<Vec<Arc<Inbox<intake::Arrival>>>>,
     shards: &worker::Shards,
     shared: &Arc<worker::Shared>,
 ) -> Result<Vec<std::thread::JoinHandle<()>>, GatewayError> {

@@ -13,6 +13,7 @@ use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, Mutex};
 
+use crate::intake::Arrival;
 use triax_calibration::corrector::Corrector;
 use triax_calibration_store::Store;
 use triax_health::monitor::SensorHealth;
@@ -21,7 +22,6 @@ use triax_protocol::messages::TiltSample;
 use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::{CongestionControl, Priority};
-use zenoh::sample::Sample;
 use zenoh::Wait;
 
 use crate::backfill::{self, LateRun, Need};
@@ -33,7 +33,7 @@ use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::outbox::{Outbox, Outgoing};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
-use triax_protocol::{keys, BuildingId, InlineId, SetKind};
+use triax_protocol::{BuildingId, InlineId, SetKind};
 
 /// What every worker shares.
 pub struct Shared {
@@ -344,13 +344,18 @@ pub fn lock_shard(shard: &Mutex<Shard>) -> std::sync::MutexGuard<'_, Shard> {
 /// The shard is shared with the receive thread, which corrects a sparse batch in place when
 /// the inbox is empty ([`Inbox::try_claim`]); the inbox's claim keeps the two apart and in
 /// order, so the lock on the shard is never waited for but during a sweep.
-pub fn run(index: usize, inbox: Arc<Inbox<Sample>>, shard: Arc<Mutex<Shard>>, shared: Arc<Shared>) {
+pub fn run(
+    index: usize,
+    inbox: Arc<Inbox<Arrival>>,
+    shard: Arc<Mutex<Shard>>,
+    shared: Arc<Shared>,
+) {
     tracing::debug!(worker = index, "worker started");
     let mut abandoned = 0u64;
     loop {
         match inbox.take_or_idle(Some(SWEEP_INTERVAL)) {
-            Next::Item(sample) => {
-                lock_shard(&shard).handle(&shared, &sample);
+            Next::Item(arrival) => {
+                lock_shard(&shard).handle(&shared, &arrival);
                 inbox.release();
             }
             Next::Idle => {
@@ -401,42 +406,39 @@ impl Shard {
     /// Corrects and publishes a receive burst's batches of this shard, in order, each
     /// sensor's state asked for [`BURST_AHEAD`] batches before its turn, so that its loads
     /// overlap with the correction of the batches before it.
-    pub fn handle_burst(&mut self, shared: &Shared, samples: &[Sample]) {
-        for sample in samples.iter().take(BURST_AHEAD) {
-            self.prefetch(sample);
+    pub fn handle_burst(&mut self, shared: &Shared, arrivals: &[Arrival]) {
+        for arrival in arrivals.iter().take(BURST_AHEAD) {
+            self.prefetch(arrival);
         }
-        for (i, sample) in samples.iter().enumerate() {
-            if let Some(ahead) = samples.get(i + BURST_AHEAD) {
+        for (i, arrival) in arrivals.iter().enumerate() {
+            if let Some(ahead) = arrivals.get(i + BURST_AHEAD) {
                 self.prefetch(ahead);
             }
-            self.handle(shared, sample);
+            self.handle(shared, arrival);
         }
     }
 
-    fn prefetch(&self, sample: &Sample) {
-        let sensor = keys::sensor_chunk(sample.key_expr().as_str());
-        if let Some(slot) = self.sensors.get(sensor.as_bytes()) {
+    fn prefetch(&self, arrival: &Arrival) {
+        if let Some(slot) = self.sensors.get(arrival.sensor.as_bytes()) {
             slot.prefetch();
         }
     }
 
     /// Corrects and publishes one raw batch; a bad one is counted and skipped. The batch's key
     /// is a concrete raw key of the building, checked at intake.
-    pub fn handle(&mut self, shared: &Shared, sample: &Sample) {
+    pub fn handle(&mut self, shared: &Shared, arrival: &Arrival) {
         self.sweep_now_and_then(shared);
         let Shard {
             sensors, scratch, ..
         } = self;
-        let key = sample.key_expr().as_str();
-        let sensor = keys::sensor_chunk(key);
+        let sensor = arrival.sensor.as_str();
         // Looked up before the payload is parsed, so that the state loads meanwhile; asked for
         // before the eviction flag is read, so that the flag's load is not waited for alone.
         let known = sensors.get(sensor.as_bytes()).is_some_and(|slot| {
             slot.prefetch();
             !slot.entry.is_evicted()
         });
-        let payload = sample.payload().to_bytes();
-        let view = match RawBatchView::parse(&payload) {
+        let view = match RawBatchView::parse(&arrival.payload) {
             Ok(v) => v,
             Err(e) => return reject(shared, sensor, &e),
         };

@@ -252,8 +252,7 @@ impl ZenohSettings {
 
     /// [`to_config`](Self::to_config) for a session that publishes high-rate streams with drop
     /// congestion control: its transmit queues set as [`PUBLISHER_TX_QUEUE_BATCHES`] says why,
-    /// and its receive buffers as [`RECEIVE_BUFFERS_KEPT`] says, unless a configuration file is
-    /// given (whose settings then stand).
+    /// unless a configuration file is given (whose settings then stand).
     pub fn to_publisher_config(&self) -> Result<zenoh::Config, ZenohConfigError> {
         let mut c = self.to_config()?;
         if self.config_file.is_some() {
@@ -266,10 +265,6 @@ impl ZenohSettings {
             (
                 format!("{queue}/congestion_control/drop/wait_before_drop"),
                 PUBLISHER_WAIT_BEFORE_DROP_US,
-            ),
-            (
-                "transport/link/rx/buffer_size".to_owned(),
-                RECEIVE_BUFFERS_KEPT * 65_535,
             ),
         ] {
             c.insert_json5(&key, &value.to_string())
@@ -331,13 +326,6 @@ pub fn zenoh_cause(e: &(dyn std::error::Error + Send + Sync)) -> String {
 pub const PUBLISHER_TX_QUEUE_BATCHES: u32 = 16;
 pub const PUBLISHER_WAIT_BEFORE_DROP_US: u32 = 0;
 
-/// Receive buffers (a batch each: 64 KiB on TCP) Zenoh keeps per link for reuse, for
-/// [`ZenohSettings::to_publisher_config`]: its default keeps one. A session that holds received
-/// samples past the next read of their link (the gateway, until the end of a receive burst)
-/// would otherwise have Zenoh allocate and zero a fresh buffer for that read. Only buffers
-/// needed at once are ever allocated.
-pub const RECEIVE_BUFFERS_KEPT: u32 = 8;
-
 /// A TCP port on 127.0.0.1 that was free a moment ago, for demos, tests and benches that start
 /// a Zenoh listener other sessions must connect to: Zenoh 1.10's stable API does not report the
 /// port a `:0` listener bound.
@@ -387,8 +375,11 @@ mod tests {
         let c = s.to_publisher_config().unwrap();
         assert_eq!(
             c.get_json("transport/link/rx/buffer_size").unwrap(),
-            (8 * 65_535).to_string(),
-            "eight 64 KiB batches kept for reuse"
+            s.to_config()
+                .unwrap()
+                .get_json("transport/link/rx/buffer_size")
+                .unwrap(),
+            "Zenoh's own receive buffers: the gateway holds no sample past its callback"
         );
         let q = "transport/link/tx/queue";
         assert_eq!(c.get_json(&format!("{q}/size/data")).unwrap(), "16");

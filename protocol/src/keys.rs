@@ -179,8 +179,26 @@ impl InlineId {
         }
     }
 
+    /// The id `text` is, when it is a valid id (1 to [`MAX_ID_LEN`] of `[A-Za-z0-9_-]`).
+    pub fn parse(text: &str) -> Option<InlineId> {
+        if !is_valid_id(text) {
+            return None;
+        }
+        let mut bytes = [0; MAX_ID_LEN];
+        bytes[..text.len()].copy_from_slice(text.as_bytes());
+        Some(InlineId {
+            len: text.len() as u8,
+            bytes,
+        })
+    }
+
     pub fn as_bytes(&self) -> &[u8] {
         &self.bytes[..usize::from(self.len)]
+    }
+
+    pub fn as_str(&self) -> &str {
+        // Made from a valid id, whose characters are all ASCII: never the fallback.
+        std::str::from_utf8(self.as_bytes()).unwrap_or_default()
     }
 
     /// The id it holds.
@@ -506,6 +524,26 @@ mod tests {
         for (i, id) in ids.iter().enumerate() {
             assert_eq!(map.get(id.as_str().as_bytes()), Some(&i), "{id}");
             assert_eq!(&InlineId::new(id).to_sensor_id(), id);
+        }
+        for id in &ids {
+            let parsed = InlineId::parse(id.as_str()).expect("a valid id parses");
+            assert_eq!(parsed.as_str(), id.as_str());
+            assert_eq!(parsed, InlineId::new(id));
+        }
+        let longest = "x".repeat(MAX_ID_LEN);
+        assert_eq!(
+            InlineId::parse(&longest).map(|i| i.as_str().len()),
+            Some(MAX_ID_LEN)
+        );
+        for invalid in [
+            "",
+            "acc/1",
+            "acc-*",
+            "acc 1",
+            "é",
+            &"x".repeat(MAX_ID_LEN + 1),
+        ] {
+            assert!(InlineId::parse(invalid).is_none(), "{invalid:?}");
         }
         for absent in ["acc-", "acc-100", "acc-1\0", ""] {
             assert_eq!(map.get(absent.as_bytes()), None, "{absent:?}");
