@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 pub use triax_history::Verdict;
 use triax_history::{History, Kept, Writer};
 use triax_protocol::messages::HistoryStatus;
-use triax_protocol::{InlineId, RawBatchView, SensorId};
+use triax_protocol::{InlineId, RawBatchView};
 
 /// Batches queued that wake the writer before its flush is due, whatever their bytes (each
 /// entry costs about as much again as a 10-sample batch's samples): a few wake-ups a second at
@@ -111,7 +111,7 @@ impl Sink {
     /// checkpoint was due. False (and counted) when the queue is full or closed.
     pub fn offer(
         &self,
-        sensor: &SensorId,
+        sensor: &InlineId,
         view: &RawBatchView<'_>,
         verdict: Verdict,
         calibration_version: u64,
@@ -143,7 +143,7 @@ impl Sink {
             self.wake.notify_one();
         }
         p.batches.push(Waiting {
-            sensor: InlineId::new(sensor),
+            sensor: *sensor,
             kept: Kept {
                 arrival: 0,
                 sequence: h.sequence,

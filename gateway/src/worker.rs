@@ -482,7 +482,7 @@ impl Shard {
         }
         if let Some(sink) = &shared.history {
             let kept = sink.offer(
-                &view.header.sensor_id,
+                &arrival.sensor,
                 &view,
                 corrected.verdict,
                 corrected.calibration_version,
@@ -549,6 +549,7 @@ impl Shard {
         let state = sensors
             .get_mut(sensor.as_str().as_bytes())
             .filter(|s| !s.entry.is_evicted())?;
+        let inline_id = InlineId::new(sensor);
         // The first of each chunk: live batches may be kept between two chunks.
         run.checkpoint_due = true;
         let mut corrected = Vec::with_capacity(batches.len());
@@ -584,7 +585,7 @@ impl Shard {
             run.checkpoint_due = false;
             if let Some(sink) = &shared.history {
                 let kept = sink.offer(
-                    sensor,
+                    &inline_id,
                     &view,
                     verdict,
                     version.unwrap_or(0),
