@@ -27,6 +27,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::Instant;
 
+use triax_protocol::batch::MAX_RAW_BATCH_BYTES;
 use triax_protocol::keys::{self, InlineId, Stream};
 use zenoh::bytes::ZBytes;
 
@@ -68,8 +69,21 @@ pub(crate) enum Intake {
 }
 
 impl Intake {
-    /// Hands a batch to its sensor's shard.
-    fn take(&self, arrival: Arrival) {
+    /// Hands a batch to its sensor's shard: a copy of it, unless it is longer than any raw
+    /// batch can be (counted as malformed and skipped, never copied).
+    fn take(&self, sensor: InlineId, payload: &ZBytes) {
+        if payload.len() > MAX_RAW_BATCH_BYTES {
+            let shared = match self {
+                Intake::Queues(queues) => &queues.shared,
+                Intake::Shards(_, shared) => shared,
+            };
+            let cause = format!(
+                "payload of {} bytes, longer than the largest raw batch ({MAX_RAW_BATCH_BYTES})",
+                payload.len()
+            );
+            return worker::reject(shared, sensor.as_str(), &cause);
+        }
+        let arrival = Arrival::copy(sensor, payload);
         let sensor = arrival.sensor.as_str();
         match self {
             Intake::Queues(queues) => {
@@ -212,7 +226,7 @@ pub(crate) async fn start(
             let key = sample.key_expr().as_str();
             // A chunk `raw_sensor_of` accepts is a valid id, which `InlineId::parse` takes.
             match keys::raw_sensor_of(key, &building).map(InlineId::parse) {
-                Ok(Some(sensor)) => intake.take(Arrival::copy(sensor, sample.payload())),
+                Ok(Some(sensor)) => intake.take(sensor, sample.payload()),
                 Ok(None) => refuse_key(&received, keys::RawKeyRefusal::Malformed, key),
                 Err(reason) => refuse_key(&received, reason, key),
             }

@@ -385,7 +385,7 @@ pub fn run(
     );
 }
 
-fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
+pub(crate) fn reject(shared: &Shared, sensor: &str, cause: &dyn std::fmt::Display) {
     shared.counters.malformed.fetch_add(1, Relaxed);
     // The key was checked at intake (`keys::raw_sensor_of`); only an id past the table's bound has
     // no entry, and is counted gateway-wide only.

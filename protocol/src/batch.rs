@@ -378,9 +378,13 @@ fn raw_len(id_len: usize, n: usize, header_flags: u16) -> usize {
 }
 
 /// Bytes before the first field that follows the sample count.
-pub fn prefix_len(id_len: usize) -> usize {
+pub const fn prefix_len(id_len: usize) -> usize {
     2 + 1 + 1 + 2 + 1 + id_len + 8 + 8 + 8 + 4
 }
+
+/// Most bytes a valid raw batch has: the longest id, a temperature and [`MAX_SAMPLES`]
+/// samples. A receiver may refuse a longer payload before reading or copying it.
+pub const MAX_RAW_BATCH_BYTES: usize = prefix_len(MAX_ID_LEN) + 4 + MAX_SAMPLES * RAW_SAMPLE_BYTES;
 
 /// A raw batch read in place: the header is parsed, the samples stay in the payload.
 #[derive(Debug, Clone)]
@@ -741,6 +745,21 @@ mod tests {
         let bytes = b.encode();
         assert_eq!(bytes.len(), corrected_len(5, 2));
         assert_eq!(CorrectedBatch::decode(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn the_largest_raw_batch_is_max_raw_batch_bytes_long() {
+        let b = RawBatch {
+            header: BatchHeader {
+                sensor_id: SensorId::new("x".repeat(MAX_ID_LEN)).unwrap(),
+                ..header()
+            },
+            temperature_c: Some(20.0),
+            samples: vec![[1.0, 2.0, 3.0]; MAX_SAMPLES],
+        };
+        let bytes = b.encode();
+        assert_eq!(bytes.len(), MAX_RAW_BATCH_BYTES);
+        assert!(RawBatch::decode(&bytes).is_ok());
     }
 
     #[test]

@@ -594,6 +594,14 @@ async fn malformed_payloads_are_counted_and_the_stream_goes_on() {
         .put(raw("acc-2", 1, vec![[0.0; 3]; 10]))
         .await
         .unwrap();
+    // Longer than any raw batch can be: refused before it is copied.
+    let mut long = raw(
+        "acc-1",
+        1,
+        vec![[0.0; 3]; triax_protocol::batch::MAX_SAMPLES],
+    );
+    long.resize(triax_protocol::batch::MAX_RAW_BATCH_BYTES + 1, 0);
+    publisher.put(long).await.unwrap();
     publisher.put(good(1)).await.unwrap();
     publisher.put(good(2)).await.unwrap();
     let batches = collect(&sub, 3).await;
@@ -606,7 +614,7 @@ async fn malformed_payloads_are_counted_and_the_stream_goes_on() {
     );
     assert!(batches.iter().all(|b| b.batch_flags == 0));
     let st = status(&session, "b3").await;
-    assert_eq!(st.malformed, 3);
+    assert_eq!(st.malformed, 4);
     let s = st
         .sensors
         .iter()
@@ -614,7 +622,7 @@ async fn malformed_payloads_are_counted_and_the_stream_goes_on() {
         .unwrap();
     assert_eq!(
         (s.rejects, s.batches, s.calibration_version),
-        (3, 3, Some(1))
+        (4, 3, Some(1))
     );
     session.close().await.unwrap();
     gw.stop().await;
