@@ -13,13 +13,14 @@ use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, Mutex};
 
-use crate::intake::Arrival;
 use triax_calibration::corrector::Corrector;
 use triax_calibration_store::Store;
 use triax_health::monitor::SensorHealth;
 use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
-use triax_protocol::{to_json, Key, Mode, RawBatchView, SensorId, JSON_FORMAT_VERSION};
+use triax_protocol::{
+    to_json, BuildingId, InlineId, Key, Mode, RawBatchView, SensorId, SetKind, JSON_FORMAT_VERSION,
+};
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::Wait;
@@ -29,11 +30,11 @@ use crate::config::CorrectionMode;
 use crate::health::{self, HealthFeed, PairSlot};
 use crate::history::{self, CHECKPOINT_INTERVAL_BATCHES, CHECKPOINT_INTERVAL_NS};
 use crate::inbox::{Inbox, Next};
+use crate::intake::Arrival;
 use crate::kernel::{BatchOutcome, Scratch, SensorKernel};
 use crate::outbox::{Outbox, Outgoing};
 use crate::sensors::{GatewayCounters, SensorEntry, SensorTable};
 use crate::sequence::{SequenceTracker, Verdict};
-use triax_protocol::{BuildingId, InlineId, SetKind};
 
 /// What every worker shares.
 pub struct Shared {
