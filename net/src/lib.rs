@@ -252,7 +252,8 @@ impl ZenohSettings {
 
     /// [`to_config`](Self::to_config) for a session that publishes high-rate streams with drop
     /// congestion control: its transmit queues set as [`PUBLISHER_TX_QUEUE_BATCHES`] says why,
-    /// unless a configuration file is given (whose settings then stand).
+    /// and the messages it takes bounded as [`PUBLISHER_MAX_MESSAGE_BYTES`] says, unless a
+    /// configuration file is given (whose settings then stand).
     pub fn to_publisher_config(&self) -> Result<zenoh::Config, ZenohConfigError> {
         let mut c = self.to_config()?;
         if self.config_file.is_some() {
@@ -265,6 +266,10 @@ impl ZenohSettings {
             (
                 format!("{queue}/congestion_control/drop/wait_before_drop"),
                 PUBLISHER_WAIT_BEFORE_DROP_US,
+            ),
+            (
+                "transport/link/rx/max_message_size".to_owned(),
+                PUBLISHER_MAX_MESSAGE_BYTES,
             ),
         ] {
             c.insert_json5(&key, &value.to_string())
@@ -326,6 +331,13 @@ pub fn zenoh_cause(e: &(dyn std::error::Error + Send + Sync)) -> String {
 pub const PUBLISHER_TX_QUEUE_BATCHES: u32 = 16;
 pub const PUBLISHER_WAIT_BEFORE_DROP_US: u32 = 0;
 
+/// The largest message the gateway's session reassembles, for
+/// [`ZenohSettings::to_publisher_config`]. Zenoh's default is 1 GiB: a node, trusted with
+/// nothing but its key, could have the gateway gather that much per link before any of the
+/// gateway's checks sees it. The largest message PROTOCOL.md allows is 8 MiB (a gateway's
+/// status), a raw batch at most 196 711 bytes; Zenoh drops a longer message and keeps the link.
+pub const PUBLISHER_MAX_MESSAGE_BYTES: u32 = 16 << 20;
+
 /// A TCP port on 127.0.0.1 that was free a moment ago, for demos, tests and benches that start
 /// a Zenoh listener other sessions must connect to: Zenoh 1.10's stable API does not report the
 /// port a `:0` listener bound.
@@ -380,6 +392,10 @@ mod tests {
                 .get_json("transport/link/rx/buffer_size")
                 .unwrap(),
             "Zenoh's own receive buffers: the gateway holds no sample past its callback"
+        );
+        assert_eq!(
+            c.get_json("transport/link/rx/max_message_size").unwrap(),
+            (16 << 20).to_string()
         );
         let q = "transport/link/tx/queue";
         assert_eq!(c.get_json(&format!("{q}/size/data")).unwrap(), "16");

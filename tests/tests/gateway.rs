@@ -602,6 +602,16 @@ async fn malformed_payloads_are_counted_and_the_stream_goes_on() {
     );
     long.resize(triax_protocol::batch::MAX_RAW_BATCH_BYTES + 1, 0);
     publisher.put(long).await.unwrap();
+    // Longer than the gateway's session reassembles: Zenoh drops it and keeps the link. Sent
+    // blocking, so that it is not this client's own queue that drops it.
+    session
+        .put(
+            key_raw("b3", "acc-1"),
+            vec![0u8; triax_net::PUBLISHER_MAX_MESSAGE_BYTES as usize + 1],
+        )
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
     publisher.put(good(1)).await.unwrap();
     publisher.put(good(2)).await.unwrap();
     let batches = collect(&sub, 3).await;
