@@ -169,7 +169,16 @@ pub struct InlineId {
 
 impl InlineId {
     pub fn new(id: &SensorId) -> InlineId {
-        let id = id.as_str().as_bytes();
+        InlineId::of_valid(id.as_str())
+    }
+
+    /// The id `text` is, when it is a valid id (1 to [`MAX_ID_LEN`] of `[A-Za-z0-9_-]`).
+    pub fn parse(text: &str) -> Option<InlineId> {
+        is_valid_id(text).then(|| InlineId::of_valid(text))
+    }
+
+    fn of_valid(id: &str) -> InlineId {
+        let id = id.as_bytes();
         let mut bytes = [0; MAX_ID_LEN];
         // A valid id has 1 to MAX_ID_LEN bytes.
         bytes[..id.len()].copy_from_slice(id);
@@ -177,19 +186,6 @@ impl InlineId {
             len: id.len() as u8,
             bytes,
         }
-    }
-
-    /// The id `text` is, when it is a valid id (1 to [`MAX_ID_LEN`] of `[A-Za-z0-9_-]`).
-    pub fn parse(text: &str) -> Option<InlineId> {
-        if !is_valid_id(text) {
-            return None;
-        }
-        let mut bytes = [0; MAX_ID_LEN];
-        bytes[..text.len()].copy_from_slice(text.as_bytes());
-        Some(InlineId {
-            len: text.len() as u8,
-            bytes,
-        })
     }
 
     pub fn as_bytes(&self) -> &[u8] {
