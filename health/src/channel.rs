@@ -19,6 +19,7 @@
 use crate::block::ChannelBlock;
 use crate::config::HealthConfig;
 use crate::cusum::{Sequential, Thresholds, Verdict};
+use crate::noise::{NoiseDesign, NoiseWindow, WindowState};
 use crate::report::TestReport;
 
 /// Standard normal quantile at 0.001, for the stated noise's upper confidence limit.
@@ -43,36 +44,56 @@ pub(crate) struct ChannelDesign {
     pub thresholds: Thresholds,
     pub stuck_s: f64,
     pub dead_ratio: f64,
-    /// ln ρ and 1 − 1/ρ of the noise test.
-    pub noise_ln_rho: f64,
-    pub noise_slope: f64,
+    pub noise: NoiseDesign,
     pub spike_rate0_per_s: f64,
     pub spike_factor: f64,
-    /// EWMA weights per block of the noise (ten minutes) and spike (one hour) statistics.
-    pub noise_lambda: f64,
+    /// EWMA weight per block of the spike statistic (one hour).
     pub spike_lambda: f64,
+    /// How long a channel's spike test must have stood at `watch` or above for `suspect`, ns.
+    pub confirm_ns: i64,
 }
 
 impl ChannelDesign {
-    pub fn new(config: &HealthConfig) -> ChannelDesign {
+    /// `tests` is how many sequential tests share the sensor's false-alarm budget.
+    pub fn new(config: &HealthConfig, tests: u32) -> ChannelDesign {
         let blocks_per_day = 86_400.0 / config.block_s;
-        let rho = config.noise_design_ratio.powi(2);
+        let tests = f64::from(tests.max(1));
         ChannelDesign {
             thresholds: Thresholds::from_arl(
-                config.watch_arl_days * blocks_per_day,
-                config.suspect_arl_days * blocks_per_day,
+                config.watch_arl_days * tests * blocks_per_day,
+                config.suspect_arl_days * tests * blocks_per_day,
                 1,
             ),
             stuck_s: config.stuck_s,
             dead_ratio: config.dead_variance_ratio,
-            noise_ln_rho: rho.ln(),
-            noise_slope: 1.0 - 1.0 / rho,
+            noise: NoiseDesign {
+                high_ratio: config.noise_design_ratio,
+                watch_windows: config.noise_watch_windows,
+                confirm_ns: (config.confirm_s * 1e9) as i64,
+            },
             spike_rate0_per_s: config.spike_allowed_per_hour / 3600.0,
             spike_factor: config.spike_design_factor,
-            noise_lambda: (config.block_s / 600.0).min(1.0),
             spike_lambda: (config.block_s / 3600.0).min(1.0),
+            confirm_ns: (config.confirm_s * 1e9) as i64,
         }
     }
+}
+
+/// The noise test's state: windows judged and the run of `high` ones.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct NoiseState {
+    judged: u64,
+    masked: u64,
+    loud: u64,
+    last: Option<NoiseWindow>,
+    /// Consecutive judged windows `high` (masked and loud ones neither count nor break it).
+    high_run: u32,
+    /// Start of the first window of the current run of `high`, ns.
+    high_since_ns: Option<i64>,
+    /// Windows since then, and how many of them were judged.
+    span_windows: u64,
+    span_judged: u64,
+    suspect_since_ns: Option<i64>,
 }
 
 /// One output channel's tests.
@@ -87,13 +108,13 @@ pub(crate) struct ChannelHealth {
     dead_since_ns: Option<i64>,
     stuck_since_ns: Option<i64>,
     last_block_s: f64,
-    noise: Sequential,
-    noise_ratio_ewma: f64,
-    noise_dof_ewma: f64,
-    noise_blocks: u64,
+    noise: NoiseState,
     spikes: Sequential,
     spike_rate_ewma: f64,
     spike_blocks: u64,
+    /// Since when the spike test has stood at `watch` or above, and its confirmed latch.
+    spike_watch_since_ns: Option<i64>,
+    spike_suspect_since_ns: Option<i64>,
 }
 
 impl ChannelHealth {
@@ -112,14 +133,19 @@ impl ChannelHealth {
             dead_since_ns: None,
             stuck_since_ns: None,
             last_block_s: 0.0,
-            noise: Sequential::new(design.thresholds),
-            noise_ratio_ewma: f64::NAN,
-            noise_dof_ewma: 0.0,
-            noise_blocks: 0,
+            noise: NoiseState::default(),
             spikes: Sequential::new(design.thresholds),
             spike_rate_ewma: 0.0,
             spike_blocks: 0,
+            spike_watch_since_ns: None,
+            spike_suspect_since_ns: None,
         }
+    }
+
+    /// The white-noise variance the noise test holds the channel to: the record's at its upper
+    /// confidence limit; none when the record states no noise.
+    pub fn reference_var(&self) -> Option<f64> {
+        self.reference_var
     }
 
     /// The threshold of spike candidates in the next block: the configured number of
@@ -148,9 +174,47 @@ impl ChannelHealth {
         }
     }
 
-    /// Judges one block; `judge_noise` is false in strong motion. Spikes are judged in any
-    /// motion: a block's spike raises its variance, so gating them on it would hide them, and
-    /// motion makes bursts, not isolated spikes. Returns whether the channel was dead.
+    /// One window of the noise floor ([`crate::noise`]).
+    pub fn on_noise_window(&mut self, design: &ChannelDesign, w: &NoiseWindow, duration_ns: i64) {
+        let n = &mut self.noise;
+        if n.high_since_ns.is_some() {
+            n.span_windows += 1;
+        }
+        match w.state {
+            WindowState::Fine => {
+                n.judged += 1;
+                n.last = Some(*w);
+                n.high_run = 0;
+                n.high_since_ns = None;
+                n.span_windows = 0;
+                n.span_judged = 0;
+            }
+            WindowState::High => {
+                n.judged += 1;
+                n.last = Some(*w);
+                n.high_run += 1;
+                if n.high_since_ns.is_none() {
+                    n.high_since_ns = Some(w.end_ns - duration_ns);
+                    n.span_windows = 1;
+                }
+                n.span_judged += 1;
+            }
+            WindowState::Masked => n.masked += 1,
+            WindowState::Loud => n.loud += 1,
+        }
+        if let (None, Some(since)) = (n.suspect_since_ns, n.high_since_ns) {
+            let confirmed = w.end_ns - since >= design.noise.confirm_ns
+                && 2 * n.span_judged >= n.span_windows
+                && n.high_run >= design.noise.watch_windows;
+            if confirmed {
+                n.suspect_since_ns = Some(since);
+            }
+        }
+    }
+
+    /// Judges one block's stuck and spike tests. Spikes are judged in any motion: a block's
+    /// spike raises its variance, so gating them on it would hide them, and motion makes
+    /// bursts, not isolated spikes. Returns whether the channel was dead.
     pub fn on_block(
         &mut self,
         design: &ChannelDesign,
@@ -158,7 +222,6 @@ impl ChannelHealth {
         block_n: u32,
         end_ns: i64,
         duration_s: f64,
-        judge_noise: bool,
     ) -> bool {
         self.blocks += 1;
         self.last_block_s = duration_s;
@@ -175,36 +238,26 @@ impl ChannelHealth {
         }
         self.dead_run_s = 0.0;
         self.dead_since_ns = None;
-        if let (true, Some(reference), Some(stated), Some(var)) = (
-            judge_noise,
-            self.reference_var,
-            self.stated_var,
-            b.noise_var(),
-        ) {
-            if b.d2_count >= 10 {
-                let nu = b.noise_dof();
-                let llr = 0.5 * nu * (design.noise_slope * var / reference - design.noise_ln_rho);
-                self.noise.update_one_sided(llr, end_ns);
-                let ratio = var / stated;
-                let lambda = design.noise_lambda;
-                if self.noise_blocks == 0 {
-                    self.noise_ratio_ewma = ratio;
-                    self.noise_dof_ewma = nu;
-                } else {
-                    self.noise_ratio_ewma += lambda * (ratio - self.noise_ratio_ewma);
-                    // Degrees of freedom of an EWMA of χ² variates: ν·(2 − λ)/λ at most, and
-                    // no more than the blocks so far hold.
-                    self.noise_dof_ewma =
-                        (self.noise_dof_ewma + nu).min(nu * (2.0 - lambda) / lambda);
-                }
-                self.noise_blocks += 1;
-            }
-        }
         let lambda0 = design.spike_rate0_per_s * duration_s;
         let f = design.spike_factor;
         let k = f64::from(b.spikes);
         self.spikes
             .update_one_sided(k * f.ln() - (f - 1.0) * lambda0, end_ns);
+        // The test's latch is the confirmed one: a rate above the allowed must hold at `watch`
+        // or above for `confirm_s` (a day of transients is not a faulty channel), and at
+        // `suspect` at its end.
+        let t = design.thresholds;
+        let value = self.spikes.value();
+        if value < t.watch {
+            self.spike_watch_since_ns = None;
+        } else {
+            let since = *self
+                .spike_watch_since_ns
+                .get_or_insert(self.spikes.excursion_since_ns().unwrap_or(end_ns));
+            if value >= t.suspect && end_ns - since >= design.confirm_ns {
+                self.spike_suspect_since_ns.get_or_insert(since);
+            }
+        }
         let rate = k * 3600.0 / duration_s;
         if self.spike_blocks == 0 {
             self.spike_rate_ewma = rate;
@@ -235,24 +288,47 @@ impl ChannelHealth {
             },
             evidence_nats: 0.0,
             observations: self.blocks,
+            ..TestReport::pending()
         }
     }
 
-    pub fn noise_report(&self) -> TestReport {
-        if self.noise_blocks == 0 {
-            return TestReport::pending();
-        }
-        let ratio = self.noise_ratio_ewma.max(0.0).sqrt();
-        // u(σ)/σ = ½·u(σ²)/σ² = ½·√(2/ν) for each of the measured and the stated variance.
-        let relative = (0.5 / self.noise_dof_ewma + 0.5 * self.stated_inv_dof).sqrt();
+    pub fn noise_report(&self, design: &ChannelDesign) -> TestReport {
+        let n = &self.noise;
+        let (Some(last), Some(reference), Some(stated)) =
+            (n.last, self.reference_var, self.stated_var)
+        else {
+            return TestReport {
+                masked: n.masked,
+                loud: n.loud,
+                ..TestReport::pending()
+            };
+        };
+        // The floor as a ratio of noise amplitudes to the record's stated noise.
+        let ratio = (last.ratio * reference / stated).max(0.0).sqrt();
+        // u(σ)/σ = ½·u(σ²)/σ², the floor's own and the stated noise's (√(2/ν)).
+        let relative = (0.25 * last.log_sd * last.log_sd + 0.5 * self.stated_inv_dof).sqrt();
+        let verdict = if n.suspect_since_ns.is_some() {
+            Verdict::Suspect
+        } else if n.high_run >= design.noise.watch_windows {
+            Verdict::Watch
+        } else {
+            Verdict::Ok
+        };
         TestReport {
-            verdict: self.noise.verdict(),
+            verdict,
             judged: true,
             statistic: ratio,
             uncertainty: ratio * relative,
-            since_ns: self.noise.since_ns(),
-            evidence_nats: self.noise.value(),
-            observations: self.noise.observations(),
+            since_ns: match verdict {
+                Verdict::Suspect => n.suspect_since_ns,
+                Verdict::Watch => n.high_since_ns,
+                Verdict::Ok => None,
+            },
+            evidence_nats: 0.0,
+            observations: n.judged,
+            reason: None,
+            masked: n.masked,
+            loud: n.loud,
         }
     }
 
@@ -266,14 +342,26 @@ impl ChannelHealth {
         let window_h = block_s * (2.0 - lambda) / lambda / 3600.0;
         let floor = 1.0 / window_h.min(self.spike_blocks as f64 * block_s / 3600.0);
         let var = self.spike_rate_ewma.max(floor) * lambda / (2.0 - lambda) * 3600.0 / block_s;
+        let verdict = if self.spike_suspect_since_ns.is_some() {
+            Verdict::Suspect
+        } else if self.spike_watch_since_ns.is_some() {
+            Verdict::Watch
+        } else {
+            Verdict::Ok
+        };
         TestReport {
-            verdict: self.spikes.verdict(),
+            verdict,
             judged: true,
             statistic: self.spike_rate_ewma,
             uncertainty: var.sqrt(),
-            since_ns: self.spikes.since_ns(),
+            since_ns: match verdict {
+                Verdict::Suspect => self.spike_suspect_since_ns,
+                Verdict::Watch => self.spike_watch_since_ns,
+                Verdict::Ok => None,
+            },
             evidence_nats: self.spikes.value(),
             observations: self.spikes.observations(),
+            ..TestReport::pending()
         }
     }
 }
@@ -295,35 +383,82 @@ mod tests {
         assert!((big - 1.0 - 3.09 * (2.0f64 / 20_000.0).sqrt()).abs() < 2e-3);
     }
 
-    /// The noise ratio's log-likelihood by hand: ν = 72/140·100 = 51.43, ρ = 4, σ̂² = 4σ²:
-    /// Λ = 25.71·(0.75·4 − ln 4) = 41.48.
+    fn window(end_s: i64, state: WindowState, ratio: f64) -> NoiseWindow {
+        NoiseWindow {
+            end_ns: end_s * 1_000_000_000,
+            state,
+            ratio,
+            log_sd: 0.1,
+            flatness: 5.0,
+            kept: 64,
+        }
+    }
+
+    /// The noise verdicts from a sequence of windows of 40 s: two `high` in a row make
+    /// `watch` from the first one's start; a `masked` window neither counts nor breaks the run;
+    /// `fine` clears it; `suspect` only after `confirm_s` of it, dated from its start.
     #[test]
-    fn noise_llr_by_hand() {
-        let config = HealthConfig::default();
-        let design = ChannelDesign::new(&config);
-        let mut ch = ChannelHealth::new(&design, Some(0.001), None);
-        let b = ChannelBlock {
-            n_finite: 100,
-            n_changes: 99,
-            d2_sum: 4.0 * 6.0 * 1e-6 * 100.0,
-            d2_count: 100,
-            ..Default::default()
+    fn noise_windows_make_watch_then_confirmed_suspect() {
+        let config = HealthConfig {
+            confirm_s: 400.0,
+            ..HealthConfig::default()
         };
-        ch.on_block(&design, &b, 100, 1_000_000_000, 1.0, true);
-        let nu = 72.0 / 140.0 * 100.0;
-        let expect = 0.5 * nu * (0.75 * 4.0 - 4f64.ln());
-        assert!((ch.noise_report().evidence_nats - expect).abs() < 1e-9);
-        assert!((ch.noise_report().statistic - 2.0).abs() < 1e-12);
-        // Thresholds: ln(30·86400) = 14.77 and ln(10⁴·86400) = 20.58 nats.
-        assert!((design.thresholds.watch - (30.0f64 * 86_400.0).ln()).abs() < 1e-12);
-        assert!((design.thresholds.suspect - (1e4f64 * 86_400.0).ln()).abs() < 1e-12);
-        assert_eq!(ch.noise_report().verdict, Verdict::Suspect);
-        assert_eq!(ch.noise_report().since_ns, Some(1_000_000_000));
+        let design = ChannelDesign::new(&config, 1);
+        let mut ch = ChannelHealth::new(&design, Some(0.001), None);
+        let d = 40 * 1_000_000_000;
+        let feed = |ch: &mut ChannelHealth, s: i64, state, ratio| {
+            ch.on_noise_window(&design, &window(s, state, ratio), d)
+        };
+        feed(&mut ch, 40, WindowState::Fine, 1.0);
+        assert_eq!(ch.noise_report(&design).verdict, Verdict::Ok);
+        feed(&mut ch, 80, WindowState::High, 4.0);
+        assert_eq!(ch.noise_report(&design).verdict, Verdict::Ok);
+        feed(&mut ch, 120, WindowState::Masked, 9.0);
+        feed(&mut ch, 160, WindowState::High, 4.0);
+        let r = ch.noise_report(&design);
+        assert_eq!(r.verdict, Verdict::Watch);
+        assert_eq!(r.since_ns, Some(40 * 1_000_000_000));
+        assert_eq!(r.masked, 1);
+        // The statistic is the floor's amplitude over the stated noise (the reference is the
+        // stated one with no ν): √4.
+        assert!((r.statistic - 2.0).abs() < 1e-12);
+        feed(&mut ch, 200, WindowState::Fine, 1.2);
+        assert_eq!(ch.noise_report(&design).verdict, Verdict::Ok);
+        for s in (240..=640).step_by(40) {
+            feed(&mut ch, s, WindowState::High, 4.0);
+        }
+        let r = ch.noise_report(&design);
+        assert_eq!(r.verdict, Verdict::Suspect);
+        assert_eq!(r.since_ns, Some(200 * 1_000_000_000));
+        // Latched.
+        feed(&mut ch, 680, WindowState::Fine, 1.0);
+        assert_eq!(ch.noise_report(&design).verdict, Verdict::Suspect);
+    }
+
+    /// A span mostly masked does not confirm: half its windows must be judged.
+    #[test]
+    fn a_masked_span_does_not_confirm() {
+        let config = HealthConfig {
+            confirm_s: 400.0,
+            ..HealthConfig::default()
+        };
+        let design = ChannelDesign::new(&config, 1);
+        let mut ch = ChannelHealth::new(&design, Some(0.001), None);
+        let d = 40 * 1_000_000_000;
+        for (i, s) in (40..=1200).step_by(40).enumerate() {
+            let state = if i % 3 == 0 {
+                WindowState::High
+            } else {
+                WindowState::Masked
+            };
+            ch.on_noise_window(&design, &window(s, state, 4.0), d);
+        }
+        assert_eq!(ch.noise_report(&design).verdict, Verdict::Watch);
     }
 
     #[test]
     fn dead_by_constancy_nan_or_silence() {
-        let design = ChannelDesign::new(&HealthConfig::default());
+        let design = ChannelDesign::new(&HealthConfig::default(), 1);
         let ch = ChannelHealth::new(&design, Some(0.001), None);
         let healthy = ChannelBlock {
             n_finite: 100,

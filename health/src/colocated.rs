@@ -42,12 +42,13 @@
 //! allocation; the buffers are made once.
 
 use triax_calibration::corrector::{Corrector, SetCorrector};
-use triax_calibration::student::{welch_satterthwaite, CoverageTable, MAX_DOF};
+use triax_calibration::student::{welch_satterthwaite, MAX_DOF};
 use triax_protocol::record::{CalibrationRecord, SetKind};
 
 use crate::config::HealthError;
 use crate::cusum::{Sequential, Thresholds, Verdict};
-use crate::report::TestReport;
+use crate::gravity_check::Looks;
+use crate::report::{TestReport, Unjudged};
 
 /// Completed segments a sensor may hold while the other catches up.
 const PENDING: usize = 8;
@@ -76,6 +77,13 @@ pub struct PairConfig {
     pub suspect_arl_days: f64,
     pub absolute_watch_probability: f64,
     pub absolute_suspect_probability: f64,
+    /// Sequential and absolute tests sharing each sensor's false-alarm budget (the larger of
+    /// the two sensors' counts): the relative tests' run lengths are multiplied by the first,
+    /// the absolute tests' probabilities divided by the second.
+    pub shared_sequential_tests: u32,
+    pub shared_absolute_tests: u32,
+    /// Estimates before the absolute test's first look.
+    pub absolute_min_estimates: u32,
 }
 
 impl Default for PairConfig {
@@ -92,6 +100,9 @@ impl Default for PairConfig {
             suspect_arl_days: 10_000.0,
             absolute_watch_probability: 0.99,
             absolute_suspect_probability: 0.999,
+            shared_sequential_tests: 7,
+            shared_absolute_tests: 4,
+            absolute_min_estimates: 6,
         }
     }
 }
@@ -230,6 +241,12 @@ struct AxisTest {
     latest: Option<GainRatio>,
     absolute: Option<(f64, f64, f64)>,
     absolute_suspect_since_ns: Option<i64>,
+    looks: Looks,
+    /// Σw, Σw·r and Σw·ν⁻¹ of every estimate so far, w = 1/u², and the first's time.
+    all_w: f64,
+    all_wr: f64,
+    all_w2_inv_dof: f64,
+    all_first_ns: Option<i64>,
     baseline_w: f64,
     baseline_wr: f64,
     baseline_first_ns: Option<i64>,
@@ -259,8 +276,6 @@ pub struct ColocatedPair {
     segments: u32,
     segments_per_estimate: u32,
     axes: [AxisTest; 3],
-    watch: std::sync::Arc<CoverageTable>,
-    suspect: std::sync::Arc<CoverageTable>,
 }
 
 impl Segment {
@@ -349,15 +364,27 @@ impl ColocatedPair {
                 })
             };
         let per_day = 86_400.0 / config.estimate_s;
+        let tests = f64::from(config.shared_sequential_tests.max(1));
         let thresholds = Thresholds::from_arl(
-            config.watch_arl_days * per_day,
-            config.suspect_arl_days * per_day,
+            config.watch_arl_days * tests * per_day,
+            config.suspect_arl_days * tests * per_day,
             2,
+        );
+        let absolute = f64::from(config.shared_absolute_tests.max(1));
+        let looks = Looks::new(
+            u64::from(config.absolute_min_estimates),
+            (1.0 - config.absolute_watch_probability) / absolute,
+            (1.0 - config.absolute_suspect_probability) / absolute,
         );
         let axis = || AxisTest {
             latest: None,
             absolute: None,
             absolute_suspect_since_ns: None,
+            looks,
+            all_w: 0.0,
+            all_wr: 0.0,
+            all_w2_inv_dof: 0.0,
+            all_first_ns: None,
             baseline_w: 0.0,
             baseline_wr: 0.0,
             baseline_first_ns: None,
@@ -379,8 +406,6 @@ impl ColocatedPair {
             segments: 0,
             segments_per_estimate: (config.estimate_s / config.segment_s).round() as u32,
             axes: [axis(), axis(), axis()],
-            watch: CoverageTable::shared(config.absolute_watch_probability),
-            suspect: CoverageTable::shared(config.absolute_suspect_probability),
             config: config.clone(),
         };
         for side in [&mut pair.a, &mut pair.b] {
@@ -683,17 +708,27 @@ impl ColocatedPair {
         t.latest = Some(e);
         t.estimates += 1;
         let random_var = e.uncertainty * e.uncertainty;
+        let w = 1.0 / random_var.max(f64::MIN_POSITIVE);
+        // The absolute test judges the mean of every estimate so far: the records' errors do
+        // not average away, the estimates' own do.
+        t.all_w += w;
+        t.all_wr += w * e.ratio;
+        t.all_w2_inv_dof += w * w / e.dof;
+        t.all_first_ns.get_or_insert(e.end_ns);
+        let mean_var = 1.0 / t.all_w;
+        // ν of the weighted mean by Welch–Satterthwaite over the estimates (each contributes
+        // w/W² of its variance): W²/Σ(w²/ν).
         let parts = [
-            (random_var, 1.0 / e.dof),
+            (mean_var, t.all_w2_inv_dof * mean_var * mean_var),
             (ua, self.a.gain_inv_dof),
             (ub, self.b.gain_inv_dof),
         ];
         let var: f64 = parts.iter().map(|(v, _)| v).sum();
         let nu = welch_satterthwaite(&parts).clamp(1.0, f64::from(MAX_DOF));
-        let (d, u) = (e.ratio - 1.0, var.sqrt());
+        let (d, u) = (t.all_wr / t.all_w - 1.0, var.sqrt());
         t.absolute = Some((d, u, nu));
-        if t.absolute_suspect_since_ns.is_none() && d.abs() > self.suspect.factor(nu) * u {
-            t.absolute_suspect_since_ns = Some(e.end_ns);
+        if t.looks.due(t.estimates) && t.looks.take(d.abs() / u, nu) {
+            t.absolute_suspect_since_ns = t.all_first_ns;
         }
         let w = 1.0 / random_var.max(f64::MIN_POSITIVE);
         match t.baseline {
@@ -744,19 +779,21 @@ impl ColocatedPair {
     pub fn absolute_report(&self) -> [TestReport; 3] {
         [0, 1, 2].map(|i| {
             let t = &self.axes[i];
-            let Some((d, u, nu)) = t.absolute else {
-                return TestReport::pending();
+            let Some((d, u, _)) = t.absolute else {
+                return TestReport::unjudged(Unjudged::NoEstimate);
             };
+            let judged = t.looks.taken() > 0;
             let verdict = if t.absolute_suspect_since_ns.is_some() {
                 Verdict::Suspect
-            } else if d.abs() > self.watch.factor(nu) * u {
+            } else if t.looks.watch() {
                 Verdict::Watch
             } else {
                 Verdict::Ok
             };
             TestReport {
                 verdict,
-                judged: true,
+                judged,
+                reason: (!judged).then_some(Unjudged::NoEstimate),
                 statistic: d,
                 uncertainty: u,
                 since_ns: match verdict {
@@ -766,6 +803,7 @@ impl ColocatedPair {
                 },
                 evidence_nats: 0.0,
                 observations: t.estimates,
+                ..TestReport::pending()
             }
         })
     }
@@ -775,7 +813,11 @@ impl ColocatedPair {
         [0, 1, 2].map(|i| {
             let t = &self.axes[i];
             let Some((d, u)) = t.latest_d else {
-                return TestReport::pending();
+                return TestReport::unjudged(if t.estimates == 0 {
+                    Unjudged::NoEstimate
+                } else {
+                    Unjudged::Baseline
+                });
             };
             let (statistic, uncertainty) = match (t.excursion, t.baseline) {
                 ((w, wd), Some((_, var0))) if w > 0.0 => (wd / w, (1.0 / w + var0).sqrt()),
@@ -789,6 +831,8 @@ impl ColocatedPair {
                 since_ns: t.seq.since_ns(),
                 evidence_nats: t.seq.value(),
                 observations: t.seq.observations(),
+                reason: None,
+                ..TestReport::pending()
             }
         })
     }

@@ -58,21 +58,30 @@ pub struct HealthConfig {
     /// `1 − absolute_suspect_probability` over a calibration's life.
     pub absolute_watch_probability: f64,
     pub absolute_suspect_probability: f64,
-    /// Design average run lengths to a false `watch` and a false `suspect` of each sequential
-    /// test on a healthy sensor, days of data (Lorden's bound: the real ones are longer).
+    /// Design average run lengths to a false `watch` and a false `suspect` of a healthy
+    /// sensor, days of data, every sequential test together (Lorden's bound: the real ones are
+    /// longer): each of the sensor's sequential tests (spikes on three channels, the relative
+    /// gravity test, three relative co-located tests per pair) is given this times their
+    /// number.
     pub watch_arl_days: f64,
     pub suspect_arl_days: f64,
+    /// Co-located pairs this sensor is in: their tests share its budget.
+    pub colocated_pairs: u32,
     /// Time a channel must be dead (constant, not finite, or with a second-difference noise
     /// below `dead_variance_ratio` of its stated noise variance) to be `suspect`, s.
     pub stuck_s: f64,
     pub dead_variance_ratio: f64,
-    /// Ratio of the noise's standard deviation to the stated output noise that the noise test
-    /// is designed to detect. Its CUSUM climbs only while the variance ratio exceeds
-    /// `ln ρ / (1 − 1/ρ)`, ρ the design ratio squared: 1.85 (noise ×1.36) for the default 2.
+    /// Ratio of the noise's standard deviation to the stated output noise (at its upper
+    /// 99.9 % limit) that the noise test is designed to find: a window is `high` when its
+    /// floor's variance exceeds this ratio (the geometric middle between 1 and its square),
+    /// so noise ×√2 for the default 2.
     pub noise_design_ratio: f64,
-    /// Blocks whose vibration RMS exceeds this are not judged for noise, m/s²: strong motion
-    /// reaches the second differences the noise is measured on.
-    pub noise_gate_vibration_mps2: f64,
+    /// Consecutive `high` noise windows that make `watch`.
+    pub noise_watch_windows: u32,
+    /// How long a channel's noise or spike test must hold its finding, without a window or a
+    /// block that clears it, before it is `suspect`, s: long enough to hold a night, when a
+    /// building's motion leaves a channel's own noise to be seen.
+    pub confirm_s: f64,
     /// A sample whose second difference exceeds this many standard deviations of the
     /// second differences (√6 σ for white noise σ) starts a spike candidate.
     pub spike_threshold_sigma: f64,
@@ -99,10 +108,12 @@ impl Default for HealthConfig {
             absolute_suspect_probability: 0.999,
             watch_arl_days: 30.0,
             suspect_arl_days: 10_000.0,
+            colocated_pairs: 0,
             stuck_s: 10.0,
             dead_variance_ratio: 0.01,
             noise_design_ratio: 2.0,
-            noise_gate_vibration_mps2: 0.05,
+            noise_watch_windows: 2,
+            confirm_s: 86_400.0,
             spike_threshold_sigma: 8.0,
             spike_allowed_per_hour: 1.0,
             spike_design_factor: 20.0,
@@ -124,7 +135,7 @@ impl HealthConfig {
             ("watch_arl_days", self.watch_arl_days),
             ("suspect_arl_days", self.suspect_arl_days),
             ("stuck_s", self.stuck_s),
-            ("noise_gate_vibration_mps2", self.noise_gate_vibration_mps2),
+            ("confirm_s", self.confirm_s),
             ("spike_threshold_sigma", self.spike_threshold_sigma),
             ("spike_allowed_per_hour", self.spike_allowed_per_hour),
             ("dead_variance_ratio", self.dead_variance_ratio),
@@ -154,6 +165,9 @@ impl HealthConfig {
                     self.stretch_s, self.block_s
                 ),
             );
+        }
+        if self.noise_watch_windows == 0 {
+            return bad("noise_watch_windows", "0 must be at least 1".into());
         }
         if self.watch_arl_days > self.suspect_arl_days {
             return bad(

@@ -23,8 +23,14 @@
 //! temperature model's (`σ²_β` per °C², below) at the stretches' mean distance from the
 //! model's reference, the mean's noise, local gravity's, and the stated stability `s`. Its
 //! degrees of freedom are Welch–Satterthwaite's over the parts (the record's ν for the
-//! covariances, the pooled noise's, infinitely many for g and s). `watch` beyond Student's t at
-//! `absolute_watch_probability`, `suspect` beyond t at `absolute_suspect_probability`.
+//! covariances, the pooled noise's, infinitely many for g and s). The record's error does not
+//! average away, so the test is not a CUSUM: it looks at the mean at `absolute_min_stretches`
+//! stretches and at every doubling of their count after, and spends its false-alarm
+//! probability over the looks, half of what is left at each (`α_j = α·2^{−j}`, which sum to
+//! α): `suspect` beyond Student's t at `1 − α_j`, α the sensor's share of `1 −
+//! absolute_suspect_probability` (split among its absolute tests), and `watch` likewise for
+//! `absolute_watch_probability`. A healthy sensor with an honest record is then `suspect` with
+//! probability at most α over the record's life, however long it is watched.
 //!
 //! **Temperature.** With `ΔT = T − T₀`, the model's coefficients' errors move `a` by
 //! `ΔT·(δc_q − S⁻¹·diag(V₀)·δc_g)`, so `m` by `ΔT·β` with `β = gᵀ·δc`,
@@ -41,16 +47,15 @@
 //! `δ(z − δ/2)`, `z = d/u`, `δ = relative_shift_mps2/u`: the exact log-likelihood ratio of a
 //! shift of the design size, with the run-length bounds of [`crate::cusum`].
 
-use std::sync::Arc;
 use triax_calibration::corrector::{SetCorrector, TemperatureCheck};
 
-use triax_calibration::student::{welch_satterthwaite, CoverageTable, MAX_DOF};
+use triax_calibration::student::{t_quantile, welch_satterthwaite, MAX_DOF};
 use triax_protocol::record::{CalibrationRecord, SetKind};
 
 use crate::config::HealthConfig;
 use crate::cusum::{Sequential, Thresholds, Verdict};
 use crate::gravity::LocalGravity;
-use crate::report::TestReport;
+use crate::report::{TestReport, Unjudged};
 
 /// Weight of the newest stretch in the pooled noise.
 const POOL_LAMBDA: f64 = 0.02;
@@ -190,14 +195,64 @@ struct Stretch {
     has_temperature: bool,
 }
 
+/// A test that looks at an accumulating estimate at counts `first·2^{j−1}`, spending `α·2^{−j}`
+/// of its false-alarm probability at look `j` (which sum to α whatever the number of looks).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Looks {
+    first: u64,
+    watch_alpha: f64,
+    suspect_alpha: f64,
+    /// Looks taken, and the verdict of the last one.
+    taken: u32,
+    watch: bool,
+    suspect: bool,
+}
+
+impl Looks {
+    pub fn new(first: u64, watch_alpha: f64, suspect_alpha: f64) -> Looks {
+        Looks {
+            first: first.max(1),
+            watch_alpha,
+            suspect_alpha,
+            taken: 0,
+            watch: false,
+            suspect: false,
+        }
+    }
+
+    /// Whether `count` observations are a look: the first, then every doubling.
+    pub fn due(&self, count: u64) -> bool {
+        count == self.first << self.taken.min(62)
+    }
+
+    /// Takes the look at standardised distance `z = |d|/u` with `nu` degrees of freedom;
+    /// returns whether it found `suspect` (which then latches).
+    pub fn take(&mut self, z: f64, nu: f64) -> bool {
+        self.taken += 1;
+        let j = self.taken.min(60) as i32;
+        let nu = nu.floor().clamp(1.0, f64::from(MAX_DOF)) as u32;
+        let factor = |alpha: f64| t_quantile(nu, 1.0 - (alpha * 0.5f64.powi(j)).max(1e-15));
+        self.watch = z > factor(self.watch_alpha);
+        if !self.suspect && z > factor(self.suspect_alpha) {
+            self.suspect = true;
+            return true;
+        }
+        false
+    }
+
+    pub fn taken(&self) -> u32 {
+        self.taken
+    }
+
+    pub fn watch(&self) -> bool {
+        self.watch
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 struct Absolute {
     gravity: LocalGravity,
-    /// Student's t at the watch and suspect probabilities, on the gateway's grid of ν (which
-    /// rounds ν down: the larger factor).
-    watch: Arc<CoverageTable>,
-    suspect: Arc<CoverageTable>,
-    min_stretches: u32,
+    looks: Looks,
     sum_w: f64,
     sum_wd: f64,
     sum_wdt: f64,
@@ -254,8 +309,12 @@ pub(crate) struct GravityCheck {
 }
 
 impl GravityCheck {
-    pub fn new(model: StaticModel, config: &HealthConfig) -> GravityCheck {
+    /// `sequential` is how many sequential tests share the sensor's false-alarm budget.
+    pub fn new(model: StaticModel, config: &HealthConfig, sequential: u32) -> GravityCheck {
         let per_day = 86_400.0 / config.stretch_s;
+        let tests = f64::from(sequential.max(1));
+        // The absolute tests of the sensor: this one and three a co-located pair.
+        let absolute = f64::from(1 + 3 * config.colocated_pairs);
         GravityCheck {
             model,
             stretch_blocks: (config.stretch_s / config.block_s).round().max(2.0) as u32,
@@ -266,9 +325,11 @@ impl GravityCheck {
             stretches: 0,
             absolute: config.local_gravity.map(|gravity| Absolute {
                 gravity,
-                watch: CoverageTable::shared(config.absolute_watch_probability),
-                suspect: CoverageTable::shared(config.absolute_suspect_probability),
-                min_stretches: config.absolute_min_stretches,
+                looks: Looks::new(
+                    u64::from(config.absolute_min_stretches),
+                    (1.0 - config.absolute_watch_probability) / absolute,
+                    (1.0 - config.absolute_suspect_probability) / absolute,
+                ),
                 sum_w: 0.0,
                 sum_wd: 0.0,
                 sum_wdt: 0.0,
@@ -292,8 +353,8 @@ impl GravityCheck {
                 slope_prior_var: None,
                 baseline: None,
                 seq: Sequential::new(Thresholds::from_arl(
-                    config.watch_arl_days * per_day,
-                    config.suspect_arl_days * per_day,
+                    config.watch_arl_days * tests * per_day,
+                    config.suspect_arl_days * tests * per_day,
                     2,
                 )),
                 up: (0.0, 0.0),
@@ -423,10 +484,7 @@ impl GravityCheck {
             let nu = welch_satterthwaite(&parts).clamp(1.0, f64::from(MAX_DOF));
             let u = var.sqrt();
             abs.latest = Some((d, u, nu));
-            if abs.count >= u64::from(abs.min_stretches)
-                && abs.suspect_since_ns.is_none()
-                && d.abs() > abs.suspect.factor(nu) * u
-            {
+            if abs.looks.due(abs.count) && abs.looks.take(d.abs() / u, nu) {
                 abs.suspect_since_ns = abs.first_ns;
             }
         }
@@ -496,15 +554,15 @@ impl GravityCheck {
 
     pub fn absolute_report(&self) -> TestReport {
         let Some(abs) = &self.absolute else {
-            return TestReport::pending();
+            return TestReport::unjudged(Unjudged::NoLocalGravity);
         };
-        let Some((d, u, nu)) = abs.latest else {
-            return TestReport::pending();
+        let Some((d, u, _)) = abs.latest else {
+            return TestReport::unjudged(Unjudged::NoQuietStretch);
         };
-        let judged = abs.count >= u64::from(abs.min_stretches);
+        let judged = abs.looks.taken() > 0;
         let verdict = if abs.suspect_since_ns.is_some() {
             Verdict::Suspect
-        } else if judged && d.abs() > abs.watch.factor(nu) * u {
+        } else if abs.looks.watch() {
             Verdict::Watch
         } else {
             Verdict::Ok
@@ -517,13 +575,23 @@ impl GravityCheck {
             since_ns: (verdict != Verdict::Ok).then_some(abs.first_ns).flatten(),
             evidence_nats: 0.0,
             observations: abs.count,
+            reason: (!judged).then_some(Unjudged::FewQuietStretches),
+            ..TestReport::pending()
         }
     }
 
     pub fn relative_report(&self) -> TestReport {
         let r = &self.relative;
         let Some((d, u)) = r.latest else {
-            return TestReport::pending();
+            // While the baseline is taken, its quiet stretches so far are the evidence.
+            return TestReport {
+                observations: u64::from(r.n),
+                ..TestReport::unjudged(if r.n == 0 {
+                    Unjudged::NoQuietStretch
+                } else {
+                    Unjudged::Baseline
+                })
+            };
         };
         let side = if r.seq.is_down() { r.down } else { r.up };
         let (statistic, uncertainty) = if side.0 > 0.0 {
@@ -539,6 +607,8 @@ impl GravityCheck {
             since_ns: r.seq.since_ns(),
             evidence_nats: r.seq.value(),
             observations: r.seq.observations(),
+            reason: None,
+            ..TestReport::pending()
         }
     }
 

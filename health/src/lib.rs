@@ -40,6 +40,8 @@ pub mod cusum;
 pub mod gravity;
 pub mod gravity_check;
 pub mod monitor;
+pub mod motion;
+pub mod noise;
 pub mod report;
 pub mod sim;
 

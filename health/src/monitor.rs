@@ -13,9 +13,10 @@
 //! Per block, the vibration is judged from the data: the covariance of the outputs through
 //! S⁻¹, less the white noise the block's own second differences show, is the vibration's
 //! power (3-D). Below `quiet_vibration_mps2` the block is quiet and joins the gravity check;
-//! above `noise_gate_vibration_mps2` its noise is not judged. Each comparison
-//! allows five standard deviations of the power's estimate on a still sensor, so that a still
-//! sensor's blocks are all quiet and a noisy one's are not mistaken for motion.
+//! the comparison allows five standard deviations of the power's estimate on a still sensor,
+//! so that a still sensor's blocks are all quiet and a noisy one's are not mistaken for
+//! motion. The channels' noise is read apart from the blocks, on segments of its own
+//! ([`crate::noise`]), where the motion is not.
 
 use triax_calibration::corrector::Corrector;
 use triax_protocol::record::{CalibrationRecord, SetKind};
@@ -26,7 +27,8 @@ use crate::channel::{ChannelDesign, ChannelHealth};
 use crate::config::{HealthConfig, HealthError};
 use crate::cusum::Verdict;
 use crate::gravity_check::{GravityCheck, GravityObservation, StaticModel};
-use crate::report::HealthReport;
+use crate::noise::{FloorWindow, Segmenter, SEGMENT, WINDOW_SEGMENTS};
+use crate::report::{HealthReport, Unjudged};
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Stream {
@@ -51,12 +53,14 @@ pub struct SensorHealth {
     blocks: u64,
     stream: Option<Stream>,
     acc: BlockAccumulator,
-    // A break in the stream, a block's end, a report.
+    /// None when the record states no output noise (the noise test is not judged).
+    segments: Option<Segmenter>,
+    // A break in the stream, a block's end, a segment's end, a report.
     sensor_id: SensorId,
     block_s: f64,
     quiet_var: f64,
-    gate_var: f64,
     spike_sigma: f64,
+    windows: Option<Box<[FloorWindow; 3]>>,
     design: ChannelDesign,
     channels: [ChannelHealth; 3],
     gravity: GravityCheck,
@@ -66,9 +70,10 @@ pub struct SensorHealth {
 
 impl SensorHealth {
     /// How many bytes from a monitor's start a batch of up to a block touches: the record's
-    /// version, the block count, the stream's expectation and the block's running sums.
+    /// version, the block count, the stream's expectation, the block's running sums and the
+    /// noise segments being filled.
     pub const PER_BATCH_BYTES: usize =
-        std::mem::offset_of!(SensorHealth, acc) + std::mem::size_of::<BlockAccumulator>();
+        std::mem::offset_of!(SensorHealth, segments) + std::mem::size_of::<Option<Segmenter>>();
 
     /// A monitor for `record`, which it loads into a corrector of its own.
     pub fn new(record: &CalibrationRecord, config: &HealthConfig) -> Result<Self, HealthError> {
@@ -91,10 +96,22 @@ impl SensorHealth {
                 record_version: record.version,
             });
         }
-        let design = ChannelDesign::new(config);
+        // Spikes on three channels and the relative gravity test, and three relative tests a
+        // pair: one budget.
+        let sequential = 4 + 3 * config.colocated_pairs;
+        let design = ChannelDesign::new(config, sequential);
         let noise = record.sensor.output_noise;
         let dof = record.sensor.output_noise_dof;
         let channels = [0, 1, 2].map(|j| ChannelHealth::new(&design, noise.map(|n| n[j]), dof));
+        let references = [0, 1, 2].map(|j| channels[j].reference_var());
+        let windows = match references {
+            [Some(a), Some(b), Some(c)] => Some(Box::new([
+                FloorWindow::new(a),
+                FloorWindow::new(b),
+                FloorWindow::new(c),
+            ])),
+            _ => None,
+        };
         let model = StaticModel::new(record, corrector.set(SetKind::Static));
         let mut acc =
             BlockAccumulator::new(record.sensor.output_full_scale.unwrap_or(f64::INFINITY));
@@ -106,12 +123,13 @@ impl SensorHealth {
             version: record.version,
             block_s: config.block_s,
             quiet_var: config.quiet_vibration_mps2.powi(2),
-            gate_var: config.noise_gate_vibration_mps2.powi(2),
             spike_sigma: config.spike_threshold_sigma,
             design,
             channels,
-            gravity: GravityCheck::new(model, config),
+            gravity: GravityCheck::new(model, config, sequential),
             acc,
+            segments: windows.as_ref().map(|_| Default::default()),
+            windows,
             stream: None,
             blocks: 0,
             discontinuities: 0,
@@ -183,6 +201,9 @@ impl SensorHealth {
             self.discontinuities += 1;
         }
         self.acc.discard();
+        if let Some(segments) = &mut self.segments {
+            segments.break_run();
+        }
         self.gravity.interrupt();
     }
 
@@ -221,8 +242,23 @@ impl SensorHealth {
         while done < n {
             let take = ((block_len - self.acc.len()) as usize).min(n - done);
             self.acc.temperature(temperature, take as u32);
-            for v in samples.by_ref().take(take) {
+            for (i, v) in samples.by_ref().take(take).enumerate() {
                 self.acc.push(v);
+                if let (Some(segments), Some(windows)) = (&mut self.segments, &mut self.windows) {
+                    if segments.push(v) {
+                        let at_ns = timestamp_ns + ((done + i) as f64 * period_ns).round() as i64;
+                        for k in 0..3 {
+                            on_segment(
+                                &segments.channel(k),
+                                &mut windows[k],
+                                &mut self.channels[k],
+                                &self.design,
+                                at_ns,
+                                period_ns,
+                            );
+                        }
+                    }
+                }
             }
             done += take;
             if self.acc.len() == block_len {
@@ -259,11 +295,10 @@ impl SensorHealth {
             .fold(f64::INFINITY, f64::min)
             .max(1.0);
         let allowance = 5.0 * noise_power * (2.0 / (n - 1.0) + 2.0 / nu).sqrt();
-        let judge_noise = vibration <= self.gate_var + allowance;
         let mut any_dead = false;
         let mut clipped = 0;
         for (ch, cb) in self.channels.iter_mut().zip(&b.channels) {
-            any_dead |= ch.on_block(&self.design, cb, b.n, b.end_ns, b.duration_s, judge_noise);
+            any_dead |= ch.on_block(&self.design, cb, b.n, b.end_ns, b.duration_s);
             clipped += cb.clipped;
         }
         let thresholds = [0, 1, 2]
@@ -303,7 +338,19 @@ impl SensorHealth {
         let gravity_absolute = self.gravity.absolute_report();
         let gravity_relative = self.gravity.relative_report();
         let stuck = [0, 1, 2].map(|j| self.channels[j].stuck_report());
-        let noise = [0, 1, 2].map(|j| self.channels[j].noise_report());
+        let noise = [0, 1, 2].map(|j| {
+            let mut t = self.channels[j].noise_report(&self.design);
+            if !t.judged {
+                t.reason = Some(if self.windows.is_none() {
+                    Unjudged::NoStatedNoise
+                } else if t.masked + t.loud > 0 {
+                    Unjudged::Masked
+                } else {
+                    Unjudged::NoData
+                });
+            }
+            t
+        });
         let spikes = [0, 1, 2].map(|j| self.channels[j].spike_report(&self.design, self.block_s));
         let mut report = HealthReport {
             verdict: Verdict::Ok,
@@ -329,7 +376,34 @@ impl SensorHealth {
         }
         report.verdict = verdict;
         report.suspect_since_ns = since;
+        for t in [&mut report.gravity_absolute, &mut report.gravity_relative]
+            .into_iter()
+            .chain(&mut report.stuck)
+            .chain(&mut report.noise)
+            .chain(&mut report.spikes)
+        {
+            if t.judged {
+                t.reason = None;
+            }
+        }
         report
+    }
+}
+
+/// A channel's completed noise segment into its window, and a completed window into the
+/// channel's noise test.
+#[cold]
+fn on_segment(
+    d2: &[f32; SEGMENT],
+    window: &mut FloorWindow,
+    channel: &mut ChannelHealth,
+    design: &ChannelDesign,
+    end_ns: i64,
+    period_ns: f64,
+) {
+    if let Some(w) = window.segment(d2, end_ns, &design.noise) {
+        let duration_ns = (period_ns * (SEGMENT * WINDOW_SEGMENTS) as f64) as i64;
+        channel.on_noise_window(design, &w, duration_ns);
     }
 }
 
@@ -372,7 +446,7 @@ mod tests {
             );
         }
         assert!(
-            SensorHealth::PER_BATCH_BYTES * 4 < size_of::<SensorHealth>(),
+            SensorHealth::PER_BATCH_BYTES * 2 < size_of::<SensorHealth>(),
             "{} of {}",
             SensorHealth::PER_BATCH_BYTES,
             size_of::<SensorHealth>()

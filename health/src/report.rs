@@ -16,8 +16,53 @@ pub struct TestReport {
     /// The sequential test's accumulated log-likelihood ratio, nats (0 for tests that are
     /// not sequential).
     pub evidence_nats: f64,
-    /// Observations judged (blocks, or quiet stretches for the gravity tests).
+    /// Observations judged (blocks, or quiet stretches for the gravity tests, noise
+    /// windows, pair estimates).
     pub observations: u64,
+    /// Why the test is not judged yet, while `judged` is false (a fixed vocabulary:
+    /// [`Unjudged`]).
+    pub reason: Option<Unjudged>,
+    /// Noise windows left unjudged because the building's motion masked the floor, and
+    /// because transients filled them (noise tests only; 0 for the others).
+    pub masked: u64,
+    pub loud: u64,
+}
+
+/// Why a test has not been judged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unjudged {
+    /// The building gave the sensor no quiet minute yet (gravity tests).
+    NoQuietStretch,
+    /// Fewer quiet minutes than the absolute test's first look needs.
+    FewQuietStretches,
+    /// The gateway was given no local gravity (absolute gravity test).
+    NoLocalGravity,
+    /// The relative test's baseline is still being taken.
+    Baseline,
+    /// The record states no output noise.
+    NoStatedNoise,
+    /// Every noise window so far was masked by motion or filled with transients.
+    Masked,
+    /// No batch yet.
+    NoData,
+    /// No estimate of the pair yet (too little coherent motion in its band, or too little
+    /// time).
+    NoEstimate,
+}
+
+impl Unjudged {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Unjudged::NoQuietStretch => "no_quiet_stretch",
+            Unjudged::FewQuietStretches => "few_quiet_stretches",
+            Unjudged::NoLocalGravity => "no_local_gravity",
+            Unjudged::Baseline => "baseline",
+            Unjudged::NoStatedNoise => "no_stated_noise",
+            Unjudged::Masked => "masked",
+            Unjudged::NoData => "no_data",
+            Unjudged::NoEstimate => "no_estimate",
+        }
+    }
 }
 
 impl TestReport {
@@ -30,6 +75,17 @@ impl TestReport {
             since_ns: None,
             evidence_nats: 0.0,
             observations: 0,
+            reason: Some(Unjudged::NoData),
+            masked: 0,
+            loud: 0,
+        }
+    }
+
+    /// Not judged, for `reason`.
+    pub(crate) fn unjudged(reason: Unjudged) -> TestReport {
+        TestReport {
+            reason: Some(reason),
+            ..TestReport::pending()
         }
     }
 }
@@ -49,8 +105,8 @@ pub struct HealthReport {
     pub gravity_relative: TestReport,
     /// Per output channel: how long the channel has been dead, s (the uncertainty is one block).
     pub stuck: [TestReport; 3],
-    /// Per output channel: standard deviation of the white noise over the last ten minutes,
-    /// as a ratio to the record's `output_noise`.
+    /// Per output channel: the noise floor of the last judged window (the channel's own noise
+    /// or less), as a ratio of standard deviations to the record's `output_noise`.
     pub noise: [TestReport; 3],
     /// Per output channel: isolated spikes per hour over the last hour.
     pub spikes: [TestReport; 3],
@@ -62,6 +118,13 @@ pub struct HealthReport {
 }
 
 impl HealthReport {
+    /// Whether the calibration itself (gains and offsets, not the channels' behaviour) has
+    /// been checked: a gravity or co-located test judged. `ok` without it means nothing was
+    /// found because nothing could be looked at.
+    pub fn calibration_checked(&self) -> bool {
+        self.gravity_absolute.judged || self.gravity_relative.judged
+    }
+
     /// Every test, named, for a caller that lists them.
     pub fn tests(&self) -> [(&'static str, Option<usize>, &TestReport); 11] {
         [

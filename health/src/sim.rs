@@ -37,6 +37,8 @@ use triax_protocol::record::{
 };
 use triax_protocol::{SensorId, JSON_FORMAT_VERSION};
 
+pub use crate::motion::{FieldMotion, Motion};
+
 /// Temperatures of the lab's static runs, °C.
 pub const LAB_TEMPERATURES_C: [f64; 3] = [6.0, REFERENCE_C, 36.0];
 
@@ -49,6 +51,15 @@ pub fn field_sensor_truth() -> SensorTruth {
     SensorTruth {
         noise_v: Vector3::repeat(0.001),
         ..SensorTruth::drifting()
+    }
+}
+
+/// The same part with `noise_v` of white noise per sample and channel instead (0.2 mV is
+/// about 0.2 mg, a better part's).
+pub fn field_sensor_truth_with_noise(noise_v: f64) -> SensorTruth {
+    SensorTruth {
+        noise_v: Vector3::repeat(noise_v),
+        ..field_sensor_truth()
     }
 }
 
@@ -169,9 +180,11 @@ pub struct FieldConfig {
     /// Hour of the day of the warmest moment.
     pub warmest_hour: f64,
     pub temperature_noise_c: f64,
-    /// RMS of the vibration per axis by day and by night, m/s².
+    /// RMS of the building modes' vibration per axis by day and by night, m/s².
     pub vibration_day_mps2: f64,
     pub vibration_night_mps2: f64,
+    /// Everything else the building does (ambient, machinery, footfall, transients).
+    pub motion: FieldMotion,
 }
 
 impl Default for FieldConfig {
@@ -191,6 +204,7 @@ impl Default for FieldConfig {
             temperature_noise_c: 0.05,
             vibration_day_mps2: 0.02,
             vibration_night_mps2: 0.002,
+            motion: FieldMotion::none(),
         }
     }
 }
@@ -301,6 +315,7 @@ pub struct FieldSensor {
     rng: SmallRng,
     index: u64,
     vibration: Vibration,
+    motion: Motion,
     vibration_buf: Vec<[f64; 3]>,
     up: Vector3<f64>,
     faults: Vec<(i64, Fault)>,
@@ -319,6 +334,12 @@ impl FieldSensor {
         FieldSensor {
             rng: SmallRng::seed_from_u64(config.seed),
             vibration: Vibration::new(config.seed ^ 0x00B1_B2A7_10E5, config.sample_rate_hz),
+            motion: Motion::new(
+                config.motion.clone(),
+                config.seed,
+                config.sample_rate_hz,
+                config.up,
+            ),
             vibration_buf: Vec::with_capacity(config.batch_samples),
             truth,
             config,
@@ -379,7 +400,7 @@ impl FieldSensor {
         }
     }
 
-    /// The vibration's RMS per axis at `t_s` seconds after the start, m/s²: the day's or the
+    /// The modes' RMS per axis at `t_s` seconds after the start, m/s²: the day's or the
     /// night's.
     pub fn vibration_rms_at(&self, t_s: f64) -> f64 {
         if (6.0..22.0).contains(&self.hour_at(t_s)) {
@@ -396,10 +417,12 @@ impl FieldSensor {
 
     /// The next batch: its samples into `out` (cleared first) and its header.
     pub fn next_batch(&mut self, out: &mut Vec<[f32; 3]>) -> BatchInfo {
-        let rms = self.vibration_rms_at(self.next_time_s());
+        let t_s = self.next_time_s();
+        let rms = self.vibration_rms_at(t_s);
         let mut vibration = std::mem::take(&mut self.vibration_buf);
         self.vibration
             .batch(rms, self.config.batch_samples, &mut vibration);
+        self.motion.add(self.hour_at(t_s), &mut vibration);
         let info = self.next_batch_with(out, &vibration);
         self.vibration_buf = vibration;
         info

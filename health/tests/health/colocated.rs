@@ -29,6 +29,7 @@ fn half_an_hours_ratio_matches_the_truth() {
     };
     let config = PairConfig {
         estimate_s: 1800.0,
+        absolute_min_estimates: 1,
         ..PairConfig::default()
     };
     let mut pair = Pair::new(1, field, &config);

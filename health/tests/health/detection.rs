@@ -51,11 +51,16 @@ fn a_stuck_channel_is_suspect_within_a_minute() {
     eprintln!("stuck channel: suspect after {delay_s:.1} s");
 }
 
-/// Noise doubled in the daytime's vibration (2 mg RMS per axis): `suspect` on every channel
-/// within a second or two; the gravity tests say nothing.
+/// Noise doubled in the daytime's vibration (2 mg RMS per axis): `watch` on every channel
+/// within ten minutes (two noise windows of 41 s once the fault fills one), dated from the
+/// window the fault began in; `suspect` once that has held for `confirm_s` (ten minutes here,
+/// a day by default); the gravity tests say nothing.
 #[test]
-fn doubled_noise_is_suspect_within_ten_minutes() {
-    let config = HealthConfig::default();
+fn doubled_noise_is_watch_within_ten_minutes_then_suspect() {
+    let config = HealthConfig {
+        confirm_s: 600.0,
+        ..HealthConfig::default()
+    };
     let mut run = Run::new(2, daytime(), &config);
     let fault_ns = EPOCH_NS + 300 * SECOND_NS + 500_000_000;
     run.inject(fault_ns, Fault::Noise { factor: 2.0 });
@@ -63,30 +68,53 @@ fn doubled_noise_is_suspect_within_ten_minutes() {
     let before = run.monitor.report();
     assert!(not_ok(&before).is_empty(), "{:?}", not_ok(&before));
     assert!(before.noise.iter().all(|t| t.judged));
-    let found = run
+    let watch = run
         .run_until(fault_ns + 600 * SECOND_NS, |r| {
+            r.noise.iter().all(|t| t.verdict == Verdict::Watch)
+        })
+        .expect("watch");
+    let watch_s = (watch - fault_ns) as f64 * 1e-9;
+    // The window the fault began in is at most 41 s before it.
+    let window_ns = 41 * SECOND_NS;
+    for t in run.monitor.report().noise {
+        let since = t.since_ns.unwrap();
+        assert!(
+            since >= fault_ns - window_ns && since <= fault_ns + window_ns,
+            "{t:?}"
+        );
+        assert!((t.statistic / 2.0 - 1.0).abs() < 0.2, "{t:?}");
+    }
+    let found = run
+        .run_until(fault_ns + 1800 * SECOND_NS, |r| {
             r.noise.iter().all(|t| t.verdict == Verdict::Suspect)
         })
         .expect("found");
     let delay_s = (found - fault_ns) as f64 * 1e-9;
-    assert!(delay_s <= 600.0, "found after {delay_s} s");
+    assert!(
+        (600.0..=600.0 + 2.0 * 41.0 + 41.0).contains(&delay_s),
+        "suspect after {delay_s} s"
+    );
     let r = run.monitor.report();
     for t in r.noise {
-        assert!(t.since_ns.unwrap() >= fault_ns - SECOND_NS);
+        assert!(t.since_ns.unwrap() >= fault_ns - window_ns);
     }
     let others: Vec<_> = not_ok(&r)
         .into_iter()
         .filter(|t| !t.starts_with("noise"))
         .collect();
     assert!(others.is_empty(), "{others:?}");
-    eprintln!("noise ×2: suspect on all channels after {delay_s:.1} s");
+    eprintln!("noise ×2: watch after {watch_s:.1} s, suspect after {delay_s:.1} s");
 }
 
 /// Two isolated spikes of 50 mV (50 σ) a minute on one channel, 120 times the allowed rate:
-/// `suspect` within minutes; the channel's noise estimate stays clean.
+/// `watch` within minutes, `suspect` once that has held for `confirm_s` (ten minutes here);
+/// the channel's noise estimate stays clean.
 #[test]
-fn spikes_are_suspect_within_minutes_and_kept_out_of_the_noise() {
-    let config = HealthConfig::default();
+fn spikes_are_found_within_minutes_and_kept_out_of_the_noise() {
+    let config = HealthConfig {
+        confirm_s: 600.0,
+        ..HealthConfig::default()
+    };
     let mut run = Run::new(3, daytime(), &config);
     let fault_ns = EPOCH_NS + 120 * SECOND_NS;
     run.inject(
@@ -97,14 +125,24 @@ fn spikes_are_suspect_within_minutes_and_kept_out_of_the_noise() {
             height_v: 0.05,
         },
     );
-    let found = run
+    let watch = run
         .run_until(fault_ns + 1800 * SECOND_NS, |r| {
+            r.spikes[0].verdict >= Verdict::Watch
+        })
+        .expect("watch");
+    let watch_s = (watch - fault_ns) as f64 * 1e-9;
+    let found = run
+        .run_until(fault_ns + 3600 * SECOND_NS, |r| {
             r.spikes[0].verdict == Verdict::Suspect
         })
         .expect("found");
     let delay_s = (found - fault_ns) as f64 * 1e-9;
     let r = run.monitor.report();
-    assert!(delay_s <= 900.0, "found after {delay_s} s");
+    assert!(watch_s <= 900.0, "watch after {watch_s} s");
+    assert!(
+        (600.0..=1800.0).contains(&delay_s),
+        "found after {delay_s} s"
+    );
     assert_eq!(r.noise[0].verdict, Verdict::Ok, "{:?}", r.noise[0]);
     // The rate is an hour's average, still climbing towards 120/h.
     assert!(
@@ -118,7 +156,7 @@ fn spikes_are_suspect_within_minutes_and_kept_out_of_the_noise() {
         .collect();
     assert!(others.is_empty(), "{others:?}");
     eprintln!(
-        "spikes 120/h: suspect after {delay_s:.0} s, rate {:.0} ± {:.0} /h",
+        "spikes 120/h: watch after {watch_s:.0} s, suspect after {delay_s:.0} s, rate {:.0} ± {:.0} /h",
         r.spikes[0].statistic, r.spikes[0].uncertainty
     );
 }

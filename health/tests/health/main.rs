@@ -11,5 +11,6 @@
 
 mod colocated;
 mod detection;
+mod field;
 mod monte_carlo;
 mod util;
