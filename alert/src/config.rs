@@ -6,6 +6,7 @@
 //! stale_after_s = 30.0         # no data for this long: a `stale` alert
 //! repeat_interval_s = 60.0     # the same alert (kind and level) at most once per interval
 //! noise_share = 0.0            # share of each sample's stated variance that is noise
+//! suspect_relative_uncertainty = 0.05  # calibration_suspect samples: u widened by this share of the value
 //! highpass_hz = 0.1            # vibration baseline: high pass corner (2nd-order Butterworth)
 //! tilt_baseline_samples = 10   # clean tilt samples averaged into the baseline
 //! frequency_min_rms_mps2 = 0.005  # below this RMS the dominant frequency is noise: not judged
@@ -140,6 +141,11 @@ pub struct Settings {
     pub stale_after_s: f64,
     pub repeat_interval_s: f64,
     pub noise_share: f64,
+    /// A sample flagged `calibration_suspect` (only that) is judged as a clean one whose
+    /// standard uncertainty is widened, in quadrature, by this share of its value: the field
+    /// health checks found its record off by more than it states, by the fraction of a percent
+    /// to a few percent they detect, so a motion far beyond a limit still exceeds it.
+    pub suspect_relative_uncertainty: f64,
     /// Corner of the high pass that takes the baseline out of the acceleration
     /// ([`crate::highpass`]).
     pub highpass_hz: f64,
@@ -155,6 +161,7 @@ impl Default for Settings {
             stale_after_s: 30.0,
             repeat_interval_s: 60.0,
             noise_share: 0.0,
+            suspect_relative_uncertainty: 0.05,
             highpass_hz: 0.1,
             tilt_baseline_samples: 10,
             frequency_min_rms_mps2: 0.005,
@@ -230,6 +237,7 @@ struct FileConfig {
     stale_after_s: Option<f64>,
     repeat_interval_s: Option<f64>,
     noise_share: Option<f64>,
+    suspect_relative_uncertainty: Option<f64>,
     highpass_hz: Option<f64>,
     tilt_baseline_samples: Option<usize>,
     frequency_min_rms_mps2: Option<f64>,
@@ -268,6 +276,9 @@ impl FileConfig {
             stale_after_s: self.stale_after_s.unwrap_or(d.stale_after_s),
             repeat_interval_s: self.repeat_interval_s.unwrap_or(d.repeat_interval_s),
             noise_share: self.noise_share.unwrap_or(d.noise_share),
+            suspect_relative_uncertainty: self
+                .suspect_relative_uncertainty
+                .unwrap_or(d.suspect_relative_uncertainty),
             highpass_hz: self.highpass_hz.unwrap_or(d.highpass_hz),
             tilt_baseline_samples: self
                 .tilt_baseline_samples
@@ -306,6 +317,12 @@ impl FileConfig {
         }
         if !(0.0..=1.0).contains(&settings.noise_share) {
             return Err(ConfigError::invalid("noise_share", "must be within 0..=1"));
+        }
+        if !(0.0..=1.0).contains(&settings.suspect_relative_uncertainty) {
+            return Err(ConfigError::invalid(
+                "suspect_relative_uncertainty",
+                "must be within 0..=1",
+            ));
         }
         // Below 0.001 Hz the filter would take half an hour to settle; above 10 Hz it would cut
         // into the sway it is meant to keep.

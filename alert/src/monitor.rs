@@ -194,7 +194,7 @@ impl SensorState {
                     old.t_ns,
                     old.vibration,
                     old.uncertainty_mps2,
-                    old.flags != 0,
+                    flagged(old.flags),
                 );
             }
             self.k_max.evict_through(old.t_ns);
@@ -220,6 +220,14 @@ impl SensorState {
 pub struct Monitor {
     config: Config,
     sensors: BTreeMap<SensorKey, SensorState>,
+}
+
+/// Whether a sample's flags keep it from being judged clean. `calibration_suspect` alone does
+/// not: such a sample's uncertainty is widened instead
+/// ([`crate::config::Settings::suspect_relative_uncertainty`]), so that a field health verdict
+/// never silences a sensor's alerts.
+fn flagged(flags: u16) -> bool {
+    flags & !flags::CALIBRATION_SUSPECT != 0
 }
 
 fn usable(s: &CorrectedSample) -> bool {
@@ -286,6 +294,9 @@ struct Context<'a> {
     sequences: Option<(u64, u64)>,
     flagged_fraction: f64,
     flag_bits: u16,
+    /// The widening of `calibration_suspect` samples judged as clean; none where they are not
+    /// (tilt).
+    suspect_widening: Option<f64>,
     now: OffsetDateTime,
 }
 
@@ -349,6 +360,17 @@ fn statement(
             100.0 * ctx.flagged_fraction
         )),
         Basis::Clean => {}
+    }
+    if let (Some(r), true) = (
+        ctx.suspect_widening,
+        ctx.flag_bits & flags::CALIBRATION_SUSPECT != 0,
+    ) {
+        s.push_str(&format!(
+            " Samples flagged calibration_suspect (the field health checks found their record \
+             off) were judged as clean, the estimate's standard uncertainty widened by {:.1} % \
+             of its value (suspect_relative_uncertainty).",
+            100.0 * r
+        ));
     }
     s
 }
@@ -543,7 +565,7 @@ impl Monitor {
                     sample.accel_mps2,
                     v,
                     sample.uncertainty_mps2,
-                    sample.flags != 0,
+                    flagged(sample.flags),
                 );
                 v
             } else {
@@ -747,6 +769,7 @@ impl Monitor {
             sequences: None,
             flagged_fraction: (n - clean.len()) as f64 / n as f64,
             flag_bits,
+            suspect_widening: None,
             now,
         };
         let detail = format!(
@@ -912,12 +935,15 @@ fn evaluate_window(
         k.max(settings.coverage_factor)
     });
     let limits = &state.limits;
+    // The bounds hold each sample's stated u; a calibration_suspect sample's estimate is
+    // widened by a share of its value (below), which the bounds allow for here.
+    let widened = 1.0 + k * settings.suspect_relative_uncertainty;
     let wanted = limits
         .pga()
-        .is_some_and(|l| state.bounds.peak_bound(k) >= l.threshold)
+        .is_some_and(|l| widened * state.bounds.peak_bound(k) >= l.threshold)
         || limits
             .rms()
-            .is_some_and(|l| state.bounds.rms_bound(k) >= l.threshold)
+            .is_some_and(|l| widened * state.bounds.rms_bound(k) >= l.threshold)
         || limits.frequency().next().is_some();
     if !wanted {
         // Far from every limit: the sway fit is not kept up to date (it is rebuilt once the
@@ -960,8 +986,14 @@ fn evaluate_window(
     let summaries = state.bounds.summaries();
     let tracked = state.sway.stats(&state.window, &summaries, &request);
     let (clean_stats, flagged_stats, n_clean, flag_bits) = match tracked {
-        // Tracked only while every sample is clean.
-        Some(stats) => (Some(stats), None, n, 0),
+        // Tracked only while every sample is clean (calibration_suspect ones with their widened
+        // uncertainty).
+        Some(stats) => (
+            Some(stats),
+            None,
+            n,
+            state.window.iter().fold(0, |acc, t| acc | t.flags),
+        ),
         None => {
             let first_ns = first.t_ns;
             let point = |t: &TimedSample| Point {
@@ -979,7 +1011,7 @@ fn evaluate_window(
             let clean: Vec<Point> = state
                 .window
                 .iter()
-                .filter(|t| t.flags == 0 && t.usable)
+                .filter(|t| !flagged(t.flags) && t.usable)
                 .map(point)
                 .collect();
             let clean_stats = window_stats(&clean, &request);
@@ -1001,6 +1033,7 @@ fn evaluate_window(
         sequences,
         flagged_fraction: (n - n_clean) as f64 / n as f64,
         flag_bits,
+        suspect_widening: Some(settings.suspect_relative_uncertainty),
         now,
     };
     let basis_stats = |j: &Judgement| -> Option<&WindowStats> {
@@ -1012,8 +1045,23 @@ fn evaluate_window(
     let mut alerts = Vec::new();
 
     let mut levels = BTreeMap::new();
+    // A suspect record's gain error scales every amplitude the window gives: its share is
+    // added to the estimate's uncertainty (frequencies do not move with a gain).
+    let suspect = flag_bits & flags::CALIBRATION_SUSPECT != 0;
+    let widen = |e: Estimate| {
+        if suspect {
+            Estimate {
+                standard_uncertainty: e
+                    .standard_uncertainty
+                    .hypot(settings.suspect_relative_uncertainty * e.value),
+                ..e
+            }
+        } else {
+            e
+        }
+    };
     if let Some(limit) = state.limits.pga() {
-        let pick = |w: &WindowStats| w.peak.map(|p| p.estimate);
+        let pick = |w: &WindowStats| w.peak.map(|p| widen(p.estimate));
         let (clean_e, flagged_e) = (
             clean_stats.as_ref().and_then(pick),
             flagged_stats.as_ref().and_then(pick),
@@ -1040,7 +1088,7 @@ fn evaluate_window(
     }
 
     if let Some(limit) = state.limits.rms() {
-        let pick = |w: &WindowStats| w.rms.map(|p| p.estimate);
+        let pick = |w: &WindowStats| w.rms.map(|p| widen(p.estimate));
         let (clean_e, flagged_e) = (
             clean_stats.as_ref().and_then(pick),
             flagged_stats.as_ref().and_then(pick),

@@ -419,6 +419,8 @@ pub struct FileHealth {
     pub relative_shift_mps2: Option<f64>,
     pub stuck_s: Option<f64>,
     pub noise_design_ratio: Option<f64>,
+    pub noise_watch_windows: Option<u32>,
+    pub confirm_s: Option<f64>,
     pub watch_arl_days: Option<f64>,
     pub suspect_arl_days: Option<f64>,
     /// Latency bound beyond which a node's clock is reported at `watch`, ms.
@@ -527,6 +529,24 @@ fn colocated_settings(
     Ok(out)
 }
 
+/// Gives each pair the number of tests that share its sensors' false-alarm budgets: a
+/// sensor's own four sequential tests (spikes on three channels, relative gravity) and its
+/// absolute gravity test, and three of each kind for every pair it is in; a pair takes the
+/// larger count of its two sensors.
+fn share_budgets(pairs: &mut [ColocatedSettings], gravity: bool) {
+    let count = |id: &SensorId, pairs: &[ColocatedSettings]| {
+        pairs.iter().filter(|p| &p.a == id || &p.b == id).count() as u32
+    };
+    let counts: Vec<u32> = pairs
+        .iter()
+        .map(|p| count(&p.a, pairs).max(count(&p.b, pairs)))
+        .collect();
+    for (p, n) in pairs.iter_mut().zip(counts) {
+        p.pair.shared_sequential_tests = 4 + 3 * n;
+        p.pair.shared_absolute_tests = u32::from(gravity) + 3 * n;
+    }
+}
+
 /// Default time between a sensor's health reports, s.
 pub const DEFAULT_HEALTH_PUBLISH_INTERVAL_S: f64 = 60.0;
 
@@ -585,6 +605,12 @@ fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError>
             *field = v;
         }
     }
+    if let Some(v) = h.confirm_s {
+        checks.confirm_s = v;
+    }
+    if let Some(v) = h.noise_watch_windows {
+        checks.noise_watch_windows = v;
+    }
     checks.validate().map_err(|e| match e {
         HealthError::Config { field, problem } => {
             ConfigError::invalid(format!("health.{field}"), problem)
@@ -601,10 +627,11 @@ fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError>
             ))
         }
     };
-    let colocated = colocated_settings(
+    let mut colocated = colocated_settings(
         h.colocated.unwrap_or_default(),
         (checks.watch_arl_days, checks.suspect_arl_days),
     )?;
+    share_budgets(&mut colocated, checks.local_gravity.is_some());
     Ok(Some(HealthSettings {
         checks,
         publish_interval_s,

@@ -197,6 +197,13 @@ impl HealthFeed {
                 }
             }
         }
+        if message
+            .tests
+            .iter()
+            .any(|t| t.judged && t.test.starts_with("colocated_"))
+        {
+            message.calibration_checked = Some(true);
+        }
         // The earliest start of any suspect test's evidence, the pairs' included.
         message.suspect_since_ns = message
             .tests
@@ -294,6 +301,13 @@ impl Quality {
             since_ns: None,
             evidence_nats: 0.0,
             observations: 0,
+            reason: match (watch_ms, self.latency_min_ms) {
+                (None, _) => Some("off".to_owned()),
+                (_, None) => Some("no_data".to_owned()),
+                _ => None,
+            },
+            masked: None,
+            loud: None,
         }
     }
 }
@@ -337,6 +351,11 @@ fn test(name: &'static str, channel: Option<usize>, t: &TestReport) -> HealthTes
             0.0
         },
         observations: t.observations,
+        reason: (!t.judged)
+            .then(|| t.reason.map(|r| r.as_str().to_owned()))
+            .flatten(),
+        masked: (name == "noise").then_some(t.masked),
+        loud: (name == "noise").then_some(t.loud),
     }
 }
 
@@ -369,6 +388,7 @@ fn message(
         blocks: report.blocks,
         quiet_stretches: report.quiet_stretches,
         discontinuities: report.discontinuities,
+        calibration_checked: Some(report.calibration_checked()),
         tests: report
             .tests()
             .iter()

@@ -434,7 +434,12 @@ impl SensorTable {
         let Some(settings) = self.config.health.as_ref() else {
             return HealthSeed::default();
         };
-        let monitor = match SensorHealth::with_corrector(record, corrector, &settings.checks) {
+        // The sensor's pairs share its false-alarm budget.
+        let checks = triax_health::HealthConfig {
+            colocated_pairs: self.pairs.of(&record.sensor_id).len() as u32,
+            ..settings.checks.clone()
+        };
+        let monitor = match SensorHealth::with_corrector(record, corrector, &checks) {
             Ok(h) => Some(h),
             Err(e) => {
                 tracing::error!(sensor = %record.sensor_id, version = record.version, cause = %e,

@@ -389,7 +389,7 @@ mod tests {
             state,
             ratio,
             log_sd: 0.1,
-            flatness: 5.0,
+            support: 11,
             kept: 64,
         }
     }

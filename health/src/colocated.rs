@@ -41,6 +41,7 @@
 //! (63 bins·axes for the default 1–5 Hz band in 5 s segments: about 130 operations), no
 //! allocation; the buffers are made once.
 
+use nalgebra::{Complex, Matrix3, Vector3};
 use triax_calibration::corrector::{Corrector, SetCorrector};
 use triax_calibration::student::{welch_satterthwaite, MAX_DOF};
 use triax_protocol::record::{CalibrationRecord, SetKind};
@@ -212,13 +213,74 @@ struct Side {
     gain_inv_dof: f64,
 }
 
-/// One axis's accumulated spectra over an estimate.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// The spectra accumulated over an estimate: A's cross-spectral matrix `Σ conj(xᵢ)·xₖ`, A's
+/// with B's `Σ conj(xᵢ)·yⱼ`, B's auto-spectra, and the record's noise A's diagonal holds.
+#[derive(Debug, Clone, Copy, PartialEq)]
 struct Sums {
-    gxx: f64,
-    gyy: f64,
-    gxy: [f64; 2],
-    noise_x: f64,
+    gaa: [[Complex<f64>; 3]; 3],
+    gab: [[Complex<f64>; 3]; 3],
+    gbb: [f64; 3],
+    noise: [f64; 3],
+}
+
+impl Default for Sums {
+    fn default() -> Self {
+        let zero = Complex::new(0.0, 0.0);
+        Sums {
+            gaa: [[zero; 3]; 3],
+            gab: [[zero; 3]; 3],
+            gbb: [0.0; 3],
+            noise: [0.0; 3],
+        }
+    }
+}
+
+impl Sums {
+    fn add(&mut self, o: &Sums, sign: f64) {
+        for i in 0..3 {
+            for k in 0..3 {
+                self.gaa[i][k] += o.gaa[i][k] * sign;
+                self.gab[i][k] += o.gab[i][k] * sign;
+            }
+            self.gbb[i] += sign * o.gbb[i];
+            self.noise[i] += sign * o.noise[i];
+        }
+    }
+
+    /// A's axes whose motion in these spectra stands at least as high as their noise.
+    fn active(&self) -> [bool; 3] {
+        [0, 1, 2].map(|i| self.gaa[i][i].re - self.noise[i] >= self.noise[i].max(f64::MIN_POSITIVE))
+    }
+
+    /// B's response to A along axis `j` by the multiple-input H₁ over the `active` axes of A
+    /// (the others held out): the row of `(G_AA − N)⁻¹·G_AB`, and its multiple coherence. The
+    /// ratio is `H_jj`; correlated motion along other axes (a transient's direction, a
+    /// diagonal mode) goes to their terms instead of biasing it through the records' cross-axis
+    /// errors.
+    fn response(&self, j: usize, active: [bool; 3]) -> Option<(Complex<f64>, f64)> {
+        if !active[j] {
+            return None;
+        }
+        let one = Complex::new(1.0, 0.0);
+        let zero = Complex::new(0.0, 0.0);
+        let m = Matrix3::from_fn(|i, k| match (active[i], active[k]) {
+            (true, true) => self.gaa[i][k] - if i == k { one * self.noise[i] } else { zero },
+            _ if i == k => one,
+            _ => zero,
+        });
+        let rhs = Vector3::from_fn(|i, _| if active[i] { self.gab[i][j] } else { zero });
+        let h = m.lu().solve(&rhs)?;
+        // γ² = g^H·(G_AA)⁻¹·g / G_BB with the uncorrected G_AA, as the coherence is defined.
+        let m_raw = Matrix3::from_fn(|i, k| match (active[i], active[k]) {
+            (true, true) => self.gaa[i][k],
+            _ if i == k => one,
+            _ => zero,
+        });
+        let explained = m_raw.lu().solve(&rhs)?;
+        let num: Complex<f64> = (0..3).map(|i| rhs[i].conj() * explained[i]).sum();
+        let coherence_sq = (num.re / self.gbb[j].max(f64::MIN_POSITIVE)).clamp(0.0, 1.0);
+        Some((h[j], coherence_sq))
+    }
 }
 
 /// One estimate of B's gain relative to A's along one axis.
@@ -232,6 +294,12 @@ pub struct GainRatio {
     pub dof: f64,
     /// Bendat & Piersol's random error alone, for comparison.
     pub bendat_piersol: f64,
+    /// The parts of `uncertainty`: the estimate's own random error (and its ν), which averages
+    /// down over estimates, and the record's noise taken out of A's auto-spectrum, which is
+    /// the same error in every estimate under the record and does not.
+    pub random: f64,
+    pub random_dof: f64,
+    pub noise_reference: f64,
     pub coherence_sq: f64,
     pub averages: f64,
 }
@@ -246,6 +314,8 @@ struct AxisTest {
     all_w: f64,
     all_wr: f64,
     all_w2_inv_dof: f64,
+    /// Σw·(the noise reference's part of u), averaged as one error, not down.
+    all_noise_w: f64,
     all_first_ns: Option<i64>,
     baseline_w: f64,
     baseline_wr: f64,
@@ -264,11 +334,11 @@ pub struct ColocatedPair {
     bins: usize,
     a: Side,
     b: Side,
-    sums: [Sums; 3],
+    sums: Sums,
     /// The same sums per sub-span, for the jackknife.
-    parts: Vec<[Sums; 3]>,
-    /// Per axis and bin: whether the bin enters the estimate (chosen on the previous
-    /// estimate's data), and its auto-spectrum over this one, to choose the next.
+    parts: Vec<Sums>,
+    /// Per bin: whether it enters the estimate (chosen on the previous estimate's data); per
+    /// axis and bin, A's auto-spectrum over this one, to choose the next.
     use_bin: Vec<bool>,
     bin_gxx: Vec<f64>,
     /// Σ of the window's squares over this estimate's segments.
@@ -384,6 +454,7 @@ impl ColocatedPair {
             all_w: 0.0,
             all_wr: 0.0,
             all_w2_inv_dof: 0.0,
+            all_noise_w: 0.0,
             all_first_ns: None,
             baseline_w: 0.0,
             baseline_wr: 0.0,
@@ -398,9 +469,9 @@ impl ColocatedPair {
             bins,
             a: side(record_a, &identity)?,
             b: side(record_b, &m)?,
-            sums: [Sums::default(); 3],
-            parts: vec![[Sums::default(); 3]; JACKKNIFE],
-            use_bin: vec![true; 3 * bins],
+            sums: Sums::default(),
+            parts: vec![Sums::default(); JACKKNIFE],
+            use_bin: vec![true; bins],
             bin_gxx: vec![0.0; 3 * bins],
             sum_w2: 0.0,
             segments: 0,
@@ -581,33 +652,38 @@ impl ColocatedPair {
         let part = (self.segments as usize * JACKKNIFE / self.segments_per_estimate as usize)
             .min(JACKKNIFE - 1);
         self.sum_w2 += a.sum_w2;
-        for axis in 0..3 {
-            let mut s = Sums::default();
-            let mut used = 0u32;
-            for k in 0..bins {
-                let x = a.x[axis * bins + k];
-                let gxx = x[0] * x[0] + x[1] * x[1];
-                self.bin_gxx[axis * bins + k] += gxx;
-                if !self.use_bin[axis * bins + k] {
-                    continue;
-                }
-                used += 1;
-                let y = b.x[axis * bins + k];
-                s.gxx += gxx;
-                s.gyy += y[0] * y[0] + y[1] * y[1];
-                // conj(x)·y
-                s.gxy[0] += x[0] * y[0] + x[1] * y[1];
-                s.gxy[1] += x[0] * y[1] - x[1] * y[0];
+        let mut s = Sums::default();
+        let mut used = 0u32;
+        for k in 0..bins {
+            let x = [0, 1, 2].map(|axis| {
+                let v = a.x[axis * bins + k];
+                Complex::new(v[0], v[1])
+            });
+            for (axis, xi) in x.iter().enumerate() {
+                self.bin_gxx[axis * bins + k] += xi.norm_sqr();
             }
-            s.noise_x = self.a.noise_var[axis] * a.sum_w2 * f64::from(used);
-            for total in [&mut self.sums[axis], &mut self.parts[part][axis]] {
-                total.gxx += s.gxx;
-                total.gyy += s.gyy;
-                total.gxy[0] += s.gxy[0];
-                total.gxy[1] += s.gxy[1];
-                total.noise_x += s.noise_x;
+            if !self.use_bin[k] {
+                continue;
+            }
+            used += 1;
+            let y = [0, 1, 2].map(|axis| {
+                let v = b.x[axis * bins + k];
+                Complex::new(v[0], v[1])
+            });
+            for i in 0..3 {
+                let xc = x[i].conj();
+                for l in 0..3 {
+                    s.gaa[i][l] += xc * x[l];
+                    s.gab[i][l] += xc * y[l];
+                }
+                s.gbb[i] += y[i].norm_sqr();
             }
         }
+        for (axis, n) in s.noise.iter_mut().enumerate() {
+            *n = self.a.noise_var[axis] * a.sum_w2 * f64::from(used);
+        }
+        self.sums.add(&s, 1.0);
+        self.parts[part].add(&s, 1.0);
         self.segments += 1;
         if self.segments >= self.segments_per_estimate {
             self.estimate(end_ns);
@@ -616,37 +692,35 @@ impl ColocatedPair {
 
     fn estimate(&mut self, end_ns: i64) {
         let bins = self.bins;
+        let used = self.use_bin.iter().filter(|&&u| u).count();
+        let averages = f64::from(self.segments) * used as f64 / 1.5;
+        let s = self.sums;
+        let active = s.active();
         for axis in 0..3 {
-            let used = self.use_bin[axis * bins..(axis + 1) * bins]
-                .iter()
-                .filter(|&&u| u)
-                .count();
-            let averages = f64::from(self.segments) * used as f64 / 1.5;
-            let s = self.sums[axis];
-            let denominator = s.gxx - s.noise_x;
-            let coherence_sq = (s.gxy[0] * s.gxy[0] + s.gxy[1] * s.gxy[1])
-                / (s.gxx * s.gyy).max(f64::MIN_POSITIVE);
-            if denominator <= 0.0 || coherence_sq < self.config.min_coherence {
+            let Some((h, coherence_sq)) = s.response(axis, active) else {
+                continue;
+            };
+            if coherence_sq < self.config.min_coherence {
                 continue;
             }
-            let ratio = s.gxy[0] / denominator;
+            let ratio = h.re;
             let relative = (1.0 - coherence_sq).max(0.0).sqrt()
                 / (coherence_sq.sqrt() * (2.0 * averages).sqrt());
             let bendat_piersol = relative * ratio.abs();
-            // Delete-one jackknife over the sub-spans that hold data.
+            // Delete-one jackknife over the sub-spans that hold data, each replicate the same
+            // regression on the rest.
             let mut replicates = [0.0; JACKKNIFE];
             let mut m = 0;
             for part in &self.parts {
-                let p = part[axis];
-                if p.gxx == 0.0 {
+                if part.gaa[axis][axis].re == 0.0 {
                     continue;
                 }
-                let rest = s.gxx - p.gxx - (s.noise_x - p.noise_x);
-                if rest <= 0.0 {
-                    continue;
+                let mut rest = s;
+                rest.add(part, -1.0);
+                if let Some((h, _)) = rest.response(axis, active) {
+                    replicates[m] = h.re;
+                    m += 1;
                 }
-                replicates[m] = (s.gxy[0] - p.gxy[0]) / rest;
-                m += 1;
             }
             let jackknife = if m >= 2 {
                 let mean = replicates[..m].iter().sum::<f64>() / m as f64;
@@ -660,10 +734,11 @@ impl ColocatedPair {
             } else {
                 (bendat_piersol, 2.0 * averages)
             };
-            // The record's noise, taken out of the denominator, is itself an estimate: u(N)/N
+            // The record's noise, taken out of A's auto-spectrum, is itself an estimate: u(N)/N
             // = √(2/ν) moves the ratio by r·u(N)/(ΣG_xx − N).
             let noise_inv_dof = self.a.noise_inv_dof;
-            let noise = ratio.abs() * s.noise_x * (2.0 * noise_inv_dof).sqrt() / denominator;
+            let denominator = s.gaa[axis][axis].re - s.noise[axis];
+            let noise = ratio.abs() * s.noise[axis] * (2.0 * noise_inv_dof).sqrt() / denominator;
             let parts = [
                 (random * random, 1.0 / random_dof),
                 (noise * noise, 0.5 * noise_inv_dof),
@@ -676,28 +751,28 @@ impl ColocatedPair {
                 uncertainty,
                 dof,
                 bendat_piersol,
+                random,
+                random_dof,
+                noise_reference: noise,
                 coherence_sq,
                 averages,
             };
             self.judge(axis, estimate);
         }
-        // The next estimate takes the bins where this one's motion stood above the noise
-        // (signal at least equal to it), or every bin of an axis where none did.
-        for axis in 0..3 {
-            let noise = self.a.noise_var[axis] * self.sum_w2;
-            let range = axis * bins..(axis + 1) * bins;
-            let any = self.bin_gxx[range.clone()]
-                .iter()
-                .any(|&g| g >= 2.0 * noise);
-            for k in range {
-                self.use_bin[k] = !any || self.bin_gxx[k] >= 2.0 * noise;
-                self.bin_gxx[k] = 0.0;
-            }
+        // The next estimate takes the bins where this one's motion stood above the noise on
+        // some axis (signal at least equal to it), or every bin where none did.
+        let noise = self.a.noise_var.map(|v| v * self.sum_w2);
+        let gxx = &self.bin_gxx;
+        let moving = |k: usize| (0..3).any(|axis| gxx[axis * bins + k] >= 2.0 * noise[axis]);
+        let any = (0..bins).any(moving);
+        for (k, u) in self.use_bin.iter_mut().enumerate() {
+            *u = !any || moving(k);
         }
+        self.bin_gxx.iter_mut().for_each(|g| *g = 0.0);
         self.sum_w2 = 0.0;
-        self.sums = [Sums::default(); 3];
+        self.sums = Sums::default();
         for part in &mut self.parts {
-            *part = [Sums::default(); 3];
+            *part = Sums::default();
         }
         self.segments = 0;
     }
@@ -708,18 +783,24 @@ impl ColocatedPair {
         t.latest = Some(e);
         t.estimates += 1;
         let random_var = e.uncertainty * e.uncertainty;
-        let w = 1.0 / random_var.max(f64::MIN_POSITIVE);
-        // The absolute test judges the mean of every estimate so far: the records' errors do
-        // not average away, the estimates' own do.
-        t.all_w += w;
-        t.all_wr += w * e.ratio;
-        t.all_w2_inv_dof += w * w / e.dof;
+        // The absolute test judges the mean of every estimate so far: the records' errors
+        // (gains, and the noise taken out) do not average away, the estimates' own do.
+        let own = 1.0 / (e.random * e.random).max(f64::MIN_POSITIVE);
+        t.all_w += own;
+        t.all_wr += own * e.ratio;
+        t.all_w2_inv_dof += own * own / e.random_dof;
+        t.all_noise_w += own * e.noise_reference;
         t.all_first_ns.get_or_insert(e.end_ns);
         let mean_var = 1.0 / t.all_w;
+        let noise_reference = t.all_noise_w / t.all_w;
         // ν of the weighted mean by Welch–Satterthwaite over the estimates (each contributes
         // w/W² of its variance): W²/Σ(w²/ν).
         let parts = [
             (mean_var, t.all_w2_inv_dof * mean_var * mean_var),
+            (
+                noise_reference * noise_reference,
+                0.5 * self.a.noise_inv_dof,
+            ),
             (ua, self.a.gain_inv_dof),
             (ub, self.b.gain_inv_dof),
         ];

@@ -54,6 +54,12 @@ pub struct FieldMotion {
     pub vehicle_rms_mps2: [f64; 2],
     pub lifts_per_hour: [f64; 2],
     pub lift_peak_mps2: [f64; 2],
+    /// Sways an hour (by day, by night): one to ten minutes of one sinusoid in `sway_hz` at an
+    /// amplitude in `sway_mps2`, as an alerting test or a machine's resonance drives a sensor
+    /// near the limits of its record's frequency domain.
+    pub sways_per_hour: [f64; 2],
+    pub sway_hz: [f64; 2],
+    pub sway_mps2: [f64; 2],
 }
 
 impl FieldMotion {
@@ -76,6 +82,9 @@ impl FieldMotion {
             vehicle_rms_mps2: [0.0, 0.0],
             lifts_per_hour: [0.0, 0.0],
             lift_peak_mps2: [0.0, 0.0],
+            sways_per_hour: [0.0, 0.0],
+            sway_hz: [0.5, 10.0],
+            sway_mps2: [0.0, 0.0],
         }
     }
 
@@ -101,6 +110,20 @@ impl FieldMotion {
             vehicle_rms_mps2: [0.03, 0.15],
             lifts_per_hour: [4.0, 0.5],
             lift_peak_mps2: [0.01, 0.05],
+            sways_per_hour: [0.0, 0.0],
+            sway_hz: [0.5, 10.0],
+            sway_mps2: [0.0, 0.0],
+        }
+    }
+
+    /// The occupied building with a sway of 0.05–0.5 m/s² at 8–12 Hz (about a record's
+    /// 10 Hz frequency limit) or 0.1–1 Hz, twice an hour, day and night.
+    pub fn swaying() -> FieldMotion {
+        FieldMotion {
+            sways_per_hour: [2.0, 2.0],
+            sway_hz: [8.0, 12.0],
+            sway_mps2: [0.05, 0.5],
+            ..FieldMotion::occupied()
         }
     }
 
@@ -223,6 +246,8 @@ enum Kind {
     Walk { omega: f64, phases: [f64; 4] },
     /// A raised-cosine pulse up and, `gap` samples later, one down.
     Lift { width: u64, gap: u64 },
+    /// One sinusoid, its first and last second ramped.
+    Sway { omega: f64, ramp: u64 },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -263,6 +288,10 @@ impl Event {
                 };
                 pulse(n) - pulse(n - gap as f64 - width as f64)
             }
+            Kind::Sway { omega, ramp } => {
+                let edge = n.min((self.len as f64 - n).max(0.0)) / ramp as f64;
+                edge.min(1.0) * (omega * n).sin()
+            }
         };
         self.scale.map(|s| s * v)
     }
@@ -286,7 +315,7 @@ pub struct Motion {
     band: [Band; 3],
     band_gain: f64,
     machines: Vec<Machine>,
-    arrivals: [Arrivals; 4],
+    arrivals: [Arrivals; 5],
     events: Vec<Event>,
     log_level: f64,
     index: u64,
@@ -338,6 +367,7 @@ impl Motion {
             first(&mut rng, config.vehicles_per_hour),
             first(&mut rng, config.walks_per_hour),
             first(&mut rng, config.lifts_per_hour),
+            first(&mut rng, config.sways_per_hour),
         ];
         let band = [0; 3].map(|_| Band::new(config.ambient_band_hz, sample_rate_hz));
         Motion {
@@ -431,7 +461,7 @@ impl Motion {
     fn schedule(&mut self, w: f64, n: u64) {
         let fs = self.sample_rate_hz;
         let end = (self.index + n) as f64;
-        for kind in 0..4 {
+        for kind in 0..self.arrivals.len() {
             loop {
                 let a = self.arrivals[kind];
                 if a.next >= end {
@@ -504,6 +534,26 @@ impl Motion {
                     start,
                     len: (uniform(rng, [10.0, 60.0]) * fs) as u64,
                     scale: vertical(rng, peak, self.up),
+                }
+            }
+            4 => {
+                // Below the cap, or its lower band when the whole band is above it.
+                let band = if c.sway_hz[0] < cap {
+                    [c.sway_hz[0], c.sway_hz[1].min(cap)]
+                } else {
+                    [0.1, 1.0]
+                };
+                let omega = 2.0 * PI * uniform(rng, band) / fs;
+                let amplitude = uniform(rng, c.sway_mps2);
+                let d = random_unit(rng);
+                Event {
+                    kind: Kind::Sway {
+                        omega,
+                        ramp: fs as u64,
+                    },
+                    start,
+                    len: (uniform(rng, [60.0, 600.0]) * fs) as u64,
+                    scale: d.map(|x| x * amplitude),
                 }
             }
             _ => {

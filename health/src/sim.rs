@@ -227,6 +227,13 @@ pub enum Fault {
         per_hour: f64,
         height_v: f64,
     },
+    /// Output channel `channel`'s sensitivity drifting by `relative_per_day` a day (ageing).
+    GainRamp {
+        channel: usize,
+        relative_per_day: f64,
+    },
+    /// The offset q of axis `axis` drifting by `mps2_per_day` a day.
+    OffsetRamp { axis: usize, mps2_per_day: f64 },
 }
 
 /// One batch's header, as a node would send it.
@@ -321,6 +328,9 @@ pub struct FieldSensor {
     faults: Vec<(i64, Fault)>,
     gain: [f64; 3],
     offset_mps2: Vector3<f64>,
+    /// Ramps: per channel the gain's drift a day, per axis the offset's, from when each began.
+    gain_ramps: Vec<(i64, usize, f64)>,
+    offset_ramps: Vec<(i64, usize, f64)>,
     noise_factor: f64,
     stuck: [Option<f32>; 3],
     spikes: Option<(usize, f64, f64)>,
@@ -348,6 +358,8 @@ impl FieldSensor {
             faults: Vec::new(),
             gain: [1.0; 3],
             offset_mps2: Vector3::zeros(),
+            gain_ramps: Vec::new(),
+            offset_ramps: Vec::new(),
             noise_factor: 1.0,
             stuck: [None; 3],
             spikes: None,
@@ -396,8 +408,29 @@ impl FieldSensor {
                     per_hour,
                     height_v,
                 } => self.spikes = Some((channel, per_hour, height_v)),
+                Fault::GainRamp {
+                    channel,
+                    relative_per_day,
+                } => self.gain_ramps.push((now_ns, channel, relative_per_day)),
+                Fault::OffsetRamp { axis, mps2_per_day } => {
+                    self.offset_ramps.push((now_ns, axis, mps2_per_day))
+                }
             }
         }
+    }
+
+    /// The ramps' gain factors and offsets at `now_ns` (a batch is short against a day).
+    fn ramped(&self, now_ns: i64) -> ([f64; 3], Vector3<f64>) {
+        let days = |since: i64| (now_ns - since).max(0) as f64 / 86_400e9;
+        let mut gain = self.gain;
+        for &(since, channel, per_day) in &self.gain_ramps {
+            gain[channel] *= 1.0 + per_day * days(since);
+        }
+        let mut offset = self.offset_mps2;
+        for &(since, axis, per_day) in &self.offset_ramps {
+            offset[axis] += per_day * days(since);
+        }
+        (gain, offset)
     }
 
     /// The modes' RMS per axis at `t_s` seconds after the start, m/s²: the day's or the
@@ -448,16 +481,17 @@ impl FieldSensor {
         let thermal_gain = truth.gain_drift_per_c.map(|c| 1.0 + c * dt);
         // V = S·a + c with c = −S·q: a gain fault scales the response to acceleration, not the
         // zero-g output.
+        let (gain, offset_mps2) = self.ramped(timestamp_ns);
         let v_gravity = s * (self.up * self.config.gravity_mps2);
-        let v_zero = -(s
-            * (truth.static_offset_mps2 + truth.offset_drift_mps2_per_c * dt + self.offset_mps2));
+        let v_zero =
+            -(s * (truth.static_offset_mps2 + truth.offset_drift_mps2_per_c * dt + offset_mps2));
         let spike_p = self.spikes.map(|(_, per_hour, _)| per_hour / 3600.0 / fs);
         for vib in vibration {
             let response = v_gravity + truth.dynamic_sensitivity * Vector3::from(*vib);
             let mut v = [0.0f32; 3];
             for k in 0..3 {
                 let noise: f64 = self.rng.sample(StandardNormal);
-                let x = thermal_gain[k] * (self.gain[k] * response[k] + v_zero[k])
+                let x = thermal_gain[k] * (gain[k] * response[k] + v_zero[k])
                     + self.noise_factor * truth.noise_v[k] * noise;
                 v[k] = x as f32;
             }

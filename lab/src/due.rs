@@ -93,9 +93,50 @@ fn time_of(ns: i64) -> String {
         .unwrap_or_else(|| format!("{ns} ns"))
 }
 
+/// Decimals that show an uncertainty `u` to two significant digits (4 for 0.001 to 0.0099),
+/// and its statistic to the same place: a small uncertainty is never printed as 0.
+fn decimals(u: f64) -> usize {
+    if !(u.is_finite() && u > 0.0) {
+        return 4;
+    }
+    (1.0 - u.log10().floor()).clamp(0.0, 12.0) as usize
+}
+
+/// Whether a test judges the calibration itself (gains, offsets), not the channels.
+fn judges_calibration(test: &str) -> bool {
+    test.starts_with("gravity_") || test.starts_with("colocated_")
+}
+
 /// The evidence of a report: each test that is not `ok`, as `test[channel] statistic ± u unit
-/// (verdict since time)`.
+/// (verdict since time)`; for a sensor whose calibration nothing has checked, each test of
+/// the calibration and why it is not judged.
 pub fn evidence(r: &SensorHealthReport) -> Vec<String> {
+    let mut lines = verdicts(r);
+    if r.calibration_checked == Some(false) {
+        lines.extend(
+            r.tests
+                .iter()
+                .filter(|t| judges_calibration(&t.test) && !t.judged)
+                .map(|t| {
+                    format!(
+                        "{} not judged: {} ({} observations)",
+                        t.test,
+                        t.reason.as_deref().unwrap_or("no reason given"),
+                        t.observations
+                    )
+                }),
+        );
+    }
+    lines
+}
+
+/// Whether `r` is listed for `least` (sensors at that verdict or worse) and `unchecked`
+/// (also sensors whose calibration nothing has checked).
+pub fn listed(r: &SensorHealthReport, least: HealthVerdict, unchecked: bool) -> bool {
+    r.verdict >= least || (unchecked && r.calibration_checked == Some(false))
+}
+
+fn verdicts(r: &SensorHealthReport) -> Vec<String> {
     r.tests
         .iter()
         .filter(|t| t.verdict != HealthVerdict::Ok)
@@ -105,7 +146,10 @@ pub fn evidence(r: &SensorHealthReport) -> Vec<String> {
                 None => t.test.clone(),
             };
             let value = match (t.statistic, t.uncertainty) {
-                (Some(s), Some(u)) => format!("{s:.4} ± {u:.4} {}", t.unit),
+                (Some(s), Some(u)) => {
+                    let d = decimals(u);
+                    format!("{s:.d$} ± {u:.d$} {}", t.unit)
+                }
                 (Some(s), None) => format!("{s:.4} {}", t.unit),
                 _ => "no statistic".to_owned(),
             };
@@ -125,8 +169,8 @@ pub fn render(reports: &[SensorHealthReport], problems: &[Problem]) -> String {
         out.push_str("no sensor is due for recalibration or under watch\n");
     } else {
         out.push_str(&format!(
-            "{:<16} {:<20} {:>8} {:<8} {}\n",
-            "BUILDING", "SENSOR", "VERSION", "VERDICT", "FLAGGED FROM"
+            "{:<16} {:<20} {:>8} {:<8} {:<7} {}\n",
+            "BUILDING", "SENSOR", "VERSION", "VERDICT", "CHECKED", "FLAGGED FROM"
         ));
     }
     for r in reports {
@@ -134,12 +178,18 @@ pub fn render(reports: &[SensorHealthReport], problems: &[Problem]) -> String {
             .flagged_from_ns
             .map(time_of)
             .unwrap_or_else(|| "-".to_owned());
+        let checked = match r.calibration_checked {
+            Some(true) => "yes",
+            Some(false) => "no",
+            None => "-",
+        };
         out.push_str(&format!(
-            "{:<16} {:<20} {:>8} {:<8} {}\n",
+            "{:<16} {:<20} {:>8} {:<8} {:<7} {}\n",
             r.building.as_str(),
             r.sensor_id.as_str(),
             r.calibration_version,
             r.verdict.as_str(),
+            checked,
             flagged
         ));
         for e in evidence(r) {
@@ -188,6 +238,7 @@ mod tests {
             blocks: 0,
             quiet_stretches: 0,
             discontinuities: 0,
+            calibration_checked: Some(true),
             tests: vec![HealthTest {
                 test: "gravity_relative".into(),
                 channel: None,
@@ -200,6 +251,9 @@ mod tests {
                 since_ns: Some(1_800_000_000_000_000_000),
                 evidence_nats: 12.0,
                 observations: 70,
+                reason: None,
+                masked: None,
+                loud: None,
             }],
             quality: StreamQuality {
                 samples: 0,
@@ -225,7 +279,7 @@ mod tests {
             }],
         );
         let lines: Vec<&str> = text.lines().collect();
-        assert!(lines[0].starts_with("BUILDING"));
+        assert!(lines[0].starts_with("BUILDING") && lines[0].contains("CHECKED"));
         assert!(
             lines[1].contains("acc-07") && lines[1].contains("suspect"),
             "{text}"
@@ -242,5 +296,35 @@ mod tests {
             render(&[], &[]),
             "no sensor is due for recalibration or under watch\n"
         );
+    }
+
+    /// A tiny uncertainty keeps its digits; an unchecked sensor says what could not be
+    /// judged and why, and is listed only when asked for.
+    #[test]
+    fn small_uncertainties_and_unchecked_sensors() {
+        let mut r = report("acc-09", HealthVerdict::Watch);
+        r.tests[0].statistic = Some(0.000_123_4);
+        r.tests[0].uncertainty = Some(0.000_015);
+        assert_eq!(
+            evidence(&r)[0],
+            "gravity_relative 0.000123 ± 0.000015 m/s^2 (watch since 2027-01-15T08:00:00Z)"
+        );
+        let mut quiet = report("acc-10", HealthVerdict::Ok);
+        quiet.calibration_checked = Some(false);
+        quiet.tests[0].judged = false;
+        quiet.tests[0].verdict = HealthVerdict::Ok;
+        quiet.tests[0].reason = Some("no_quiet_stretch".into());
+        quiet.tests[0].observations = 0;
+        assert_eq!(
+            evidence(&quiet),
+            ["gravity_relative not judged: no_quiet_stretch (0 observations)"]
+        );
+        assert!(!listed(&quiet, HealthVerdict::Watch, false));
+        assert!(listed(&quiet, HealthVerdict::Watch, true));
+        assert!(render(&[quiet], &[])
+            .lines()
+            .nth(1)
+            .unwrap()
+            .contains(" no "));
     }
 }

@@ -291,6 +291,10 @@ enum Command {
         /// Also list sensors whose verdict is `watch`.
         #[arg(long)]
         watch: bool,
+        /// Also list sensors whose calibration nothing has checked yet (no quiet minute, no
+        /// local gravity, no co-located pair: `calibration_checked` false), with why.
+        #[arg(long)]
+        unchecked: bool,
         /// Print the gateways' reports as a JSON array instead of the table.
         #[arg(long)]
         json: bool,
@@ -658,6 +662,7 @@ fn main() -> anyhow::Result<()> {
         Command::Due {
             buildings,
             watch,
+            unchecked,
             json,
             timeout_s,
             zenoh,
@@ -672,6 +677,8 @@ fn main() -> anyhow::Result<()> {
             } else {
                 HealthVerdict::Suspect
             };
+            // Unchecked sensors may be `ok`: every report is asked for, then chosen here.
+            let ask = if unchecked { HealthVerdict::Ok } else { least };
             let config = zenoh_config(&zenoh)?;
             let (reports, problems) = runtime()?.block_on(async {
                 let session = zenoh::open(config)
@@ -680,7 +687,7 @@ fn main() -> anyhow::Result<()> {
                 let found = due::gather(
                     &session,
                     &buildings,
-                    least,
+                    ask,
                     Duration::from_secs_f64(timeout_s),
                 )
                 .await;
@@ -689,6 +696,10 @@ fn main() -> anyhow::Result<()> {
                 }
                 anyhow::Ok(found?)
             })?;
+            let reports: Vec<_> = reports
+                .into_iter()
+                .filter(|r| due::listed(r, least, unchecked))
+                .collect();
             if json {
                 println!("{}", serde_json::to_string_pretty(&reports)?);
                 for p in &problems {

@@ -934,6 +934,7 @@ mod tests {
             blocks: 600,
             quiet_stretches: 4,
             discontinuities: 1,
+            calibration_checked: Some(true),
             tests: vec![HealthTest {
                 test: "stuck".into(),
                 channel: Some(2),
@@ -946,6 +947,9 @@ mod tests {
                 since_ns: Some(-5),
                 evidence_nats: 0.0,
                 observations: 600,
+                reason: None,
+                masked: None,
+                loud: None,
             }],
             quality: StreamQuality {
                 samples: 60_000,
@@ -1077,6 +1081,12 @@ pub struct SensorHealthReport {
     pub blocks: u64,
     pub quiet_stretches: u64,
     pub discontinuities: u64,
+    /// Whether the calibration itself (gains and offsets) has been checked: a gravity or
+    /// co-located test judged. An `ok` sensor with `false` here is one nothing could be
+    /// looked at for: no quiet minute, no local gravity, no pair. Absent from reports of
+    /// gateways that predate it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_checked: Option<bool>,
     /// Every test, in a fixed order.
     pub tests: Vec<HealthTest>,
     /// The stream's quality, as seismic networks report it.
@@ -1119,6 +1129,17 @@ pub struct HealthTest {
     pub evidence_nats: f64,
     /// Observations judged: blocks, or quiet stretches for the gravity tests.
     pub observations: u64,
+    /// Why the test is not judged, while `judged` is false: `no_data`, `no_quiet_stretch`,
+    /// `few_quiet_stretches`, `no_local_gravity`, `baseline`, `no_stated_noise`, `masked`,
+    /// `no_estimate` or `off` (PROTOCOL.md §3.9). Absent once judged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Noise tests only: windows left unjudged because the building's motion masked the
+    /// floor, and because transients filled them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masked: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loud: Option<u64>,
 }
 
 /// A stream's quality since the checks started on the record.

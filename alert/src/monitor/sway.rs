@@ -174,7 +174,7 @@ impl Default for SwayTracker {
 }
 
 fn clean(s: &TimedSample) -> bool {
-    s.usable && s.flags == 0
+    s.usable && !super::flagged(s.flags)
 }
 
 impl SwayTracker {

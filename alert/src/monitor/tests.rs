@@ -330,6 +330,55 @@ fn flagged_only_data_is_at_most_possible() {
     assert!(alerts.is_empty(), "{alerts:?}");
 }
 
+/// A sensor whose record the field health checks found suspect still raises `exceeded` for
+/// motion far beyond its limit, with its samples' uncertainty widened by 5 % of their value,
+/// and only `possible` where the widened interval reaches the limit. Its statement says so.
+#[test]
+fn calibration_suspect_samples_widen_the_interval_and_still_exceed() {
+    let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
+    let mut s = Script::new();
+    let alerts = s.run(&mut m, SETTLE_S + 3.0, 1.0, 2.0, flags::CALIBRATION_SUSPECT);
+    assert_eq!(
+        levels(&alerts, AlertKind::PeakAcceleration),
+        [AlertLevel::Exceeded]
+    );
+    let a = &alerts[0];
+    assert_eq!(a.flagged_fraction, 0.0);
+    // u = √(0.02² + (0.05·0.970)²) = 0.0525.
+    assert!(
+        (a.standard_uncertainty - 0.02f64.hypot(0.05 * a.value)).abs() < 1e-6,
+        "{a:?}"
+    );
+    assert!(
+        a.statement.contains("widened by 5.0 % of its value"),
+        "{}",
+        a.statement
+    );
+    // 0.58 (0.563 through the high pass) against 0.5: clean samples with u = 0.02 say
+    // exceeded; widened by 5 % of the value (u = √(0.02² + 0.028²) = 0.035, k = 2: ±0.07)
+    // the interval reaches the limit: possible.
+    let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
+    let mut s = Script::new();
+    let clean = s.run(&mut m, SETTLE_S + 3.0, 0.58, 2.0, 0);
+    assert_eq!(
+        levels(&clean, AlertKind::PeakAcceleration),
+        [AlertLevel::Exceeded]
+    );
+    let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());
+    let mut s = Script::new();
+    let suspect = s.run(
+        &mut m,
+        SETTLE_S + 3.0,
+        0.58,
+        2.0,
+        flags::CALIBRATION_SUSPECT,
+    );
+    assert_eq!(
+        levels(&suspect, AlertKind::PeakAcceleration),
+        [AlertLevel::Possible]
+    );
+}
+
 #[test]
 fn a_few_flagged_samples_do_not_stop_a_clean_decision() {
     let mut m = Monitor::new(config_with_limits("pga_mps2 = 0.5"), t0());

@@ -4,7 +4,7 @@ use nalgebra::{Matrix3, Vector3};
 use triax_calibration::corrector::Corrector;
 use triax_health::colocated::{ColocatedPair, PairConfig};
 use triax_health::sim::{
-    calibrate, field_sensor_truth, Fault, FieldConfig, FieldSensor, Vibration,
+    calibrate, field_sensor_truth, Fault, FieldConfig, FieldSensor, Motion, Vibration,
 };
 use triax_health::{HealthConfig, HealthReport, SensorHealth};
 use triax_protocol::record::{CalibrationRecord, SetKind};
@@ -126,6 +126,7 @@ pub struct Pair {
     correctors: [Corrector; 2],
     pub check: ColocatedPair,
     vibration: Vibration,
+    motion: Motion,
     vib: Vec<[f64; 3]>,
     raw: Vec<[f32; 3]>,
     accel: Vec<[f64; 3]>,
@@ -157,6 +158,7 @@ impl Pair {
             correctors,
             check,
             vibration: Vibration::new(seed ^ 0xB0_11D1, field.sample_rate_hz),
+            motion: Motion::new(field.motion.clone(), seed, field.sample_rate_hz, field.up),
             vib: Vec::new(),
             raw: Vec::new(),
             accel: Vec::new(),
@@ -188,8 +190,10 @@ impl Pair {
         let n = self.a.config().batch_samples;
         let mut batches = 0u64;
         while self.now_ns < until_ns {
-            let rms = self.a.vibration_rms_at(self.a.next_time_s());
+            let t_s = self.a.next_time_s();
+            let rms = self.a.vibration_rms_at(t_s);
             self.vibration.batch(rms, n, &mut self.vib);
+            self.motion.add(self.a.hour_at(t_s), &mut self.vib);
             for (k, sensor) in [&mut self.a, &mut self.b].into_iter().enumerate() {
                 let info = sensor.next_batch_with(&mut self.raw, &self.vib);
                 Self::correct(
