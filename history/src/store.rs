@@ -193,7 +193,7 @@ impl History {
             .write(true)
             .open(dir.join("LOCK"))
             .map_err(|e| io("open the lock file", e))?;
-        if !crate::os::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
+        if !triax_lockfile::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
             return Err(HistoryError::Locked { path: dir.clone() });
         }
         let mut ids = Vec::new();
