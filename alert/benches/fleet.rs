@@ -33,10 +33,8 @@ use triax_protocol::messages::{AlertKind, AlertLevel, Heartbeat};
 use triax_protocol::signing::{read_alert, TrustedKeys};
 use triax_protocol::{to_json, BuildingId, Key, SensorId};
 
-// The gateway's benches' /proc readers; this bench uses a part of them.
-#[allow(dead_code)]
-#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
-mod bench_proc;
+// The benches' /proc readers.
+use triax_test_support::proc as bench_proc;
 
 /// Seconds into the run of the first injected event.
 const FIRST_EVENT_S: f64 = 13.0;

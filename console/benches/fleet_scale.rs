@@ -27,10 +27,8 @@ use triax_protocol::messages::{
 };
 use triax_protocol::{to_json, BuildingId, SensorId, JSON_FORMAT_VERSION};
 
-// The gateway's benches' /proc readers; this bench uses a part of them.
-#[allow(dead_code)]
-#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
-mod bench_proc;
+// The benches' /proc readers.
+use triax_test_support::proc as bench_proc;
 
 const BUILDINGS: usize = 100;
 const SENSORS: usize = 100;

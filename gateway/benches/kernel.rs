@@ -22,7 +22,7 @@ use criterion::{
     black_box, criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput,
 };
 use triax_calibration::corrector::Corrector;
-use triax_gateway::kernel::{Scratch, SensorKernel};
+use triax_gateway::sample_path::{Scratch, SensorKernel};
 use triax_gateway::{CorrectionMode, SensorSettings};
 use triax_protocol::batch::{BatchHeader, RawBatch};
 use triax_protocol::record::{sample, CalibrationRecord, SetKind, TemperatureModel};

@@ -239,7 +239,7 @@ pub struct Config {
     /// None: no field health checks (no `calibration_suspect`, no health reports).
     pub health: Option<HealthSettings>,
     /// None: gaps are not filled from the nodes' buffers.
-    pub backfill: Option<crate::backfill::Settings>,
+    pub backfill: Option<BackfillSettings>,
     /// Settings of sensors not listed in `sensors`.
     pub defaults: SensorSettings,
     pub sensors: BTreeMap<SensorId, SensorSettings>,
@@ -352,6 +352,19 @@ pub struct FileBackfill {
     pub max_batches_per_s: Option<f64>,
 }
 
+/// The backfill's settings (`[backfill]`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BackfillSettings {
+    /// Longest one query may take.
+    pub timeout: Duration,
+    /// Most batches asked for one hole: the newest of a longer one.
+    pub max_batches: u64,
+    /// Most late batches corrected and published a second, all holes together; none: as fast
+    /// as they come. A building's outage returns as one burst, and the live stream shares the
+    /// gateway's cores with it.
+    pub max_batches_per_s: Option<f64>,
+}
+
 /// Default `[backfill] timeout_s` and `max_batches` (an hour of 10-sample batches at 100 Hz,
 /// `triax-node`'s default buffer).
 pub const DEFAULT_BACKFILL_TIMEOUT_S: f64 = 60.0;
@@ -360,7 +373,7 @@ pub const DEFAULT_BACKFILL_MAX_BATCHES: u64 = 36_000;
 /// fills in 6 s.
 pub const DEFAULT_BACKFILL_MAX_BATCHES_PER_S: f64 = 10_000.0;
 
-fn backfill_settings(b: FileBackfill) -> Result<Option<crate::backfill::Settings>, ConfigError> {
+fn backfill_settings(b: FileBackfill) -> Result<Option<BackfillSettings>, ConfigError> {
     if !b.enabled.unwrap_or(true) {
         return Ok(None);
     }
@@ -385,7 +398,7 @@ fn backfill_settings(b: FileBackfill) -> Result<Option<crate::backfill::Settings
             format!("{per_s} is outside 0..=10000000 (0: no limit)"),
         ));
     }
-    Ok(Some(crate::backfill::Settings {
+    Ok(Some(BackfillSettings {
         timeout,
         max_batches,
         max_batches_per_s: (per_s > 0.0).then_some(per_s),

@@ -98,6 +98,43 @@ struct Segment {
     modified: SystemTime,
     /// The segment being written keeps its entries here; closed ones read theirs from disk.
     live: Option<Vec<IndexEntry>>,
+    /// A closed segment's sensors, as bits of [`Members`]' numbering: a search for a sensor's
+    /// blocks skips the segments without it, their index unread.
+    members: Vec<u64>,
+}
+
+/// One numbering of the sensors the history holds (by [`segment::sensor_hash`]), for the closed
+/// segments' bits: one bit a sensor a segment (1.25 KB a segment for 10 000 sensors, where a
+/// list of hashes would be eight bytes each).
+#[derive(Debug, Default)]
+struct Members {
+    bit_of: HashMap<u64, u32>,
+}
+
+impl Members {
+    /// The bits of `hashes`, numbering those new to the history.
+    fn bits(&mut self, hashes: impl IntoIterator<Item = u64>) -> Vec<u64> {
+        let mut bits = Vec::new();
+        for h in hashes {
+            let next = self.bit_of.len() as u32;
+            let bit = *self.bit_of.entry(h).or_insert(next) as usize;
+            if bits.len() <= bit / 64 {
+                bits.resize(bit / 64 + 1, 0);
+            }
+            bits[bit / 64] |= 1 << (bit % 64);
+        }
+        bits.shrink_to_fit();
+        bits
+    }
+
+    fn bit(&self, hash: u64) -> Option<u32> {
+        self.bit_of.get(&hash).copied()
+    }
+}
+
+fn has_bit(bits: &[u64], bit: u32) -> bool {
+    bits.get(bit as usize / 64)
+        .is_some_and(|w| w & (1 << (bit % 64)) != 0)
 }
 
 impl Segment {
@@ -123,6 +160,7 @@ impl Segment {
             last_arrival: 0,
             modified: SystemTime::now(),
             live: None,
+            members: Vec::new(),
         }
     }
 
@@ -153,6 +191,8 @@ pub struct History {
     index_cache: Mutex<VecDeque<(u64, Arc<SensorIndex>)>>,
     /// Every sensor with batches kept (and perhaps some whose batches retention removed).
     sensors: RwLock<BTreeSet<SensorId>>,
+    /// The numbering of the closed segments' [`Segment::members`].
+    members: RwLock<Members>,
     pub counters: HistoryCounters,
     /// Held for the history's life: one gateway per directory.
     _lock: File,
@@ -193,7 +233,7 @@ impl History {
             .write(true)
             .open(dir.join("LOCK"))
             .map_err(|e| io("open the lock file", e))?;
-        if !crate::os::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
+        if !triax_lockfile::try_lock_exclusive(&lock).map_err(|e| io("lock", e))? {
             return Err(HistoryError::Locked { path: dir.clone() });
         }
         let mut ids = Vec::new();
@@ -212,6 +252,7 @@ impl History {
         };
         let mut segments = Vec::with_capacity(ids.len() + 1);
         let mut sensors = BTreeSet::new();
+        let mut members = Members::default();
         let (mut cut_bytes, mut rescanned_blocks) = (0, 0);
         for (i, &id) in ids.iter().enumerate() {
             let mut seg = Segment::empty(id, &dir);
@@ -242,6 +283,11 @@ impl History {
             seg.last_arrival = meta.last_arrival;
             let size = |p: &Path| std::fs::metadata(p).map_or(0, |m| m.len());
             seg.bytes = size(&seg.log_path) + size(&segment::idx_path(&dir, id));
+            seg.members = members.bits(
+                meta.sensors
+                    .iter()
+                    .map(|s| segment::sensor_hash(s.as_str())),
+            );
             sensors.extend(meta.sensors);
             seg.modified = std::fs::metadata(&seg.log_path)
                 .and_then(|m| m.modified())
@@ -265,6 +311,7 @@ impl History {
             segments: RwLock::new(segments),
             index_cache: Mutex::new(VecDeque::new()),
             sensors: RwLock::new(sensors),
+            members: RwLock::new(members),
             counters: HistoryCounters::default(),
             _lock: lock,
         });
@@ -442,8 +489,10 @@ impl History {
     /// to find every hole its history has in the span a node's buffer can still fill: the one
     /// its downtime left, and any a kill left (batches fetched late, not yet flushed).
     ///
-    /// Reads index entries back from the newest segment until one holds nothing numbered at or
-    /// above `from_seq`, and only the blocks whose numbers are not one run already.
+    /// Reads index entries back from the newest segment, skipping the segments that hold none
+    /// of the sensor's blocks (a gateway that started while the sensor was cut off wrote one of
+    /// those), until one holds its blocks but none numbered at or above `from_seq`; and reads
+    /// only the blocks whose numbers are not one run already.
     pub fn kept_runs(
         &self,
         sensor: &SensorId,
@@ -452,10 +501,16 @@ impl History {
         before_ns: i64,
     ) -> Result<Vec<SeqRun>, HistoryError> {
         let hash = segment::sensor_hash(sensor.as_str());
+        let bit = self
+            .members
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .bit(hash);
         let seen: Vec<(u64, PathBuf, Option<Vec<IndexEntry>>)> = self
             .read()
             .iter()
             .filter(|s| !s.is_empty() && s.first_arrival < before_arrival)
+            .filter(|s| s.live.is_some() || bit.is_some_and(|b| has_bit(&s.members, b)))
             .map(|s| {
                 let live = s.live.as_ref().map(|entries| {
                     entries
@@ -477,13 +532,16 @@ impl History {
                     .cloned()
                     .unwrap_or_default(),
             };
-            let mut any = false;
+            // Whether the segment holds blocks of the sensor from before, and any of them in
+            // the span: one that holds only older numbers ends the search.
+            let (mut before, mut any) = (false, false);
             for e in entries {
                 let b = &e.summary;
-                if b.first_arrival >= before_arrival
-                    || b.max_seq < from_seq
-                    || b.min_ts >= before_ns
-                {
+                if b.first_arrival >= before_arrival || b.min_ts >= before_ns {
+                    continue;
+                }
+                before = true;
+                if b.max_seq < from_seq {
                     continue;
                 }
                 any = true;
@@ -536,7 +594,7 @@ impl History {
                         }),
                 );
             }
-            if !any {
+            if before && !any {
                 break;
             }
         }
@@ -1000,7 +1058,9 @@ impl Writer {
         let mut closing_segment = self.segment.take();
         let stage = closing_segment.as_mut().and_then(SegmentWriter::take_stage);
         let closing = closing_segment.map(|s| s.id);
+        let mut closing_hashes = None;
         if let Some(id) = closing {
+            closing_hashes = Some(self.sensors.values().map(|s| s.hash).collect::<Vec<u64>>());
             let mut ids: Vec<SensorId> = self.sensors.values().map(|s| s.id.clone()).collect();
             ids.sort_unstable();
             // A segment rolls after a flush, which closed every block; one still open would be
@@ -1026,10 +1086,18 @@ impl Writer {
             segs.last().map_or(1, |s| s.id + 1)
         };
         let fresh = SegmentWriter::create(&dir, next_id, self.history.config.direct_io, stage)?;
+        let bits = closing_hashes.map(|hashes| {
+            self.history
+                .members
+                .write()
+                .unwrap_or_else(|p| p.into_inner())
+                .bits(hashes)
+        });
         let mut segs = self.history.write();
         if let Some(id) = closing {
             if let Some(s) = segs.iter_mut().find(|s| s.id == id) {
                 s.live = None;
+                s.members = bits.unwrap_or_default();
             }
         }
         let mut seg = Segment::empty(next_id, &dir);

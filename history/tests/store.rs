@@ -463,3 +463,63 @@ fn each_closed_segment_names_exactly_the_sensors_it_holds() {
     }
     assert_eq!(named_over_all, [id("a"), id("b"), id("c")].into());
 }
+
+/// What the history holds of a sensor is found across every gateway run, also past segments
+/// that hold none of it: a sensor cut off while the gateway restarted twice (each start a
+/// segment of its own, filled by the other sensor) still has its earlier numbers found, and
+/// only the numbers it really lacks show as holes. The same history reopened after each run,
+/// as a gateway does.
+#[test]
+fn a_sensors_runs_are_found_past_segments_without_it() {
+    use triax_history::SeqRun;
+    let dir = tempfile::tempdir().unwrap();
+    // Runs of the gateway: which sensor streams which numbers.
+    let runs: [&[(&str, std::ops::Range<u64>)]; 4] = [
+        &[("cut", 0..40), ("steady", 0..40)],
+        &[("steady", 40..80)],
+        &[("steady", 80..120)],
+        &[("cut", 50..60), ("steady", 120..130)],
+    ];
+    let mut first_arrival_of_last = 0;
+    for (i, run) in runs.iter().enumerate() {
+        let Opened {
+            mut writer,
+            history,
+            ..
+        } = open(dir.path(), u64::MAX, 32 << 20);
+        if i == runs.len() - 1 {
+            // The last run: what did the runs before it keep of `cut`, below its first batch?
+            first_arrival_of_last = writer.next_arrival();
+            let got = history
+                .kept_runs(&id("cut"), first_arrival_of_last, 0, ts(120))
+                .unwrap();
+            assert_eq!(
+                got,
+                vec![SeqRun {
+                    first_seq: 0,
+                    first_ns: ts(0),
+                    last_seq: 39,
+                    last_ns: ts(39),
+                }],
+                "the first run's numbers, found past the two segments without the sensor"
+            );
+            // A span starting above everything kept: nothing, and the search stops.
+            assert!(history
+                .kept_runs(&id("cut"), first_arrival_of_last, 45, ts(120))
+                .unwrap()
+                .is_empty());
+            assert!(history
+                .kept_runs(&id("never"), first_arrival_of_last, 0, ts(120))
+                .unwrap()
+                .is_empty());
+        }
+        for (s, seqs) in run.iter() {
+            for seq in seqs.clone() {
+                let smp = samples(0, seq);
+                writer.append(&inline(s), kept(seq, &smp), None);
+            }
+        }
+        writer.flush().unwrap();
+    }
+    assert!(first_arrival_of_last > 0);
+}

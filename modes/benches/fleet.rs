@@ -37,10 +37,8 @@ use triax_protocol::batch::CorrectedSample;
 use triax_protocol::messages::BuildingModes;
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
-// The gateway's benches' /proc readers; this bench uses a part of them.
-#[allow(dead_code)]
-#[path = "../../gateway/src/bin/bench_proc/mod.rs"]
-mod bench_proc;
+// The benches' /proc readers.
+use triax_test_support::proc as bench_proc;
 
 /// The service's default window, s of the sensors' clocks.
 const WINDOW_S: i64 = 1800;

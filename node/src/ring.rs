@@ -32,7 +32,6 @@
 use std::collections::VecDeque;
 use std::fs::{File, OpenOptions};
 use std::io::Write;
-use std::os::fd::AsRawFd;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -200,7 +199,7 @@ impl Ring {
             .write(true)
             .open(&lock_path)
             .map_err(io("open lock file", &lock_path))?;
-        if !try_lock_exclusive(&lock).map_err(io("lock", &lock_path))? {
+        if !triax_lockfile::try_lock_exclusive(&lock).map_err(io("lock", &lock_path))? {
             return Err(RingError::Locked { path: dir });
         }
         check_owner(&config)?;
@@ -657,20 +656,6 @@ fn sync_dir(dir: &Path) -> Result<(), RingError> {
     File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(io("sync directory", dir))
-}
-
-/// Takes an exclusive `flock` if free: `Ok(false)` when another open file holds it.
-fn try_lock_exclusive(file: &File) -> std::io::Result<bool> {
-    // SAFETY: `flock` reads only the descriptor, which `file` keeps open for the call.
-    let r = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
-    if r == 0 {
-        return Ok(true);
-    }
-    let e = std::io::Error::last_os_error();
-    match e.raw_os_error() {
-        Some(libc::EWOULDBLOCK) => Ok(false),
-        _ => Err(e),
-    }
 }
 
 #[cfg(test)]

@@ -207,7 +207,7 @@ async fn at_scale(records: usize, gateways: usize) {
 
 /// Gateways of one building, clients of the router, trusting `key`.
 struct Gateways {
-    tables: Vec<std::sync::Arc<triax_gateway::sensors::SensorTable>>,
+    tables: Vec<std::sync::Arc<triax_gateway::SensorTable>>,
     stops: Vec<(tokio::sync::oneshot::Sender<()>, GatewayTask)>,
 }
 

@@ -220,7 +220,7 @@ impl Drop for Zenohd {
 
 /// A gateway running until [`RunningGateway::stop`].
 struct RunningGateway {
-    table: std::sync::Arc<triax_gateway::sensors::SensorTable>,
+    table: std::sync::Arc<triax_gateway::SensorTable>,
     stop: tokio::sync::oneshot::Sender<()>,
     task: tokio::task::JoinHandle<Result<(), triax_gateway::GatewayError>>,
 }

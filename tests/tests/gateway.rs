@@ -311,8 +311,8 @@ async fn declared_keys_move_from_a_silent_sensor_to_a_streaming_one() {
     cfg.declared_keys_idle = idle;
     cfg.workers = 2;
     assert_ne!(
-        triax_gateway::worker::shard("silent", 2),
-        triax_gateway::worker::shard("streaming", 2),
+        triax_gateway::sample_path::shard("silent", 2),
+        triax_gateway::sample_path::shard("streaming", 2),
         "the two sensors are meant for different workers"
     );
     let gw = start(cfg).await;

@@ -284,23 +284,11 @@ async fn peer(settings: &[(&str, String)]) -> zenoh::Session {
 /// test, so that it can be killed) until its standard input closes, as the binary does on
 /// SIGTERM; logs at info on standard error, which the parent keeps.
 pub fn run_gateway_until_stdin_closes(config: Config) {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .expect("a runtime for the child gateway");
-    let stdin_closed = async {
-        tokio::task::spawn_blocking(|| {
-            use std::io::Read;
-            let mut buf = [0u8; 64];
-            while matches!(std::io::stdin().read(&mut buf), Ok(n) if n > 0) {}
-        })
-        .await
-        .expect("the stdin watcher ends");
-    };
     triax_gateway::init_logging("info").expect("logging starts once");
-    runtime
-        .block_on(triax_gateway::run(config, stdin_closed))
-        .expect("the child gateway runs");
+    triax_test_support::child::run_until_stdin_closes(|stdin_closed| {
+        triax_gateway::run(config, stdin_closed)
+    })
+    .expect("the child gateway runs");
 }
 
 /// Waits until `publisher` has a matching subscriber (the gateway's).

@@ -1,6 +1,6 @@
 //! The operators' console against a running building, in a real browser.
 //!
-//! The building is the demo's: the six sensors of `triax_gateway::demo::fleet` (four
+//! The building is the demo's: the six sensors of `triax_demo::fleet` (four
 //! accelerometers, one of which loses batches and one of which sends truncated payloads, a
 //! split-mode inclinometer with a tilt stream, and an uncalibrated node), their records in the
 //! gateway's store (one of them made to expire in ten days), nodes publishing at 100 Hz in real time, and alerts published as
@@ -23,10 +23,7 @@
 //!   headers, a 9 KiB query or header and a connection over the limit are answered with their
 //!   status, and closed without a reset.
 
-use std::io::{Read, Write};
-use std::net::TcpStream as StdTcpStream;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -36,248 +33,24 @@ use rand_distr::{Distribution, Normal};
 use serde_json::{json, Value};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use triax_console::ConsoleOptions;
-use triax_gateway::demo::{fleet, SimSensor};
+use triax_demo::{fleet, SimSensor};
 use triax_net::{ZenohMode, ZenohSettings};
 use triax_protocol::batch::{BatchHeader, RawBatch};
 use triax_protocol::record::sample;
 use triax_protocol::signing::{sign_alert, LabSigningKey, TrustedKeys};
 use triax_protocol::{BuildingId, Key, SensorId};
 
+use triax_test_support::browser::Browser;
+
 use crate::util::*;
 
-// ---- A minimal W3C WebDriver client ---------------------------------------------------------
-//
-// Four commands (new session, navigate, execute script, screenshot) over plain HTTP/1.1: a
-// client crate would bring an HTTP stack and TLS into the build for them.
-
-struct Browser {
-    driver: Child,
-    port: u16,
-    session: String,
-    /// The browser's process, killed if closing the session fails.
-    browser_pid: Option<u64>,
-    _profile: tempfile::TempDir,
-}
-
-fn http(port: u16, method: &str, path: &str, body: Option<&Value>) -> Value {
-    let body = body.map(|b| b.to_string()).unwrap_or_default();
-    let mut s = StdTcpStream::connect(("127.0.0.1", port)).expect("chromedriver answers");
-    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
-    write!(
-        s,
-        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    )
-    .unwrap();
-    // Read the head, then exactly Content-Length bytes: chromedriver keeps the connection open.
-    let mut raw = Vec::new();
-    let mut byte = [0u8; 1];
-    while !raw.ends_with(b"\r\n\r\n") {
-        let n = s.read(&mut byte).expect("chromedriver response");
-        assert!(n == 1, "chromedriver closed mid-response");
-        raw.push(byte[0]);
-    }
-    let head = String::from_utf8_lossy(&raw).into_owned();
-    let length: usize = head
-        .lines()
-        .find_map(|l| {
-            let (k, v) = l.split_once(':')?;
-            k.eq_ignore_ascii_case("content-length")
-                .then(|| v.trim().parse().ok())?
-        })
-        .expect("chromedriver sends Content-Length");
-    let mut body = vec![0u8; length];
-    s.read_exact(&mut body).expect("chromedriver response body");
-    let body = String::from_utf8_lossy(&body).into_owned();
-    let v: Value = serde_json::from_str(&body).unwrap_or_else(|e| panic!("{e}: {body}"));
-    assert!(
-        head.starts_with("HTTP/1.1 200"),
-        "WebDriver {method} {path}: {head}\n{v}"
-    );
-    v["value"].clone()
-}
-
-fn need(tool: &str) -> PathBuf {
-    let found = std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|d| d.join(tool))
-            .find(|p| p.is_file())
-    });
-    found.unwrap_or_else(|| {
-        panic!(
-            "`{tool}` is not installed: the console's browser tests need Debian's chromium and \
-             chromium-driver (scripts/test installs them: apt-get install -y chromium chromium-driver)"
-        )
-    })
-}
-
-impl Browser {
-    fn start() -> Browser {
-        let chromium = need("chromium");
-        let driver_bin = need("chromedriver");
-        let port = free_port();
-        let driver = Command::new(driver_bin)
-            .arg(format!("--port={port}"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("chromedriver starts");
-        let deadline = std::time::Instant::now() + TIMEOUT;
-        while StdTcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(
-                std::time::Instant::now() < deadline,
-                "chromedriver did not listen"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let profile = tempfile::tempdir().unwrap();
-        let mut b = Browser {
-            driver,
-            port,
-            session: String::new(),
-            browser_pid: None,
-            _profile: profile,
-        };
-        let caps = json!({"capabilities": {"alwaysMatch": {
-            "browserName": "chrome",
-            "goog:loggingPrefs": { "browser": "ALL" },
-            "goog:chromeOptions": {
-                "binary": chromium,
-                "args": [
-                    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                    "--no-first-run", "--disable-background-networking",
-                    "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
-                    "--window-size=1400,1100",
-                    format!("--user-data-dir={}", b._profile.path().display()),
-                ]
-            }
-        }}});
-        let v = http(port, "POST", "/session", Some(&caps));
-        b.session = v["sessionId"].as_str().expect("a session id").to_owned();
-        b.browser_pid = v["capabilities"]["goog:processID"].as_u64();
-        b
-    }
-
-    fn cmd(&self, method: &str, what: &str, body: Option<Value>) -> Value {
-        tokio::task::block_in_place(|| {
-            http(
-                self.port,
-                method,
-                &format!("/session/{}/{what}", self.session),
-                body.as_ref(),
-            )
-        })
-    }
-
-    fn go(&self, url: &str) {
-        self.cmd("POST", "url", Some(json!({ "url": url })));
-    }
-
-    fn js(&self, script: &str) -> Value {
-        self.cmd(
-            "POST",
-            "execute/sync",
-            Some(json!({ "script": script, "args": [] })),
-        )
-    }
-
-    /// Polls `script` until it returns something truthy; fails naming `what` after `limit`.
-    async fn wait(&self, what: &str, limit: Duration, script: &str) -> Value {
-        let deadline = tokio::time::Instant::now() + limit;
-        loop {
-            let v = self.js(script);
-            let truthy =
-                !matches!(v, Value::Null | Value::Bool(false)) && v != json!(0) && v != json!("");
-            if truthy {
-                return v;
-            }
-            if tokio::time::Instant::now() > deadline {
-                let page = self.js("return document.body.innerText.slice(0, 3000)");
-                panic!(
-                    "timed out waiting for {what}; the page shows:\n{}",
-                    page.as_str().unwrap_or("")
-                );
-            }
-            tokio::time::sleep(Duration::from_millis(200)).await;
-        }
-    }
-
-    /// Errors the page logged since the last call: uncaught exceptions and failed loads.
-    fn errors(&self) -> Vec<String> {
-        let v = self.cmd("POST", "se/log", Some(json!({ "type": "browser" })));
-        v.as_array()
-            .expect("a browser log")
-            .iter()
-            .filter(|e| e["level"] == "SEVERE")
-            .map(|e| e["message"].as_str().unwrap_or_default().to_owned())
-            .collect()
-    }
-
-    fn assert_no_errors(&self, when: &str) {
-        let errors = self.errors();
-        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
-    }
-
-    fn screenshot(&self, name: &str) {
-        let b64 = self.cmd("GET", "screenshot", None);
-        let png = base64_decode(b64.as_str().expect("base64 screenshot"));
-        let dir = screenshot_dir();
-        std::fs::create_dir_all(&dir).unwrap();
-        std::fs::write(dir.join(format!("{name}.png")), png).unwrap();
-    }
-}
-
-impl Drop for Browser {
-    fn drop(&mut self) {
-        let closed = !self.session.is_empty()
-            && std::panic::catch_unwind(|| {
-                http(
-                    self.port,
-                    "DELETE",
-                    &format!("/session/{}", self.session),
-                    None,
-                )
-            })
-            .is_ok();
-        if let (false, Some(pid)) = (closed, self.browser_pid) {
-            let _ = Command::new("kill").arg(pid.to_string()).status();
-        }
-        let _ = self.driver.kill();
-        let _ = self.driver.wait();
-    }
-}
-
+/// Where the console's screenshots go: `target/console-screenshots/`.
 fn screenshot_dir() -> PathBuf {
     // CARGO_TARGET_TMPDIR is <target>/tmp.
     PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
         .parent()
         .expect("target/tmp has a parent")
         .join("console-screenshots")
-}
-
-fn base64_decode(s: &str) -> Vec<u8> {
-    let val = |c: u8| match c {
-        b'A'..=b'Z' => c - b'A',
-        b'a'..=b'z' => c - b'a' + 26,
-        b'0'..=b'9' => c - b'0' + 52,
-        b'+' => 62,
-        b'/' => 63,
-        _ => panic!("not base64: {c}"),
-    };
-    let bytes: Vec<u8> = s
-        .bytes()
-        .filter(|c| !b"=\r\n".contains(c))
-        .map(val)
-        .collect();
-    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
-    for chunk in bytes.chunks(4) {
-        let mut acc = 0u32;
-        for (i, v) in chunk.iter().enumerate() {
-            acc |= u32::from(*v) << (18 - 6 * i);
-        }
-        out.extend_from_slice(&acc.to_be_bytes()[1..chunk.len()]);
-    }
-    out
 }
 
 // ---- The demo building ----------------------------------------------------------------------
@@ -468,7 +241,7 @@ const HOSTILE: &str =
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn console_in_a_browser() {
-    let browser = tokio::task::block_in_place(Browser::start);
+    let browser = tokio::task::block_in_place(|| Browser::start(false));
     let mut demo = Demo::start().await;
     // Where alerts come from: a peer the console connects to, as it would to an alerting
     // service's endpoint or a site router.
@@ -518,7 +291,7 @@ async fn console_in_a_browser() {
     // Fleet view: the six sensors and their states.
     browser.go(&console.url);
     let states = browser
-        .wait(
+        .wait_within(
             "the fleet view to list six sensors with gaps and flags seen",
             TIMEOUT,
             "const rows = [...document.querySelectorAll('tr.sensor')];
@@ -582,7 +355,7 @@ async fn console_in_a_browser() {
         "const l = document.querySelector('link[rel=icon]'); return l && l.getAttribute('href');",
     );
     assert_eq!(icon, "/favicon.svg");
-    browser.screenshot("fleet");
+    browser.screenshot(&screenshot_dir(), "fleet");
 
     // An alert from the alerting service shows on the fleet view; the hostile one is text.
     tokio::time::sleep(Duration::from_secs(2)).await;
@@ -598,7 +371,7 @@ async fn console_in_a_browser() {
         .await
         .unwrap();
     browser
-        .wait(
+        .wait_within(
             "acc-01's forged alert shown as unverified",
             TIMEOUT,
             "const r = document.querySelector('tr.sensor[data-sensor=\"acc-01\"]');
@@ -625,7 +398,7 @@ async fn console_in_a_browser() {
         .await
         .unwrap();
     browser
-        .wait(
+        .wait_within(
             "acc-04's alert on the fleet view",
             TIMEOUT,
             "const r = document.querySelector('tr.sensor[data-sensor=\"acc-04\"]');
@@ -652,7 +425,7 @@ async fn console_in_a_browser() {
         .await
         .unwrap();
     let count = browser
-        .wait(
+        .wait_within(
             "the sensor known from an alert only",
             TIMEOUT,
             "const rows = document.querySelectorAll('tr.sensor');
@@ -662,7 +435,7 @@ async fn console_in_a_browser() {
     assert_eq!(count, "7 sensors (1 known only from an alert)");
     browser.go(&format!("{}#/alerts", console.url));
     let shown = browser
-        .wait(
+        .wait_within(
             "the hostile alert in the alerts view",
             TIMEOUT,
             "const r = document.querySelector('tr.alert[data-sensor=\"acc-03\"]');
@@ -705,14 +478,14 @@ async fn console_in_a_browser() {
             "one way to write units: {v}"
         );
     }
-    browser.screenshot("alerts");
+    browser.screenshot(&screenshot_dir(), "alerts");
 
     // The alert links to the sensor view at its time: the history around it.
     browser.js(
         "document.querySelector('tr.alert[data-level=exceeded][data-sensor=\"acc-04\"] a').click()",
     );
     let history = browser
-        .wait(
+        .wait_within(
             "the history around acc-04's alert",
             TIMEOUT,
             "const p = document.getElementById('plot');
@@ -722,13 +495,13 @@ async fn console_in_a_browser() {
         )
         .await;
     assert!(history[0].as_str().unwrap().contains("?at="), "{history}");
-    browser.screenshot("history-at-alert");
+    browser.screenshot(&screenshot_dir(), "history-at-alert");
     // ▶ from a recent time goes as far as now, not into the future, and then stops.
     let stepped = browser.js(
         "const before = location.hash; document.getElementById('btn-fwd').click(); return before;",
     );
     let forward = browser
-        .wait(
+        .wait_within(
             "the history one step forward",
             TIMEOUT,
             &format!(
@@ -761,7 +534,7 @@ async fn console_in_a_browser() {
         .as_nanos() as f64;
     browser.go(&format!("{}#/sensor/demo/acc-04", console.url));
     let filled = browser
-        .wait(
+        .wait_within(
             "the live window filled from the history",
             TIMEOUT,
             // 30 s over the plot's width: more than 12 s of buckets.
@@ -786,7 +559,7 @@ async fn console_in_a_browser() {
         (oldest_ns - opened_ns) * 1e-9
     );
     let first = browser
-        .wait(
+        .wait_within(
             "live frames for acc-04",
             TIMEOUT,
             "const p = document.getElementById('plot');
@@ -794,7 +567,7 @@ async fn console_in_a_browser() {
         )
         .await;
     let moved = browser
-        .wait(
+        .wait_within(
             "the live plot to move",
             TIMEOUT,
             &format!(
@@ -832,7 +605,7 @@ async fn console_in_a_browser() {
         );
     }
     let record = browser
-        .wait(
+        .wait_within(
             "the calibration record",
             TIMEOUT,
             "const r = document.getElementById('record'); return r && r.querySelector('dl') ? r.textContent : null;",
@@ -860,12 +633,12 @@ async fn console_in_a_browser() {
             .any(|l| l == "exceeded"),
         "the sensor view lists its alerts: {own_alerts}"
     );
-    browser.screenshot("sensor-live");
+    browser.screenshot(&screenshot_dir(), "sensor-live");
 
     // The inclinometer's tilt, and a gap drawn as a gap.
     browser.go(&format!("{}#/sensor/demo/incl-01", console.url));
     browser
-        .wait(
+        .wait_within(
             "tilt points for incl-01",
             TIMEOUT,
             "const p = document.getElementById('plot'); const t = document.getElementById('tilt-plot');
@@ -873,7 +646,7 @@ async fn console_in_a_browser() {
         )
         .await;
     let k = browser
-        .wait(
+        .wait_within(
             "incl-01's coverage factor",
             TIMEOUT,
             "const h = document.getElementById('sensor-header').textContent;
@@ -893,20 +666,20 @@ async fn console_in_a_browser() {
             "k to three digits: {text}"
         );
     }
-    browser.screenshot("sensor-tilt");
+    browser.screenshot(&screenshot_dir(), "sensor-tilt");
     browser.go(&format!("{}#/sensor/demo/acc-01", console.url));
     browser
-        .wait(
+        .wait_within(
             "a gap in acc-01's live plot",
             TIMEOUT,
             "const p = document.getElementById('plot'); return p && Number(p.dataset.gaps) >= 1;",
         )
         .await;
-    browser.screenshot("sensor-gap");
+    browser.screenshot(&screenshot_dir(), "sensor-gap");
     // The sensor view says what the fleet says: acc-03's samples are flagged.
     browser.go(&format!("{}#/sensor/demo/acc-03", console.url));
     let flagged = browser
-        .wait(
+        .wait_within(
             "acc-03's flagged state and share in its view",
             TIMEOUT,
             "const h = document.getElementById('sensor-header');
@@ -917,13 +690,13 @@ async fn console_in_a_browser() {
     let flagged = flagged.as_str().unwrap();
     let percent: f64 = flagged.trim_end_matches(" % flagged").parse().unwrap();
     assert!(percent > 20.0, "{flagged}");
-    browser.screenshot("sensor-flagged");
+    browser.screenshot(&screenshot_dir(), "sensor-flagged");
     browser.assert_no_errors("the sensor views");
 
     // Links that cannot be shown say why, rather than throw and leave the previous view up.
     browser.go(&console.url);
     browser
-        .wait(
+        .wait_within(
             "the fleet view",
             TIMEOUT,
             "return document.querySelectorAll('tr.sensor').length > 0",
@@ -942,7 +715,7 @@ async fn console_in_a_browser() {
         ),
     ] {
         let error = browser
-            .wait(
+            .wait_within(
                 &format!("the sensor view to refuse {link}"),
                 TIMEOUT,
                 &format!(
@@ -960,7 +733,7 @@ async fn console_in_a_browser() {
             "{link}: {error}"
         );
     }
-    browser.screenshot("sensor-bad-link");
+    browser.screenshot(&screenshot_dir(), "sensor-bad-link");
     // A span that is not one of the list's is shown as itself.
     let seven_at = now_ns - 60_000_000_000;
     browser.go(&format!(
@@ -968,7 +741,7 @@ async fn console_in_a_browser() {
         console.url
     ));
     let span = browser
-        .wait(
+        .wait_within(
             "a 7 s history view",
             TIMEOUT,
             "const s = document.getElementById('span');
@@ -1011,7 +784,7 @@ async fn console_in_a_browser() {
         "const i = document.getElementById('at'); i.value = {typed:?}; document.getElementById('btn-go').click();"
     ));
     let at = browser
-        .wait(
+        .wait_within(
             "the typed time in the link",
             TIMEOUT,
             &format!(
@@ -1026,7 +799,7 @@ async fn console_in_a_browser() {
     // A refusal is told from an outage: a bad sensor id is the console's 400, not a lost line.
     browser.go(&format!("{}#/sensor/demo/acc.04", console.url));
     let refusal = browser
-        .wait(
+        .wait_within(
             "the refusal of a bad sensor id",
             TIMEOUT,
             "const c = document.getElementById('conn');
@@ -1038,7 +811,7 @@ async fn console_in_a_browser() {
         refusal.contains("400") && refusal.contains("\"sensor\""),
         "{refusal}"
     );
-    browser.screenshot("sensor-refused");
+    browser.screenshot(&screenshot_dir(), "sensor-refused");
     let errors: Vec<String> = browser
         .errors()
         .into_iter()
@@ -1050,17 +823,17 @@ async fn console_in_a_browser() {
     browser.go(&console.url);
     demo.stop_gateway().await;
     browser
-        .wait(
+        .wait_within(
             "the gateway shown down",
             TIMEOUT,
             "const b = document.querySelector('section.building[data-building=demo]');
              return b && b.dataset.state === 'down' && document.getElementById('conn').dataset.state === 'open';",
         )
         .await;
-    browser.screenshot("gateway-down");
+    browser.screenshot(&screenshot_dir(), "gateway-down");
     demo.start_gateway().await;
     browser
-        .wait(
+        .wait_within(
             "the gateway shown up again",
             TIMEOUT,
             "const b = document.querySelector('section.building[data-building=demo]');
@@ -1069,13 +842,13 @@ async fn console_in_a_browser() {
         .await;
     browser.go(&format!("{}#/sensor/demo/acc-04", console.url));
     browser
-        .wait(
+        .wait_within(
             "live frames again after the gateway came back",
             TIMEOUT,
             "const p = document.getElementById('plot'); return p && Number(p.dataset.frames) >= 3;",
         )
         .await;
-    browser.screenshot("gateway-back");
+    browser.screenshot(&screenshot_dir(), "gateway-back");
 
     drop(browser);
     alerts.close().await.unwrap();

@@ -16,10 +16,12 @@
 //!   --nocapture`.
 
 use std::collections::{BTreeMap, HashMap};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
+
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use triax_test_support::child::Entry;
 
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::oneshot;
@@ -255,23 +257,14 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
     let mut runs = 0usize;
     let router_endpoint = router.endpoint.clone();
     let start_gateway = |runs: &mut usize| {
-        let log = std::fs::File::create(log_of(*runs)).unwrap();
+        let log = log_of(*runs);
         *runs += 1;
-        Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--ignored",
-                "--exact",
-                "faults::fault_gateway_process",
-                "--nocapture",
-            ])
+        Entry::new("faults::fault_gateway_process")
             .env(CHILD_ENV[0], BUILDING)
             .env(CHILD_ENV[1], &store)
             .env(CHILD_ENV[2], &router_endpoint)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::null())
-            .stderr(log)
+            .log_to(&log)
             .spawn()
-            .unwrap()
     };
     let answering = |session: zenoh::Session| async move {
         wait_until_async("the gateway to answer its status", || async {

@@ -756,8 +756,8 @@ fn gateway_process() {
 /// no damaged batch is ever served. Prints what each kill cost.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_history_survives_kill_9_within_its_durability_rule() {
-    use std::process::{Command, Stdio};
     use std::time::Instant;
+    use triax_test_support::child::Entry;
     // One flush interval (1 s) plus a sync and the drain, with room for a busy machine's disk,
     // where a sync may take a second or more.
     const RULE: Duration = Duration::from_millis(3000);
@@ -786,20 +786,11 @@ async fn the_history_survives_kill_9_within_its_durability_rule() {
         .unwrap();
     // A gateway process on the store, once it answers status queries.
     let start_child = || async {
-        let child = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "--ignored",
-                "--exact",
-                "history::gateway_process",
-                "--nocapture",
-            ])
+        let child = Entry::new("history::gateway_process")
             .env(CHILD_ENV[0], "hk")
             .env(CHILD_ENV[1], &store)
             .env(CHILD_ENV[2], &endpoint)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
+            .spawn();
         wait_until_async("the gateway process to answer", || async {
             let replies = session
                 .get("triax/hk/status")

@@ -14,7 +14,7 @@
 
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -23,6 +23,7 @@ use triax_gateway::{CorrectionMode, SensorSettings};
 use triax_protocol::batch::{flags, CorrectedBatch};
 use triax_protocol::record::sample;
 use triax_protocol::{BuildingId, SensorId};
+use triax_test_support::child::Entry;
 
 use super::status;
 use super::util::*;
@@ -144,24 +145,14 @@ async fn replay_is_the_live_stream_across_stops_and_kills() {
     }
     let log_of = |run: usize| dir.path().join(format!("gateway-{run}.log"));
     let start_child = |run: usize| {
-        let log = std::fs::File::create(log_of(run)).unwrap();
+        let child = Entry::new("replay_restart::gateway_process")
+            .env(CHILD_ENV[0], BUILDING)
+            .env(CHILD_ENV[1], &store)
+            .env(CHILD_ENV[2], &endpoint)
+            .env(CHILD_ENV[3], SPLIT)
+            .log_to(&log_of(run))
+            .spawn();
         async {
-            let child = Command::new(std::env::current_exe().unwrap())
-                .args([
-                    "--ignored",
-                    "--exact",
-                    "replay_restart::gateway_process",
-                    "--nocapture",
-                ])
-                .env(CHILD_ENV[0], BUILDING)
-                .env(CHILD_ENV[1], &store)
-                .env(CHILD_ENV[2], &endpoint)
-                .env(CHILD_ENV[3], SPLIT)
-                .stdin(Stdio::piped())
-                .stdout(Stdio::null())
-                .stderr(log)
-                .spawn()
-                .unwrap();
             wait_until_async("the gateway process to answer", || async {
                 let replies = session
                     .get(format!("triax/{BUILDING}/status"))

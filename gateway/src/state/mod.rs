@@ -1,0 +1,17 @@
+//! The gateway's state: the sensor table (each sensor's corrector snapshot, settings and
+//! counters), the gateway's and the backfill's counters, what the health checks keep beside the
+//! workers, and the calibration store as the gateway holds it.
+//!
+//! Architecture invariant: the state knows nothing of Zenoh, of the sample path or of the
+//! services; it imports only the settings and the foundations (`clock`, `sync`, `error`).
+
+mod counters;
+mod health;
+mod sensors;
+pub mod store;
+
+pub use counters::{BackfillCounters, GatewayCounters};
+pub use health::{HealthSeed, PairSlot, PairTests, Pairs};
+pub use sensors::{
+    AdmissionCounters, SensorCounters, SensorEntry, SensorTable, ESTABLISHED_BATCHES, NO_HEALTH,
+};
