@@ -172,7 +172,7 @@ impl PairConfig {
 
 /// One sensor's DFT at the band's bins over the current segment.
 #[derive(Debug, Clone)]
-struct Segment {
+pub(crate) struct Segment {
     /// Goertzel states (s₁, s₂) per axis and bin, `3 × bins`.
     state: Vec<[f64; 2]>,
     /// 2·cos ω per bin, ω the bin's angle per sample.
@@ -191,11 +191,11 @@ struct Segment {
 
 /// A completed segment's spectra.
 #[derive(Debug, Clone)]
-struct Spectrum {
-    index: i64,
+pub(crate) struct Spectrum {
+    pub(crate) index: i64,
     /// X per axis and bin, referred to the segment's grid start.
-    x: Vec<[f64; 2]>,
-    sum_w2: f64,
+    pub(crate) x: Vec<[f64; 2]>,
+    pub(crate) sum_w2: f64,
 }
 
 #[derive(Debug, Clone)]
@@ -346,10 +346,28 @@ pub struct ColocatedPair {
     segments: u32,
     segments_per_estimate: u32,
     axes: [AxisTest; 3],
+    /// Segments one batch completed, handed on once the batch is in (reused).
+    completed: Vec<Spectrum>,
 }
 
 impl Segment {
-    fn new(bins: usize) -> Segment {
+    /// A segment for the bins of `band_hz` in segments of `segment_s`.
+    pub(crate) fn for_band(band_hz: [f64; 2], segment_s: f64) -> Segment {
+        let first = (band_hz[0] * segment_s).ceil() as usize;
+        let last = (band_hz[1] * segment_s).floor() as usize;
+        let mut seg = Segment::new(last.saturating_sub(first) + 1);
+        for (k, f) in (first..=last).enumerate() {
+            seg.frequency_hz[k] = f as f64 / segment_s;
+        }
+        seg
+    }
+
+    /// Bins per axis.
+    pub(crate) fn bins(&self) -> usize {
+        self.frequency_hz.len()
+    }
+
+    pub(crate) fn new(bins: usize) -> Segment {
         Segment {
             state: vec![[0.0; 2]; 3 * bins],
             coefficient: vec![0.0; bins],
@@ -365,9 +383,129 @@ impl Segment {
     }
 }
 
+impl Segment {
+    fn open(&mut self, index: i64, t_ns: i64, sample_rate_hz: f64, segment_s: f64) {
+        self.index = Some(index);
+        self.first_ns = t_ns;
+        self.n = 0;
+        self.len = (segment_s * sample_rate_hz).round() as u32;
+        self.sum_w2 = 0.0;
+        self.next_ns = t_ns;
+        self.sample_rate_hz = sample_rate_hz;
+        for (c, f) in self.coefficient.iter_mut().zip(&self.frequency_hz) {
+            *c = 2.0 * (2.0 * std::f64::consts::PI * f / sample_rate_hz).cos();
+        }
+        for s in &mut self.state {
+            *s = [0.0; 2];
+        }
+    }
+
+    /// Adds a sample at `place` (0 to 1) in its segment of the common grid.
+    #[inline]
+    fn push(&mut self, v: [f64; 3], t_ns: i64, period_ns: f64, place: f64) {
+        // Hann by the sample's time on the grid, so that every sensor weighs the same instants
+        // alike whatever its sampling phase.
+        let w = 0.5 - 0.5 * (2.0 * std::f64::consts::PI * place).cos();
+        self.sum_w2 += w * w;
+        let bins = self.coefficient.len();
+        for (axis, x) in v.iter().enumerate() {
+            let x = w * x;
+            let states = &mut self.state[axis * bins..(axis + 1) * bins];
+            for (s, c) in states.iter_mut().zip(&self.coefficient) {
+                let next = x + c * s[0] - s[1];
+                s[1] = s[0];
+                s[0] = next;
+            }
+        }
+        self.n += 1;
+        self.next_ns = t_ns + period_ns.round() as i64;
+    }
+
+    /// The segment's spectrum, into `x`, if it is whole (at least 95 % of its samples);
+    /// otherwise `x` back.
+    fn close(
+        &mut self,
+        index: i64,
+        segment_ns: i64,
+        mut x: Vec<[f64; 2]>,
+    ) -> Result<Spectrum, Vec<[f64; 2]>> {
+        self.index = None;
+        if 20 * self.n < 19 * self.len || self.n < 2 {
+            return Err(x);
+        }
+        let bins = self.coefficient.len();
+        let n = f64::from(self.n);
+        let grid_ns = index * segment_ns;
+        let offset_s = (self.first_ns - grid_ns) as f64 * 1e-9;
+        x.resize(3 * bins, [0.0; 2]);
+        for axis in 0..3 {
+            for k in 0..bins {
+                let f = self.frequency_hz[k];
+                let w = 2.0 * std::f64::consts::PI * f / self.sample_rate_hz;
+                let [s1, s2] = self.state[axis * bins + k];
+                // y = s₁ − e^{−iω}·s₂ = Σ x_m e^{iω(n−1−m)}; X = e^{−iω(n−1)}·y, then referred
+                // from the first sample's time to the grid's: e^{−i2πf·offset}.
+                let y = [s1 - w.cos() * s2, w.sin() * s2];
+                let phase = -w * (n - 1.0) - 2.0 * std::f64::consts::PI * f * offset_s;
+                let (sin, cos) = phase.sin_cos();
+                x[axis * bins + k] = [y[0] * cos - y[1] * sin, y[0] * sin + y[1] * cos];
+            }
+        }
+        Ok(Spectrum {
+            index,
+            x,
+            sum_w2: self.sum_w2,
+        })
+    }
+}
+
+/// Feeds one sensor's corrected readings, turned into the common frame by `turn` (none: its
+/// frame is it), into its segments on the common grid of `segment_s`; every segment it
+/// completes whole goes to `done`. A break in the stream drops the segment it falls in.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn feed_segments(
+    seg: &mut Segment,
+    spare: &mut Vec<Vec<[f64; 2]>>,
+    segment_s: f64,
+    turn: Option<&[[f64; 3]; 3]>,
+    timestamp_ns: i64,
+    sample_rate_hz: f64,
+    accel: &[[f64; 3]],
+    mut done: impl FnMut(Spectrum),
+) {
+    if !(sample_rate_hz.is_finite() && sample_rate_hz > 0.0) {
+        return;
+    }
+    let segment_ns = (segment_s * 1e9).round() as i64;
+    let period_ns = 1e9 / sample_rate_hz;
+    for (i, a) in accel.iter().enumerate() {
+        let t = timestamp_ns + (i as f64 * period_ns).round() as i64;
+        let v = match turn {
+            None => *a,
+            Some(m) => [0, 1, 2].map(|r| m[r][0] * a[0] + m[r][1] * a[1] + m[r][2] * a[2]),
+        };
+        let index = t.div_euclid(segment_ns);
+        let broke = seg.index.is_some()
+            && (seg.sample_rate_hz != sample_rate_hz
+                || ((t - seg.next_ns) as f64).abs() > 0.5 * period_ns);
+        if seg.index != Some(index) || broke {
+            if let (false, Some(finished)) = (broke, seg.index) {
+                let buffer = spare.pop().unwrap_or_default();
+                match seg.close(finished, segment_ns, buffer) {
+                    Ok(spectrum) => done(spectrum),
+                    Err(buffer) => spare.push(buffer),
+                }
+            }
+            seg.open(index, t, sample_rate_hz, segment_s);
+        }
+        let place = (t - index * segment_ns) as f64 / segment_ns as f64;
+        seg.push(v, t, period_ns, place);
+    }
+}
+
 /// Relative gain variance along unit `d` of a reading through `record`'s dynamic set (`set`,
 /// loaded from it), turned by `turn` (B into A's frame), and the reciprocal of its ν.
-fn gain_variance(
+pub(crate) fn gain_variance(
     record: &CalibrationRecord,
     set: &SetCorrector,
     turn: &[[f64; 3]; 3],
@@ -477,6 +615,7 @@ impl ColocatedPair {
             segments: 0,
             segments_per_estimate: (config.estimate_s / config.segment_s).round() as u32,
             axes: [axis(), axis(), axis()],
+            completed: Vec::with_capacity(2),
             config: config.clone(),
         };
         for side in [&mut pair.a, &mut pair.b] {
@@ -498,120 +637,23 @@ impl ColocatedPair {
     }
 
     fn feed(&mut self, is_a: bool, timestamp_ns: i64, sample_rate_hz: f64, accel: &[[f64; 3]]) {
-        if !(sample_rate_hz.is_finite() && sample_rate_hz > 0.0) {
-            return;
+        let mut completed = std::mem::take(&mut self.completed);
+        let side = if is_a { &mut self.a } else { &mut self.b };
+        let turn = (!is_a).then_some(&self.config.mounting);
+        feed_segments(
+            &mut side.segment,
+            &mut side.spare,
+            self.config.segment_s,
+            turn,
+            timestamp_ns,
+            sample_rate_hz,
+            accel,
+            |spectrum| completed.push(spectrum),
+        );
+        for spectrum in completed.drain(..) {
+            self.complete(is_a, spectrum);
         }
-        let segment_ns = (self.config.segment_s * 1e9).round() as i64;
-        let period_ns = 1e9 / sample_rate_hz;
-        let m = self.config.mounting;
-        for (i, a) in accel.iter().enumerate() {
-            let t = timestamp_ns + (i as f64 * period_ns).round() as i64;
-            let v = if is_a {
-                *a
-            } else {
-                [0, 1, 2].map(|r| m[r][0] * a[0] + m[r][1] * a[1] + m[r][2] * a[2])
-            };
-            let index = t.div_euclid(segment_ns);
-            let side = if is_a { &mut self.a } else { &mut self.b };
-            let seg = &mut side.segment;
-            let broke = seg.index.is_some()
-                && (seg.sample_rate_hz != sample_rate_hz
-                    || ((t - seg.next_ns) as f64).abs() > 0.5 * period_ns);
-            if seg.index != Some(index) || broke {
-                if let (false, Some(done)) = (broke, seg.index) {
-                    let buffer = side.spare.pop().unwrap_or_default();
-                    match Self::close(seg, done, segment_ns, buffer) {
-                        Ok(spectrum) => self.complete(is_a, spectrum),
-                        Err(buffer) => side.spare.push(buffer),
-                    }
-                }
-                let side = if is_a { &mut self.a } else { &mut self.b };
-                Self::open(
-                    &mut side.segment,
-                    index,
-                    t,
-                    sample_rate_hz,
-                    self.config.segment_s,
-                );
-            }
-            let side = if is_a { &mut self.a } else { &mut self.b };
-            let place = (t - index * segment_ns) as f64 / segment_ns as f64;
-            Self::push(&mut side.segment, v, t, period_ns, place);
-        }
-    }
-
-    fn open(seg: &mut Segment, index: i64, t_ns: i64, sample_rate_hz: f64, segment_s: f64) {
-        seg.index = Some(index);
-        seg.first_ns = t_ns;
-        seg.n = 0;
-        seg.len = (segment_s * sample_rate_hz).round() as u32;
-        seg.sum_w2 = 0.0;
-        seg.next_ns = t_ns;
-        seg.sample_rate_hz = sample_rate_hz;
-        for (c, f) in seg.coefficient.iter_mut().zip(&seg.frequency_hz) {
-            *c = 2.0 * (2.0 * std::f64::consts::PI * f / sample_rate_hz).cos();
-        }
-        for s in &mut seg.state {
-            *s = [0.0; 2];
-        }
-    }
-
-    /// Adds a sample at `place` (0 to 1) in its segment of the common grid.
-    #[inline]
-    fn push(seg: &mut Segment, v: [f64; 3], t_ns: i64, period_ns: f64, place: f64) {
-        // Hann by the sample's time on the grid, so that both sensors weigh the same instants
-        // alike whatever their sampling phase.
-        let w = 0.5 - 0.5 * (2.0 * std::f64::consts::PI * place).cos();
-        seg.sum_w2 += w * w;
-        let bins = seg.coefficient.len();
-        for (axis, x) in v.iter().enumerate() {
-            let x = w * x;
-            let states = &mut seg.state[axis * bins..(axis + 1) * bins];
-            for (s, c) in states.iter_mut().zip(&seg.coefficient) {
-                let next = x + c * s[0] - s[1];
-                s[1] = s[0];
-                s[0] = next;
-            }
-        }
-        seg.n += 1;
-        seg.next_ns = t_ns + period_ns.round() as i64;
-    }
-
-    /// The segment's spectrum, into `x`, if it is whole (at least 95 % of its samples);
-    /// otherwise `x` back.
-    fn close(
-        seg: &mut Segment,
-        index: i64,
-        segment_ns: i64,
-        mut x: Vec<[f64; 2]>,
-    ) -> Result<Spectrum, Vec<[f64; 2]>> {
-        seg.index = None;
-        if 20 * seg.n < 19 * seg.len || seg.n < 2 {
-            return Err(x);
-        }
-        let bins = seg.coefficient.len();
-        let n = f64::from(seg.n);
-        let grid_ns = index * segment_ns;
-        let offset_s = (seg.first_ns - grid_ns) as f64 * 1e-9;
-        x.resize(3 * bins, [0.0; 2]);
-        for axis in 0..3 {
-            for k in 0..bins {
-                let f = seg.frequency_hz[k];
-                let w = 2.0 * std::f64::consts::PI * f / seg.sample_rate_hz;
-                let [s1, s2] = seg.state[axis * bins + k];
-                // y = s₁ − e^{−iω}·s₂ = Σ x_m e^{iω(n−1−m)}; X = e^{−iω(n−1)}·y, then referred
-                // from the first sample's time to the grid's: e^{−i2πf·offset}.
-                let y = [s1 - w.cos() * s2, w.sin() * s2];
-                let phase = -w * (n - 1.0) - 2.0 * std::f64::consts::PI * f * offset_s;
-                let (sin, cos) = phase.sin_cos();
-                x[axis * bins + k] = [y[0] * cos - y[1] * sin, y[0] * sin + y[1] * cos];
-            }
-        }
-        Ok(Spectrum {
-            index,
-            x,
-            sum_w2: seg.sum_w2,
-        })
+        self.completed = completed;
     }
 
     fn complete(&mut self, is_a: bool, spectrum: Spectrum) {

@@ -39,6 +39,7 @@ pub mod config;
 pub mod cusum;
 pub mod gravity;
 pub mod gravity_check;
+pub mod huddle;
 pub mod monitor;
 pub mod motion;
 pub mod noise;
