@@ -440,6 +440,28 @@ pub struct FileHealth {
     pub clock_watch_ms: Option<f64>,
     /// Pairs of co-located sensors (`[[health.colocated]]`).
     pub colocated: Option<Vec<FileColocated>>,
+    /// Groups of three co-located sensors (`[[health.triple]]`).
+    pub triple: Option<Vec<FileTriple>>,
+}
+
+/// `[[health.triple]]`: three sensors on the same part of the structure.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileTriple {
+    pub sensors: [String; 3],
+    /// B's and C's axes in A's frame, rows (`a_A = mounting · a_X`); default the identity.
+    pub mountings: Option<[[[f64; 3]; 3]; 2]>,
+    pub band_hz: Option<[f64; 2]>,
+    pub segment_s: Option<f64>,
+    pub estimate_s: Option<f64>,
+    pub min_coherence: Option<f64>,
+}
+
+/// A declared group of three co-located sensors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TripleSettings {
+    pub sensors: [SensorId; 3],
+    pub triple: triax_health::huddle::TripleConfig,
 }
 
 /// `[[health.colocated]]`: two sensors on the same part of the structure.
@@ -456,6 +478,8 @@ pub struct FileColocated {
     pub baseline_s: Option<f64>,
     pub shift: Option<f64>,
     pub min_coherence: Option<f64>,
+    /// Estimates before the absolute test's first look.
+    pub absolute_min_estimates: Option<u32>,
 }
 
 /// A declared co-located pair.
@@ -477,6 +501,7 @@ pub struct HealthSettings {
     /// real time is never on time).
     pub clock_watch_ms: Option<f64>,
     pub colocated: Vec<ColocatedSettings>,
+    pub triples: Vec<TripleSettings>,
 }
 
 /// Default [`HealthSettings::clock_watch_ms`].
@@ -490,6 +515,7 @@ impl Default for HealthSettings {
             publish_interval_s: DEFAULT_HEALTH_PUBLISH_INTERVAL_S,
             clock_watch_ms: Some(DEFAULT_CLOCK_WATCH_MS),
             colocated: Vec::new(),
+            triples: Vec::new(),
         }
     }
 }
@@ -529,6 +555,10 @@ fn colocated_settings(
             baseline_s: p.baseline_s.unwrap_or(d.baseline_s),
             shift: p.shift.unwrap_or(d.shift),
             min_coherence: p.min_coherence.unwrap_or(d.min_coherence),
+            absolute_min_estimates: p
+                .absolute_min_estimates
+                .unwrap_or(d.absolute_min_estimates)
+                .max(1),
             watch_arl_days: arl.0,
             suspect_arl_days: arl.1,
             ..d
@@ -538,6 +568,44 @@ fn colocated_settings(
             other => ConfigError::invalid(field("a"), other.to_string()),
         })?;
         out.push(ColocatedSettings { a, b, pair });
+    }
+    Ok(out)
+}
+
+fn triple_settings(triples: Vec<FileTriple>) -> Result<Vec<TripleSettings>, ConfigError> {
+    let mut out: Vec<TripleSettings> = Vec::with_capacity(triples.len());
+    for (i, t) in triples.into_iter().enumerate() {
+        let field = |f: &str| format!("health.triple[{i}].{f}");
+        let mut sensors = Vec::with_capacity(3);
+        for (k, id) in t.sensors.iter().enumerate() {
+            let id = SensorId::new(id.as_str()).map_err(|e| {
+                ConfigError::invalid(field(&format!("sensors[{k}]")), e.to_string())
+            })?;
+            if sensors.contains(&id) {
+                return Err(ConfigError::invalid(
+                    field("sensors"),
+                    format!("{id} is named twice: a group of three is three sensors"),
+                ));
+            }
+            sensors.push(id);
+        }
+        let d = triax_health::huddle::TripleConfig::default();
+        let triple = triax_health::huddle::TripleConfig {
+            mountings: t.mountings.unwrap_or(d.mountings),
+            band_hz: t.band_hz.unwrap_or(d.band_hz),
+            segment_s: t.segment_s.unwrap_or(d.segment_s),
+            estimate_s: t.estimate_s.unwrap_or(d.estimate_s),
+            min_coherence: t.min_coherence.unwrap_or(d.min_coherence),
+            ..d
+        };
+        triple.validate().map_err(|e| match e {
+            HealthError::Config { field: f, problem } => ConfigError::invalid(field(f), problem),
+            other => ConfigError::invalid(field("sensors"), other.to_string()),
+        })?;
+        let sensors: [SensorId; 3] = sensors
+            .try_into()
+            .map_err(|_| ConfigError::invalid(field("sensors"), "three sensors"))?;
+        out.push(TripleSettings { sensors, triple });
     }
     Ok(out)
 }
@@ -645,11 +713,13 @@ fn health_settings(h: FileHealth) -> Result<Option<HealthSettings>, ConfigError>
         (checks.watch_arl_days, checks.suspect_arl_days),
     )?;
     share_budgets(&mut colocated, checks.local_gravity.is_some());
+    let triples = triple_settings(h.triple.unwrap_or_default())?;
     Ok(Some(HealthSettings {
         checks,
         publish_interval_s,
         clock_watch_ms,
         colocated,
+        triples,
     }))
 }
 
@@ -1144,6 +1214,35 @@ mod tests {
                 "{pair}[[health.colocated]]\na = \"x2\"\nb = \"x1\""
             )),
             "health.colocated[1].b"
+        );
+        // x1 is in two pairs: both pairs share its budget, 4 + 3·2 sequential tests and (local
+        // gravity given) 1 + 3·2 absolute ones.
+        let h = parse(&format!(
+            "[health]\nlatitude_deg = 45.0\n{pair}[[health.colocated]]\na = \"x1\"\nb = \"x3\"\n"
+        ))
+        .unwrap()
+        .health
+        .unwrap();
+        assert_eq!(h.colocated[0].pair.shared_sequential_tests, 10);
+        assert_eq!(h.colocated[1].pair.shared_absolute_tests, 7);
+        let triple = "[[health.triple]]\nsensors = [\"t1\", \"t2\", \"t3\"]\n";
+        let h = parse(&format!("{triple}estimate_s = 600"))
+            .unwrap()
+            .health
+            .unwrap();
+        assert_eq!(h.triples[0].triple.estimate_s, 600.0);
+        assert_eq!(
+            field("[[health.triple]]\nsensors = [\"t1\", \"t2\", \"t1\"]"),
+            "health.triple[0].sensors"
+        );
+        assert_eq!(
+            field(&format!("{triple}min_coherence = 2")),
+            "health.triple[0].min_coherence"
+        );
+        assert_eq!(field("[health]\nconfirm_s = 0"), "health.confirm_s");
+        assert_eq!(
+            field("[health]\nnoise_watch_windows = 0"),
+            "health.noise_watch_windows"
         );
         assert_eq!(
             field("[health]\nclock_watch_ms = -1"),

@@ -31,7 +31,7 @@ use triax_protocol::messages::{HealthTest, HealthVerdict, SensorHealthReport, St
 use triax_protocol::{to_json, BuildingId, RawBatchView, JSON_FORMAT_VERSION};
 
 use super::history::Verdict as SequenceVerdict;
-use crate::state::{PairSlot, PairTests, SensorEntry};
+use crate::state::{GroupSlot, GroupTests, SensorEntry};
 
 /// What the workers need of the health settings.
 #[derive(Debug, Clone, Copy)]
@@ -104,7 +104,7 @@ impl HealthFeed {
         sequence: SequenceVerdict,
         received_ns: i64,
         reporting: Reporting,
-        pairs: &[Arc<PairSlot>],
+        pairs: &[Arc<GroupSlot>],
     ) -> Option<Vec<u8>> {
         let version = corrector?.version();
         if self.monitor.as_ref().is_none_or(|m| m.version() != version) {
@@ -148,15 +148,15 @@ impl HealthFeed {
             return None;
         }
         let report = monitor.report();
-        let pair_tests: Vec<PairTests> = pairs
+        let pair_tests: Vec<GroupTests> = pairs
             .iter()
             .filter_map(|p| p.tests_for(&entry.id, version))
             .collect();
         let clock = self.quality.clock_test(reporting.clock_watch_ms);
         let tested = pair_tests
             .iter()
-            .flat_map(|p| p.absolute.iter().chain(&p.relative))
-            .map(|t| t.verdict)
+            .flat_map(|p| &p.tests)
+            .map(|(_, _, _, t)| t.verdict)
             .fold(report.verdict, Verdict::max);
         if tested == Verdict::Suspect && self.latch.is_none_or(|(v, _)| v != version) {
             self.latch = Some((version, latch(store, entry, version, end_ns)));
@@ -182,22 +182,15 @@ impl HealthFeed {
             &self.quality,
         );
         message.tests.push(clock);
-        for p in &pair_tests {
-            for (name, tests) in [
-                ("colocated_absolute", &p.absolute),
-                ("colocated_relative", &p.relative),
-            ] {
-                for (axis, t) in tests.iter().enumerate() {
-                    let mut t = test(name, Some(axis), t);
-                    t.peer = Some(p.peer.clone());
-                    message.tests.push(t);
-                }
-            }
+        for (name, axis, peer, t) in pair_tests.iter().flat_map(|p| &p.tests) {
+            let mut t = test(name, Some(*axis), t);
+            t.peer = Some(peer.clone());
+            message.tests.push(t);
         }
         if message
             .tests
             .iter()
-            .any(|t| t.judged && t.test.starts_with("colocated_"))
+            .any(|t| t.judged && (t.test.starts_with("colocated_") || t.test == "triple_gain"))
         {
             message.calibration_checked = Some(true);
         }
@@ -326,7 +319,8 @@ fn unit_of(test: &str) -> &'static str {
         "gravity_absolute" | "gravity_relative" => "m/s^2",
         "stuck" => "s",
         "noise" => "ratio",
-        "colocated_absolute" | "colocated_relative" => "1",
+        "colocated_absolute" | "colocated_relative" | "triple_gain" => "1",
+        "triple_noise" => "ratio",
         _ => "1/h",
     }
 }

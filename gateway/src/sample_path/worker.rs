@@ -34,7 +34,7 @@ use super::outbox::{Outbox, Outgoing};
 use super::sequence::{SequenceTracker, Verdict};
 use crate::clock::now_ns;
 use crate::config::CorrectionMode;
-use crate::state::{GatewayCounters, PairSlot, SensorEntry, SensorTable};
+use crate::state::{GatewayCounters, GroupSlot, SensorEntry, SensorTable};
 
 /// A raw batch as it arrived: its sensor (the key's last chunk, checked at intake) and its
 /// payload, copied out of Zenoh's receive buffer.
@@ -219,7 +219,7 @@ struct SensorState {
     since_checkpoint: u32,
     health: HealthFeed,
     /// The co-located pairs the sensor is in (field health).
-    pairs: Vec<Arc<PairSlot>>,
+    pairs: Vec<Arc<GroupSlot>>,
 }
 
 /// A sensor's state in its shard's table, with where the parts it holds apart were at its
@@ -719,7 +719,7 @@ impl Shard {
 impl SensorState {
     fn new(shared: &Shared, entry: Arc<SensorEntry>) -> zenoh::Result<SensorState> {
         let entry_suspect = entry.suspect();
-        let pairs = shared.table.pairs_of(&entry.id);
+        let pairs = shared.table.groups_of(&entry.id);
         Ok(SensorState {
             kernel: SensorKernel::new(entry.settings.clone()),
             keys: SensorKeys::new(shared, &entry, false)?,

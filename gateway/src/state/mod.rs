@@ -11,7 +11,7 @@ mod sensors;
 pub mod store;
 
 pub use counters::{BackfillCounters, GatewayCounters};
-pub use health::{HealthSeed, PairSlot, PairTests, Pairs};
+pub use health::{GroupSlot, GroupTests, Groups, HealthSeed};
 pub use sensors::{
     AdmissionCounters, SensorCounters, SensorEntry, SensorTable, ESTABLISHED_BATCHES, NO_HEALTH,
 };

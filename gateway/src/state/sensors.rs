@@ -41,7 +41,7 @@ use triax_protocol::messages::{HealthVerdict, SensorStatus};
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{Mode, SensorId};
 
-use super::health::{HealthSeed, PairSlot, Pairs};
+use super::health::{GroupSlot, Groups, HealthSeed};
 use crate::clock::now_ns;
 use crate::config::{Config, SensorSettings};
 use crate::sync::lock;
@@ -263,17 +263,15 @@ pub struct SensorTable {
     probation: Mutex<VecDeque<SensorId>>,
     pub admission: AdmissionCounters,
     /// The declared co-located pairs (field health).
-    pairs: Pairs,
+    pairs: Groups,
 }
 
 impl SensorTable {
     pub fn new(config: Arc<Config>) -> SensorTable {
-        let pairs = Pairs::new(
-            config
-                .health
-                .as_ref()
-                .map_or(&[], |h| h.colocated.as_slice()),
-        );
+        let pairs = config
+            .health
+            .as_ref()
+            .map_or_else(Groups::default, |h| Groups::new(&h.colocated, &h.triples));
         SensorTable {
             config,
             pairs,
@@ -426,7 +424,7 @@ impl SensorTable {
         };
         // The sensor's pairs share its false-alarm budget.
         let checks = triax_health::HealthConfig {
-            colocated_pairs: self.pairs.of(&record.sensor_id).len() as u32,
+            colocated_pairs: self.pairs.pairs_of(&record.sensor_id) as u32,
             ..settings.checks.clone()
         };
         let monitor = match SensorHealth::with_corrector(record, corrector, &checks) {
@@ -445,7 +443,7 @@ impl SensorTable {
     }
 
     /// The co-located pairs `sensor` is in.
-    pub fn pairs_of(&self, sensor: &SensorId) -> Vec<Arc<PairSlot>> {
+    pub fn groups_of(&self, sensor: &SensorId) -> Vec<Arc<GroupSlot>> {
         self.pairs.of(sensor).to_vec()
     }
 

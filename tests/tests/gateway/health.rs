@@ -415,7 +415,7 @@ async fn a_co_located_pair_finds_a_horizontal_gain_change() {
     seed_store(&store, &[ra, rb]);
     let mut cfg = config(PAIR, &store);
     let toml = format!(
-        "[health]\nclock_watch_ms = 0\n[[health.colocated]]\na = \"{A}\"\nb = \"{B}\"\nestimate_s = 300\n"
+        "[health]\nclock_watch_ms = 0\n[[health.colocated]]\na = \"{A}\"\nb = \"{B}\"\nestimate_s = 300\nabsolute_min_estimates = 1\n"
     );
     let parsed = triax_gateway::config::FileConfig::parse(&toml, std::path::Path::new("pair.toml"))
         .unwrap()
