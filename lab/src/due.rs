@@ -239,6 +239,7 @@ mod tests {
             quiet_stretches: 0,
             discontinuities: 0,
             calibration_checked: Some(true),
+            gravity_direction: None,
             tests: vec![HealthTest {
                 test: "gravity_relative".into(),
                 channel: None,

@@ -16,6 +16,7 @@
 //! never leaves a partial output behind and tests need no disk for the outputs.
 
 pub mod commands;
+pub mod compare;
 pub mod dcc;
 pub mod due;
 pub mod input;

@@ -37,7 +37,7 @@ use triax_lab::push::{push_all, render, Push};
 use triax_lab::record::RecordMeta;
 use triax_lab::registry::{Recorded, Registry};
 use triax_net::ZenohArgs;
-use triax_protocol::messages::HealthVerdict;
+use triax_protocol::messages::{HealthVerdict, SensorHealthReport};
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{from_json, BuildingId, SensorId};
 
@@ -139,6 +139,34 @@ enum Command {
         /// Unit of the sensor outputs.
         #[arg(long, default_value = "V")]
         output_unit: String,
+        /// The record the new one replaces (JSON): the summary and the report compare the two,
+        /// parameter by parameter (see `compare`).
+        #[arg(long, value_name = "FILE")]
+        previous: Option<PathBuf>,
+        /// A field health report of the previous record (PROTOCOL.md §3.9, one report or the
+        /// JSON array `due --json` prints): its relative gravity test against the two records'
+        /// prediction of it. Needs --previous.
+        #[arg(long, value_name = "FILE", requires = "previous")]
+        field_health: Option<PathBuf>,
+    },
+    /// Compares a sensor's new record with the one it replaces, parameter by parameter, and
+    /// with the drift the field saw under the old one (its relative gravity test): what the lab
+    /// measured against what the gateway's checks estimated. Exit status 0; 4 when the field's
+    /// estimate and the lab's prediction disagree (|z| > 2).
+    Compare {
+        /// The record the new one replaces (JSON).
+        #[arg(long, value_name = "FILE")]
+        previous: PathBuf,
+        /// The new record (JSON).
+        #[arg(long, value_name = "FILE")]
+        record: PathBuf,
+        /// A field health report of the previous record (PROTOCOL.md §3.9, one report or the
+        /// JSON array `due --json` prints).
+        #[arg(long, value_name = "FILE")]
+        field_health: Option<PathBuf>,
+        /// Also write the comparison as an HTML section.
+        #[arg(long, value_name = "FILE")]
+        report: Option<PathBuf>,
     },
     /// Static fit only: prints S, q, their uncertainties, residuals and the ±g check.
     Static {
@@ -347,6 +375,53 @@ fn write_new_key_file(path: &Path, text: &str, private: bool) -> anyhow::Result<
         .with_context(|| format!("writing {}", path.display()))
 }
 
+/// The comparison of `new` with the record in `previous`, and with the report of it in
+/// `field_health` (one report, or an array of them of which the one for that record is taken).
+fn comparison(
+    previous: &Path,
+    new: &CalibrationRecord,
+    field_health: Option<&Path>,
+) -> anyhow::Result<triax_lab::compare::Comparison> {
+    let old = read_records(&[previous.to_path_buf()])?
+        .pop()
+        .context("no record read")?;
+    let report = match field_health {
+        None => None,
+        Some(path) => {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let value: serde_json::Value = serde_json::from_slice(&bytes)
+                .with_context(|| format!("{} is not JSON", path.display()))?;
+            let candidates = match value {
+                serde_json::Value::Array(items) => items,
+                one => vec![one],
+            };
+            let mut found = None;
+            for (i, v) in candidates.into_iter().enumerate() {
+                let r: SensorHealthReport =
+                    from_json(v.to_string().as_bytes()).with_context(|| {
+                        format!(
+                            "{} item {i} is not a health report (PROTOCOL.md §3.9)",
+                            path.display()
+                        )
+                    })?;
+                if r.sensor_id == old.sensor_id && r.calibration_version == old.version {
+                    found = Some(r);
+                }
+            }
+            Some(found.with_context(|| {
+                format!(
+                    "{} holds no report of {} version {}",
+                    path.display(),
+                    old.sensor_id,
+                    old.version
+                )
+            })?)
+        }
+    };
+    Ok(triax_lab::compare::compare(&old, new, report.as_ref())?)
+}
+
 /// Reads record files and every *.json of directories, sorted by sensor then version so that
 /// the registry accepts several versions of one sensor in one go.
 fn read_records(paths: &[PathBuf]) -> anyhow::Result<Vec<CalibrationRecord>> {
@@ -492,6 +567,8 @@ fn main() -> anyhow::Result<()> {
             lab_name,
             certificate,
             output_unit,
+            previous,
+            field_health,
         } => {
             let sensor_id = SensorId::new(sensor.clone())
                 .map_err(|e| anyhow::anyhow!("--sensor {sensor}: {e}"))?;
@@ -514,11 +591,46 @@ fn main() -> anyhow::Result<()> {
             };
             let output = run_fit(&static_csv, &bench, &options)?;
             print!("{}", output.summary);
+            let comparison = match &previous {
+                Some(p) => Some(comparison(p, &output.record, field_health.as_deref())?),
+                None => None,
+            };
+            if let Some(c) = &comparison {
+                print!("\n{}", triax_lab::compare::render_text(c));
+            }
             write_file(&out, &output.json)?;
             println!("\nwrote {}", out.display());
-            if let (Some(path), Some(html)) = (report, output.report_html) {
+            if let (Some(path), Some(mut html)) = (report, output.report_html) {
+                if let Some(c) = &comparison {
+                    let section = triax_lab::compare::render_html(c);
+                    html = match html.rfind("</body>") {
+                        Some(at) => format!("{}{section}{}", &html[..at], &html[at..]),
+                        None => html + &section,
+                    };
+                }
                 write_file(&path, html.as_bytes())?;
                 println!("wrote {}", path.display());
+            }
+        }
+        Command::Compare {
+            previous,
+            record,
+            field_health,
+            report,
+        } => {
+            let new = read_records(std::slice::from_ref(&record))?
+                .pop()
+                .context("no record read")?;
+            let c = comparison(&previous, &new, field_health.as_deref())?;
+            print!("{}", triax_lab::compare::render_text(&c));
+            if let Some(path) = report {
+                write_file(&path, triax_lab::compare::render_html(&c).as_bytes())?;
+                println!("wrote {}", path.display());
+            }
+            if let triax_lab::compare::Field::Judged(f) = &c.field {
+                if f.z.abs() > 2.0 {
+                    std::process::exit(4);
+                }
             }
         }
         Command::Static {

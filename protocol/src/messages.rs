@@ -935,6 +935,7 @@ mod tests {
             quiet_stretches: 4,
             discontinuities: 1,
             calibration_checked: Some(true),
+            gravity_direction: Some([0.0, 0.6, 0.8]),
             tests: vec![HealthTest {
                 test: "stuck".into(),
                 channel: Some(2),
@@ -1087,6 +1088,11 @@ pub struct SensorHealthReport {
     /// gateways that predate it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration_checked: Option<bool>,
+    /// The direction, in the sensor's frame, of the latest quiet stretch's mean reading through
+    /// the record's static set (a unit vector: where gravity points for the sensor): what the
+    /// gravity tests measured along. Absent before the first quiet stretch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gravity_direction: Option<[f64; 3]>,
     /// Every test, in a fixed order.
     pub tests: Vec<HealthTest>,
     /// The stream's quality, as seismic networks report it.

@@ -182,6 +182,7 @@ impl HealthFeed {
             &self.quality,
         );
         message.tests.push(clock);
+        message.gravity_direction = monitor.last_gravity_observation().map(|o| o.direction);
         for (name, axis, peer, t) in pair_tests.iter().flat_map(|p| &p.tests) {
             let mut t = test(name, Some(*axis), t);
             t.peer = Some(peer.clone());
@@ -380,6 +381,7 @@ fn message(
         quiet_stretches: report.quiet_stretches,
         discontinuities: report.discontinuities,
         calibration_checked: Some(report.calibration_checked()),
+        gravity_direction: None,
         tests: report
             .tests()
             .iter()
