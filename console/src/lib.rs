@@ -27,6 +27,7 @@ pub mod fleet;
 pub mod http;
 pub mod live;
 pub mod modes;
+pub mod operators;
 pub mod server;
 pub mod spectrum;
 pub mod trend;
@@ -78,6 +79,52 @@ pub struct ConsoleOptions {
     pub max_logged_alerts: usize,
     /// How long the log keeps an alert.
     pub alert_retention: Duration,
+    /// The operators' accounts file ([`operators`]); none: no accounts (read-only, open on
+    /// loopback).
+    pub operators_file: Option<std::path::PathBuf>,
+    /// A request header that a reverse proxy in front of the console sets to the operator's
+    /// name (`X-Remote-User`); trusted as it comes, so only with the console on loopback
+    /// behind that proxy.
+    pub identity_header: Option<String>,
+    /// The site's time zone: quiet hours and rota shifts are in it, and the page offers it
+    /// beside UTC.
+    pub time_zone: Option<SiteTimeZone>,
+}
+
+/// A site's time zone by its IANA name, read from the system's time zone database.
+#[derive(Debug, Clone)]
+pub struct SiteTimeZone {
+    name: String,
+    tz: jiff::tz::TimeZone,
+}
+
+impl SiteTimeZone {
+    /// The zone named `name` (`Europe/Zurich`); an error says why there is none.
+    pub fn get(name: &str) -> Result<SiteTimeZone, ConsoleError> {
+        let tz = jiff::tz::TimeZone::get(name).map_err(|e| ConsoleError::Option {
+            field: "time_zone",
+            reason: format!("{name:?} is not a time zone of this system's database: {e}"),
+        })?;
+        Ok(SiteTimeZone {
+            name: name.to_owned(),
+            tz,
+        })
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The wall-clock time of day at `t_ns` (ns since the Unix epoch), as minutes after
+    /// midnight, and the day of the week (Monday 1 to Sunday 7).
+    pub fn minute_of_day(&self, t_ns: i64) -> (u32, u8) {
+        let ts = jiff::Timestamp::from_nanosecond(i128::from(t_ns)).unwrap_or_default();
+        let z = ts.to_zoned(self.tz.clone());
+        (
+            u32::from(z.hour() as u8) * 60 + u32::from(z.minute() as u8),
+            z.weekday().to_monday_one_offset() as u8,
+        )
+    }
 }
 
 impl Default for ConsoleOptions {
@@ -95,6 +142,9 @@ impl Default for ConsoleOptions {
             state_dir: None,
             max_logged_alerts: alertlog::DEFAULT_MAX_ALERTS,
             alert_retention: alertlog::DEFAULT_RETENTION,
+            operators_file: None,
+            identity_header: None,
+            time_zone: None,
         }
     }
 }
@@ -122,6 +172,8 @@ pub enum ConsoleError {
     },
     #[error(transparent)]
     AlertLog(#[from] alertlog::AlertLogError),
+    #[error(transparent)]
+    Operators(#[from] operators::OperatorError),
     #[error("option `{field}`: {reason}")]
     Option { field: &'static str, reason: String },
 }
@@ -232,6 +284,10 @@ pub async fn serve(
             action: "subscribe to the buildings' modes",
             message: e.to_string(),
         })?;
+    let operators = Arc::new(operators::Operators::open(
+        options.operators_file.clone(),
+        options.identity_header.clone(),
+    )?);
     let (stop_tx, stop_rx) = watch::channel(false);
     let poller = tokio::spawn(fleet::poll_status(
         session.clone(),
@@ -253,6 +309,8 @@ pub async fn serve(
         stop: stop_rx,
         trends: tokio::sync::Mutex::new(trend::TrendCache::default()),
         modes,
+        operators,
+        logins: Arc::new(Semaphore::new(server::MAX_LOGINS_AT_ONCE)),
         options,
     });
     tracing::info!(url = %url(addr), "console serving");

@@ -39,6 +39,7 @@ use crate::buckets::{Aggregator, View, MAX_BUCKETS};
 use crate::fleet::{Fleet, GatewayState};
 use crate::http::{self, Refusal, Request};
 use crate::live::{Feeds, KEEP_NS};
+use crate::operators::{Login, Operator, Operators, Role};
 use crate::ConsoleOptions;
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
@@ -74,7 +75,14 @@ pub struct Context {
     pub trends: tokio::sync::Mutex<crate::trend::TrendCache>,
     /// The buildings' modes heard on `triax/*/modes`.
     pub modes: Arc<std::sync::Mutex<crate::modes::ModesBook>>,
+    /// The operators' accounts and sessions.
+    pub operators: Arc<Operators>,
+    /// Password checks at once (each is an Argon2 hash: tens of milliseconds and 19 MiB).
+    pub logins: Arc<Semaphore>,
 }
+
+/// Password checks at once; more are answered 503.
+pub const MAX_LOGINS_AT_ONCE: usize = 2;
 
 /// How long a connection over the limit gets to send its request before its 503.
 const BUSY_READ_TIMEOUT: Duration = Duration::from_secs(1);
@@ -113,12 +121,70 @@ pub async fn handle(ctx: Arc<Context>, mut stream: TcpStream, _permit: OwnedSema
     }
 }
 
-/// The routes that write the alert log, the only ones that take `POST`.
-const WRITE_ROUTES: [&str; 3] = ["/api/alerts/ack", "/api/alerts/silence", "/api/alerts/lift"];
+/// The routes that write, the only ones that take `POST`, and the role each needs (none: any
+/// visitor, for logging in and out).
+const WRITE_ROUTES: [(&str, Option<Role>); 8] = [
+    ("/api/login", None),
+    ("/api/logout", None),
+    ("/api/alerts/ack", Some(Role::Operate)),
+    ("/api/alerts/silence", Some(Role::Operate)),
+    ("/api/alerts/lift", Some(Role::Operate)),
+    ("/api/annotations", Some(Role::Operate)),
+    ("/api/annotations/delete", Some(Role::Operate)),
+    ("/api/health/clear", Some(Role::Admin)),
+];
+
+/// What anyone may fetch before logging in: the page itself, and who they are.
+const PUBLIC_ROUTES: [&str; 6] = [
+    "/",
+    "/index.html",
+    "/app.js",
+    "/app.css",
+    "/favicon.svg",
+    "/api/me",
+];
+
+/// Who sent `req`: a session's operator, or the trusted proxy header's.
+fn operator_of(ctx: &Context, req: &Request) -> Option<Operator> {
+    let header = ctx
+        .operators
+        .identity_header()
+        .and_then(|name| req.header(name));
+    ctx.operators.identify(req.cookie.as_deref(), header)
+}
+
+/// Refuses a request whose operator may not do what `need` allows.
+fn require(ctx: &Context, who: Option<&Operator>, need: Role, what: &str) -> Result<(), Refusal> {
+    match who {
+        Some(o) if o.role >= need => Ok(()),
+        Some(o) => Err(Refusal::new(
+            403,
+            format!(
+                "operator {:?} has the role {}: {what} needs {}",
+                o.name,
+                o.role.name(),
+                need.name()
+            ),
+        )),
+        None if ctx.operators.login_required() => Err(Refusal::new(
+            401,
+            format!("{what} needs a logged-in operator: log in first (POST /api/login)"),
+        )),
+        None => Err(Refusal::new(
+            403,
+            format!(
+                "{what} needs a logged-in operator, and this console has no operator accounts: \
+                 create one with `triax-console operator add NAME --role {}`",
+                need.name()
+            ),
+        )),
+    }
+}
 
 async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Result<(), Refusal> {
     let p = Params(&req.query);
-    if WRITE_ROUTES.contains(&req.path.as_str()) {
+    let who = operator_of(ctx, req);
+    if let Some(&(_, need)) = WRITE_ROUTES.iter().find(|(r, _)| *r == req.path) {
         if !req.post {
             return Err(Refusal::method(
                 "POST",
@@ -126,9 +192,52 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             ));
         }
         p.only(&[])?;
-        let body = write(ctx, req)?;
-        let _ = http::respond(stream, 200, "application/json", &json(&body), false).await;
+        // The origin first: a page elsewhere learns nothing, not even whether one is logged in.
+        let body = check_write(req)?;
+        if let Some(need) = need {
+            require(ctx, who.as_ref(), need, &format!("POST {}", req.path))?;
+        }
+        match req.path.as_str() {
+            "/api/login" => return login(ctx, stream, &body).await,
+            "/api/logout" => {
+                Body(&body).only(&[])?;
+                if let Some(t) = req
+                    .cookie
+                    .as_deref()
+                    .and_then(crate::operators::session_token)
+                {
+                    ctx.operators.logout(t);
+                }
+                let _ = http::respond_setting_cookie(
+                    stream,
+                    "application/json",
+                    b"{\"logged_out\":true}",
+                    &crate::operators::clear_cookie(),
+                )
+                .await;
+                return Ok(());
+            }
+            _ => {}
+        }
+        // `require` passed: there is an operator.
+        let Some(who) = who else {
+            return Err(Refusal::new(401, "log in first"));
+        };
+        let answer = write(ctx, req, &body, &who)?;
+        let _ = http::respond(stream, 200, "application/json", &json(&answer), false).await;
         return Ok(());
+    }
+    if ctx.operators.login_required()
+        && who.is_none()
+        && !PUBLIC_ROUTES.contains(&req.path.as_str())
+    {
+        return Err(Refusal::new(
+            401,
+            format!(
+                "{} needs a logged-in operator: log in on the console's page (POST /api/login)",
+                req.path
+            ),
+        ));
     }
     if req.post {
         return Err(Refusal::new(
@@ -179,6 +288,17 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
         "/favicon.svg" => {
             p.only(&[])?;
             ok(stream, "image/svg+xml", FAVICON_SVG.into(), head_only).await
+        }
+        "/api/me" => {
+            p.only(&[])?;
+            let body = serde_json::json!({
+                "operator": who,
+                "login_required": ctx.operators.login_required(),
+                "accounts": ctx.operators.path().is_some() && !ctx.operators.accounts().is_empty(),
+                "proxy_header": ctx.operators.identity_header(),
+                "time_zone": ctx.options.time_zone.as_ref().map(|z| z.name()),
+            });
+            ok(stream, JSON, json(&body), head_only).await
         }
         "/api/fleet" => {
             p.only(&[])?;
@@ -363,8 +483,8 @@ fn alert_query(p: &Params<'_>) -> Result<AlertQuery, Refusal> {
     Ok(q)
 }
 
-/// Checks a write's origin and body and applies it to the alert log.
-fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
+/// Checks a write's origin and content type, and reads its body: a JSON object.
+fn check_write(req: &Request) -> Result<serde_json::Map<String, serde_json::Value>, Refusal> {
     if let Some(origin) = &req.origin {
         let own = req.host.as_deref().map(|h| format!("http://{h}"));
         if own
@@ -397,17 +517,80 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
     }
     let body: serde_json::Value = serde_json::from_slice(&req.body)
         .map_err(|e| Refusal::new(400, format!("the body is not JSON: {e}")))?;
-    let Some(obj) = body.as_object() else {
-        return Err(Refusal::new(400, "the body must be a JSON object"));
+    match body {
+        serde_json::Value::Object(o) => Ok(o),
+        _ => Err(Refusal::new(400, "the body must be a JSON object")),
+    }
+}
+
+/// `POST /api/login`: a name and password checked against the accounts; a session cookie.
+async fn login(
+    ctx: &Context,
+    stream: &mut TcpStream,
+    body: &serde_json::Map<String, serde_json::Value>,
+) -> Result<(), Refusal> {
+    let b = Body(body);
+    b.only(&["name", "password"])?;
+    let (name, password) = (b.text("name", true)?, b.text("password", true)?);
+    let Ok(_permit) = ctx.logins.clone().try_acquire_owned() else {
+        return Err(Refusal::new(
+            503,
+            format!("{MAX_LOGINS_AT_ONCE} logins are being checked; try again in a moment"),
+        ));
     };
+    let ops = ctx.operators.clone();
+    // An Argon2 check is CPU work: off the runtime's threads.
+    let (n, pw) = (name.clone(), password);
+    let outcome = tokio::task::spawn_blocking(move || ops.login(&n, &pw))
+        .await
+        .map_err(|e| Refusal::new(500, format!("login check failed: {e}")))?;
+    match outcome {
+        Login::Ok(token, who) => {
+            tracing::info!(operator = %who.name, role = who.role.name(), "operator logged in");
+            let body = json(&serde_json::json!({ "operator": who }));
+            let _ = http::respond_setting_cookie(
+                stream,
+                "application/json",
+                &body,
+                &crate::operators::set_cookie(&token),
+            )
+            .await;
+            Ok(())
+        }
+        Login::Refused => {
+            tracing::warn!(operator = %name, "login refused");
+            Err(Refusal::new(
+                401,
+                "login refused: no such operator, or a wrong password",
+            ))
+        }
+    }
+}
+
+/// Applies a write by `who` (the role already checked).
+fn write(
+    ctx: &Context,
+    req: &Request,
+    obj: &serde_json::Map<String, serde_json::Value>,
+    who: &Operator,
+) -> Result<serde_json::Value, Refusal> {
     let b = Body(obj);
     let now = time::OffsetDateTime::now_utc();
     let field = |e: crate::alertlog::FieldError| Refusal::new(400, e.to_string());
+    let by = who.name.clone();
     match req.path.as_str() {
+        "/api/health/clear" => {
+            b.only(&["building", "sensor", "reason"])?;
+            Err(Refusal::new(
+                501,
+                "clearing a field-health latch is not available yet: the gateways do not offer \
+                 it; a sensor's `calibration_suspect` ends when a new record is in force",
+            ))
+        }
         "/api/alerts/ack" => {
-            b.only(&["ids", "by", "note"])?;
+            b.only(&["ids", "note"])?;
             let ids = b.ids("ids")?;
-            let (by, note) = (b.text("by", true)?, b.text("note", false)?);
+            let note = b.text("note", false)?;
             let done = ctx
                 .fleet
                 .with_log(|l| l.acknowledge(&ids, &by, &note, now))
@@ -416,7 +599,7 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
             Ok(serde_json::json!({ "acknowledged": done, "already_acknowledged": already }))
         }
         "/api/alerts/silence" => {
-            b.only(&["building", "sensor", "kind", "duration_s", "by", "reason"])?;
+            b.only(&["building", "sensor", "kind", "duration_s", "reason"])?;
             let building = BuildingId::new(b.text("building", true)?)
                 .map_err(|e| Refusal::new(400, format!("field \"building\": {e}")))?;
             let sensor = match b.text("sensor", false)? {
@@ -447,26 +630,26 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
                     format!("field \"duration_s\": {duration_s} is not a duration"),
                 )
             })?;
-            let (by, reason) = (b.text("by", true)?, b.text("reason", false)?);
+            let reason = b.text("reason", false)?;
             let s = ctx
                 .fleet
                 .with_log(|l| l.silence(building, sensor, kind, duration, &by, &reason, now))
                 .map_err(field)?;
             Ok(serde_json::to_value(s).unwrap_or_default())
         }
-        _ => {
-            b.only(&["id", "by"])?;
+        "/api/alerts/lift" => {
+            b.only(&["id"])?;
             let id = b.ids("id")?;
             let [id] = id[..] else {
                 return Err(Refusal::new(400, "field \"id\": one silence id"));
             };
-            let by = b.text("by", true)?;
             let s = ctx
                 .fleet
                 .with_log(|l| l.lift(id, &by, now))
                 .map_err(field)?;
             Ok(serde_json::to_value(s).unwrap_or_default())
         }
+        other => Err(Refusal::new(404, format!("no such page: {other:?}"))),
     }
 }
 

@@ -50,7 +50,45 @@ async fn until_alerts_arrive(site: &Site, console: &Console) {
 async fn alert_log_survives_a_restart() {
     let site = Site::start(60).await;
     let dir = tempfile::tempdir().unwrap();
-    let console = Console::start(&site, Some(dir.path().to_owned())).await;
+    let operators = dir.path().join("operators");
+    write_operators(
+        &operators,
+        &[
+            ("alice", "operate"),
+            ("bob", "operate"),
+            ("viewer", "view"),
+            ("root", "admin"),
+        ],
+    );
+    let with_accounts = |o: &mut triax_console::ConsoleOptions| {
+        o.operators_file = Some(operators.clone());
+    };
+    let console = Console::start_with(&site, Some(dir.path().to_owned()), with_accounts).await;
+    // With accounts, nothing but the page and who one is before a login.
+    let (status, body) = console.get("/api/alerts").await;
+    assert_eq!(status, 401, "{body}");
+    assert!(body.contains("logged-in operator"), "{body}");
+    assert_eq!(console.get("/events").await.0, 401);
+    assert_eq!(console.get("/app.js").await.0, 200);
+    let me = console.json("/api/me").await;
+    assert_eq!(me["operator"], Value::Null, "{me}");
+    assert_eq!(me["login_required"], true, "{me}");
+    let (status, body) = console
+        .post(
+            "/api/login",
+            &json!({"name": "alice", "password": "not the password"}),
+        )
+        .await;
+    assert_eq!(status, 401, "{body}");
+    let (status, _) = console
+        .post(
+            "/api/login",
+            &json!({"name": "mallory", "password": PASSWORD}),
+        )
+        .await;
+    assert_eq!(status, 401, "an unknown operator");
+    console.login("viewer").await;
+    assert_eq!(console.json("/api/me").await["operator"]["role"], "view");
     until_alerts_arrive(&site, &console).await;
     site.alert(
         "acc-01",
@@ -121,18 +159,55 @@ async fn alert_log_survives_a_restart() {
         assert!(body.contains(names), "{p}: {body}");
     }
 
+    // A viewer sees, but does not acknowledge; an admin's health-latch clearing is not there yet.
+    let (status, body) = console
+        .post("/api/alerts/ack", &json!({"ids": [exceeded_id]}))
+        .await;
+    assert_eq!(status, 403, "{body}");
+    assert!(
+        body.contains("\"viewer\" has the role view") && body.contains("needs operate"),
+        "{body}"
+    );
+    console.login("root").await;
+    let (status, body) = console
+        .post(
+            "/api/health/clear",
+            &json!({"building": "hq", "sensor": "acc-01"}),
+        )
+        .await;
+    assert_eq!(status, 501, "{body}");
+    assert!(body.contains("not available yet"), "{body}");
+    console.login("alice").await;
+    let (status, body) = console
+        .post(
+            "/api/health/clear",
+            &json!({"building": "hq", "sensor": "acc-01"}),
+        )
+        .await;
+    assert_eq!(status, 403, "an operator is no admin: {body}");
+    // The free-text name is gone: who is the operator logged in.
+    let (status, body) = console
+        .post(
+            "/api/alerts/ack",
+            &json!({"ids": [exceeded_id], "by": "mallory"}),
+        )
+        .await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("unknown field \"by\""), "{body}");
+
     // Acknowledge, with who and when.
     let (status, body) = console
         .post(
             "/api/alerts/ack",
-            &json!({"ids": [exceeded_id], "by": "alice", "note": "checked on site"}),
+            &json!({"ids": [exceeded_id], "note": "checked on site"}),
         )
         .await;
     assert_eq!(status, 200, "{body}");
     let answer: Value = serde_json::from_str(&body).unwrap();
     assert_eq!(answer["acknowledged"], json!([exceeded_id]));
+    console.login("bob").await;
     let (_, again) = console
-        .post("/api/alerts/ack", &json!({"ids": exceeded_id, "by": "bob"}))
+        .post("/api/alerts/ack", &json!({"ids": exceeded_id}))
         .await;
     assert!(
         again.contains("\"already_acknowledged\":[") && again.contains(&exceeded_id.to_string()),
@@ -153,7 +228,7 @@ async fn alert_log_survives_a_restart() {
 
     // Silence acc-02's peak alerts: a new one arrives silenced.
     let (status, body) = console
-        .post("/api/alerts/silence", &json!({"building": "hq", "sensor": "acc-02", "kind": "peak_acceleration", "duration_s": 3600, "by": "bob", "reason": "works on floor 3"}))
+        .post("/api/alerts/silence", &json!({"building": "hq", "sensor": "acc-02", "kind": "peak_acceleration", "duration_s": 3600, "reason": "works on floor 3"}))
         .await;
     assert_eq!(status, 200, "{body}");
     let silence: Value = serde_json::from_str(&body).unwrap();
@@ -182,16 +257,13 @@ async fn alert_log_survives_a_restart() {
     let (status, _) = console.post("/api/fleet", &json!({})).await;
     assert_eq!(status, 405);
     for (body, field) in [
-        (json!({"ids": [exceeded_id]}), "\"by\""),
-        (json!({"ids": [999_999], "by": "alice"}), "\"ids\""),
-        (json!({"ids": "all", "by": "alice"}), "\"ids\""),
+        (json!({"note": "x"}), "\"ids\" is required"),
+        (json!({"ids": [999_999]}), "\"ids\""),
+        (json!({"ids": "all"}), "\"ids\""),
+        (json!({"ids": [exceeded_id], "colour": 1}), "\"colour\""),
         (
-            json!({"ids": [exceeded_id], "by": "alice", "colour": 1}),
-            "\"colour\"",
-        ),
-        (
-            json!({"ids": [exceeded_id], "by": "x".repeat(65)}),
-            "\"by\"",
+            json!({"ids": [exceeded_id], "note": "x".repeat(1001)}),
+            "\"note\"",
         ),
     ] {
         let (status, text) = console.post("/api/alerts/ack", &body).await;
@@ -199,28 +271,22 @@ async fn alert_log_survives_a_restart() {
         assert!(text.contains(field), "{body}: {text}");
     }
     for (body, field) in [
+        (json!({"building": "hq", "duration_s": 0}), "\"duration_s\""),
         (
-            json!({"building": "hq", "duration_s": 0, "by": "b"}),
+            json!({"building": "hq", "duration_s": 1e9}),
             "\"duration_s\"",
         ),
         (
-            json!({"building": "hq", "duration_s": 1e9, "by": "b"}),
-            "\"duration_s\"",
-        ),
-        (
-            json!({"building": "hq", "kind": "shake", "duration_s": 60, "by": "b"}),
+            json!({"building": "hq", "kind": "shake", "duration_s": 60}),
             "\"kind\"",
         ),
-        (
-            json!({"building": "h/q", "duration_s": 60, "by": "b"}),
-            "\"building\"",
-        ),
+        (json!({"building": "h/q", "duration_s": 60}), "\"building\""),
     ] {
         let (status, text) = console.post("/api/alerts/silence", &body).await;
         assert_eq!(status, 400, "{body}: {text}");
         assert!(text.contains(field), "{body}: {text}");
     }
-    let body = r#"{"ids":[1],"by":"eve"}"#;
+    let body = r#"{"ids":[1]}"#;
     let foreign = format!(
         "POST /api/alerts/ack HTTP/1.1\r\nHost: {a}\r\nOrigin: http://evil.example\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
         body.len()
@@ -253,7 +319,13 @@ async fn alert_log_survives_a_restart() {
         .unwrap()
         .write_all(b"{\"alert\":{\"id\":")
         .unwrap();
-    let console = Console::start(&site, Some(dir.path().to_owned())).await;
+    let console = Console::start_with(&site, Some(dir.path().to_owned()), with_accounts).await;
+    assert_eq!(
+        console.get("/api/alerts").await.0,
+        401,
+        "sessions end with the console"
+    );
+    console.login("bob").await;
     let after = console.json("/api/alerts").await;
     assert_eq!(ids(&after), ids(&kept));
     assert_eq!(after["kept"], kept["kept"]);
@@ -269,10 +341,17 @@ async fn alert_log_survives_a_restart() {
     );
     assert_eq!(console.json("/api/silences").await[0]["id"], silence_id);
     let (status, body) = console
-        .post("/api/alerts/lift", &json!({"id": silence_id, "by": "bob"}))
+        .post("/api/alerts/lift", &json!({"id": silence_id}))
         .await;
     assert_eq!(status, 200, "{body}");
-    assert_eq!(console.json("/api/silences").await[0]["active"], false);
+    let lifted = console.json("/api/silences").await;
+    assert_eq!(lifted[0]["active"], false);
+    assert_eq!(lifted[0]["lifted"]["by"], "bob", "{lifted}");
+    // Logged out: the cookie is cleared and the session ends.
+    let (status, _) = console.post("/api/logout", &json!({})).await;
+    assert_eq!(status, 200);
+    assert_eq!(console.get("/api/alerts").await.0, 401);
+    console.login("bob").await;
     // New alerts continue the numbering.
     until_alerts_arrive(&site, &console).await;
     let newest = console.json("/api/alerts?limit=1").await;
@@ -283,7 +362,15 @@ async fn alert_log_survives_a_restart() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn alert_table_in_a_browser() {
     let site = Site::start(60).await;
-    let console = Console::start(&site, None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let operators = dir.path().join("operators");
+    write_operators(&operators, &[("alice", "operate")]);
+    let console = Console::start_with(&site, None, |o| {
+        o.operators_file = Some(operators.clone());
+        o.time_zone = Some(triax_console::SiteTimeZone::get("Europe/Zurich").unwrap());
+    })
+    .await;
+    console.login("alice").await;
     until_alerts_arrive(&site, &console).await;
     site.alert(
         "acc-01",
@@ -299,7 +386,38 @@ async fn alert_table_in_a_browser() {
         })
         .await;
     let browser = Browser::start(false);
+    // Accounts exist: the page asks for a login before it shows anything.
     browser.go(&format!("{}#/alerts", console.url()));
+    browser
+        .wait(
+            "the login form",
+            "return location.hash === '#/login' && document.getElementById('login-name')",
+        )
+        .await;
+    browser.js("document.getElementById('login-name').value = 'alice'; document.getElementById('login-password').value = 'wrong password'; document.getElementById('login-go').click(); return 1");
+    browser
+        .wait(
+            "a refused login said so",
+            "return document.getElementById('login-status').textContent.includes('(401)')",
+        )
+        .await;
+    let errors = browser.errors();
+    assert!(
+        errors.len() == 1 && errors[0].contains("/api/login") && errors[0].contains("401"),
+        "only the refused login: {errors:?}"
+    );
+    browser.js(&format!("document.getElementById('login-name').value = 'alice'; document.getElementById('login-password').value = '{PASSWORD}'; document.getElementById('login-go').click(); return 1"));
+    browser
+        .wait(
+            "the alerts view after the login",
+            "return location.hash === '#/alerts' && document.getElementById('who-name') && document.getElementById('who-name').textContent === 'alice (operate)'",
+        )
+        .await;
+    assert_eq!(
+        browser.js("return document.cookie"),
+        "",
+        "the session cookie is HttpOnly: no script reads it"
+    );
     let n: u64 = browser
         .wait("the alert rows", "return document.querySelectorAll('#alert-rows tr').length >= 2 && document.querySelectorAll('#alert-rows tr').length")
         .await
@@ -342,15 +460,53 @@ async fn alert_table_in_a_browser() {
     browser
         .wait("the filtered table", "return document.querySelectorAll('#alert-rows tr').length === 1 && document.getElementById('f-level').value === 'exceeded'")
         .await;
-    // Acknowledge without a name: refused on the page; with one: recorded.
-    browser.js("document.querySelector('#alert-rows button.ack').click(); return 1");
+    // At 1 400 px the table fits: no sideways scroll to reach Acknowledge.
+    let fit = browser.js("const b = document.querySelector('#alert-rows button.ack').getBoundingClientRect(); return [window.innerWidth, document.documentElement.scrollWidth, Math.round(b.right)]");
+    let (inner, scroll, right) = (
+        fit[0].as_i64().unwrap(),
+        fit[1].as_i64().unwrap(),
+        fit[2].as_i64().unwrap(),
+    );
+    assert!(inner >= 1300, "{fit}");
+    assert!(
+        scroll <= inner && right <= inner,
+        "the page scrolls sideways: {fit}"
+    );
+    // Times in the site's local time, labelled; UTC again after.
+    let utc_at = browser
+        .js("return document.querySelector('#alert-rows tr td').textContent")
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert!(utc_at.ends_with('Z'), "{utc_at}");
+    browser.js("const s = document.getElementById('tz'); s.value = 'site'; s.dispatchEvent(new Event('change')); return 1");
+    let local_at = browser
+        .wait("the site's local time", "const t = document.querySelector('#alert-rows tr td'); return t && /(CET|CEST|GMT\\+[12])$/.test(t.textContent) && t.textContent")
+        .await;
+    let local_at = local_at.as_str().unwrap();
+    let hours = |t: &str| t[11..13].parse::<i64>().unwrap();
+    assert!(
+        [1, 2].contains(&(hours(local_at) - hours(&utc_at)).rem_euclid(24)),
+        "{utc_at} against {local_at}"
+    );
+    assert!(
+        browser
+            .js("return document.getElementById('tz-note').textContent")
+            .as_str()
+            .unwrap()
+            .contains("Europe/Zurich"),
+        "the footer says which zone"
+    );
+    browser.screenshot("alerts-log-local-time");
+    browser.js("const s = document.getElementById('tz'); s.value = 'utc'; s.dispatchEvent(new Event('change')); return 1");
     browser
         .wait(
-            "the name asked for",
-            "return document.getElementById('alerts-status').textContent.includes('operator')",
+            "UTC again",
+            "const t = document.querySelector('#alert-rows tr td'); return t && t.textContent.endsWith('Z')",
         )
         .await;
-    browser.js("const i = document.getElementById('operator'); i.value = 'alice'; i.dispatchEvent(new Event('change')); document.querySelector('#alert-rows button.ack').click(); return 1");
+    // Acknowledge: recorded as the operator logged in.
+    browser.js("document.querySelector('#alert-rows button.ack').click(); return 1");
     let handled = browser
         .wait("the acknowledgement", "const t = document.querySelector('#alert-rows td.handled').textContent; return t.includes('acknowledged') && t")
         .await;

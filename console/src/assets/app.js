@@ -37,7 +37,40 @@
     return e;
   }
   const $ = (id) => document.getElementById(id);
-  const fmtTime = (ms) => Number.isFinite(ms) ? new Date(ms).toISOString().replace('T', ' ').slice(0, 19) + 'Z' : '—';
+  // ---- Times: UTC, the site's local time or this browser's, always labelled ----------------
+  let tzMode = localStorage.getItem('triax.tz') || 'utc';   // 'utc' | 'site' | 'browser'
+  let siteZone = null;                                        // the console's --time-zone
+  const browserZone = () => Intl.DateTimeFormat().resolvedOptions().timeZone || 'UTC';
+  const zoneName = () => tzMode === 'site' && siteZone ? siteZone : tzMode === 'browser' ? browserZone() : 'UTC';
+  const zoneFormats = new Map();
+  const pad2 = (n) => String(n).padStart(2, '0');
+  // The wall clock at `ms` in the zone shown, and the zone's abbreviation there.
+  function wall(ms) {
+    const z = zoneName();
+    if (z === 'UTC') { const d = new Date(ms); return { y: d.getUTCFullYear(), mo: d.getUTCMonth() + 1, d: d.getUTCDate(), h: d.getUTCHours(), mi: d.getUTCMinutes(), s: d.getUTCSeconds(), ms: d.getUTCMilliseconds(), abbr: 'UTC' }; }
+    let f = zoneFormats.get(z);
+    if (!f) { f = new Intl.DateTimeFormat('en-GB', { timeZone: z, hourCycle: 'h23', year: 'numeric', month: '2-digit', day: '2-digit', hour: '2-digit', minute: '2-digit', second: '2-digit', timeZoneName: 'short' }); zoneFormats.set(z, f); }
+    const o = {};
+    for (const p of f.formatToParts(new Date(ms))) o[p.type] = p.value;
+    return { y: +o.year, mo: +o.month, d: +o.day, h: +o.hour % 24, mi: +o.minute, s: +o.second, ms: ((Math.floor(ms) % 1000) + 1000) % 1000, abbr: o.timeZoneName || z };
+  }
+  const wallDate = (w) => `${w.y}-${pad2(w.mo)}-${pad2(w.d)}`;
+  const wallClock = (w) => `${pad2(w.h)}:${pad2(w.mi)}:${pad2(w.s)}`;
+  // UTC keeps its ISO form (…Z); a local time says its zone (2027-01-15 09:00:00 CET).
+  const fmtTime = (ms) => { if (!Number.isFinite(ms)) return '—'; const w = wall(ms); return `${wallDate(w)} ${wallClock(w)}` + (w.abbr === 'UTC' ? 'Z' : ` ${w.abbr}`); };
+  // An axis label: the clock, with milliseconds when the ticks are finer than a second.
+  const fmtTick = (ms, fine) => { const w = wall(ms); return fine ? `${pad2(w.mi)}:${pad2(w.s)}.${String(w.ms).padStart(3, '0')}` : wallClock(w); };
+  const zoneLabel = () => zoneName() === 'UTC' ? 'UTC' : wall(Date.now()).abbr;
+  // Wall-clock fields in the zone shown to an instant; null if that wall time does not exist
+  // there (a spring-forward gap) or the fields do not make a date.
+  function wallToMs(y, mo, d, h, mi, se) {
+    const asUtc = Date.UTC(y, mo - 1, d, h, mi, se);
+    if (zoneName() === 'UTC') return asUtc;
+    const offset = (t) => { const w = wall(t); return Date.UTC(w.y, w.mo - 1, w.d, w.h, w.mi, w.s) - Math.floor(t / 1000) * 1000; };
+    let t = asUtc - offset(asUtc);
+    t = asUtc - offset(t);
+    return t;
+  }
   const fmtAge = (s) => s === null || s === undefined ? '—' : s < 1 ? 'now' : s < 120 ? `${s.toFixed(0)} s ago` : s < 7200 ? `${(s / 60).toFixed(0)} min ago` : `${(s / 3600).toFixed(1)} h ago`;
   const fmtNum = (x, d = 4) => x === null || x === undefined || !Number.isFinite(x) ? '—' : Number(x).toPrecision(d);
   // A coverage factor to three significant digits, without trailing zeros (2, 1.97).
@@ -46,13 +79,13 @@
   const fmtUnit = (u) => String(u ?? '').replace(/\^2/g, '²').replace(/\^3/g, '³');
   const fmtSpan = (s) => s >= 120 && s % 60 === 0 ? `${s / 60} min` : `${s} s`;
   const fmtShare = (f) => !f ? '—' : `${(100 * f.share).toFixed(f.share > 0 && f.share < 0.01 ? 1 : 0)} %`;
-  // The time input reads and writes ISO 8601 in UTC, as every other time on the page.
-  const fmtInput = (ms) => new Date(ms).toISOString().slice(0, 19).replace('T', ' ');
+  // The time input reads and writes ISO 8601 in the zone shown, as every other time on the page.
+  const fmtInput = (ms) => { const w = wall(ms); return `${wallDate(w)} ${wallClock(w)}`; };
   const parseInput = (text) => {
     const m = /^\s*(\d{4})-(\d{2})-(\d{2})[ T](\d{2}):(\d{2})(?::(\d{2}))?Z?\s*$/.exec(text);
     if (!m) return null;
     const [y, mo, d, h, mi, se] = m.slice(1).map((x) => Number(x || 0));
-    const ms = Date.UTC(y, mo - 1, d, h, mi, se);
+    const ms = wallToMs(y, mo, d, h, mi, se);
     // Date.UTC rolls 2027-02-30 over to March: refuse what does not read back the same.
     return fmtInput(ms) === `${m[1]}-${m[2]}-${m[3]} ${m[4]}:${m[5]}:${m[6] || '00'}` ? ms : null;
   };
@@ -300,7 +333,6 @@
   const SINCE = [['', 'any time'], ['3600', 'last 1 h'], ['86400', 'last 24 h'], ['604800', 'last 7 d'], ['2592000', 'last 30 d']];
   let alertsSeen = null;     // fleet counters the alert table was last fetched at
   let alertsFetching = false;
-  const operator = () => { const i = $('operator'); return i ? i.value.trim() : ''; };
 
   function alertFilter() {
     const f = {};
@@ -316,8 +348,6 @@
     if (f.building && !buildings.includes(f.building)) buildings.push(f.building);
     const sensorInput = el('input', { id: 'f-sensor', type: 'text', size: 10, value: f.sensor || '', placeholder: 'any' });
     sensorInput.addEventListener('change', changeFilter);
-    const who = el('input', { id: 'operator', type: 'text', size: 12, placeholder: 'your name', value: localStorage.getItem('triax.operator') || '' });
-    who.addEventListener('change', () => localStorage.setItem('triax.operator', who.value.trim()));
     const silenceFor = el('select', { id: 'silence-for' }, [[3600, '1 h'], [14400, '4 h'], [86400, '24 h'], [604800, '7 d']].map(([v, t]) => el('option', { value: v }, t)));
     $('view').replaceChildren(el('section', { class: 'card', id: 'alerts' },
       el('h2', {}, 'Alerts'),
@@ -330,7 +360,7 @@
         sel('f-state', STATES.map((k) => [k === 'all' ? '' : k, k]), f.state, 'state'),
         sel('f-since', SINCE, f.since_s, 'time')),
       el('div', { class: 'controls' },
-        el('label', {}, 'operator ', who),
+        el('span', { class: 'meta', id: 'acting-as' }, me && me.operator ? `acting as ${me.operator.name} (${me.operator.role})` : 'log in to acknowledge or silence'),
         el('button', { id: 'ack-selected', onclick: () => acknowledge(checkedIds()) }, 'Acknowledge selected'),
         el('span', { class: 'meta' }, 'silence for ', silenceFor)),
       el('div', { id: 'alerts-status', class: 'meta' }, 'reading the alert log…'),
@@ -439,13 +469,13 @@
       el('td', {}, `${s.building} / ${s.sensor ?? 'every sensor'}, ${s.kind ? s.kind.replace(/_/g, ' ') : 'every kind'}`),
       el('td', {}, `${fmtTime(Date.parse(s.from))} – ${fmtTime(Date.parse(s.until))}`),
       el('td', {}, `by ${s.by}`, s.reason ? ` (${s.reason})` : ''),
-      el('td', {}, s.lifted ? `lifted by ${s.lifted.by}, ${fmtTime(Date.parse(s.lifted.at))}` : s.active ? el('button', { class: 'lift', onclick: () => post('/api/alerts/lift', { id: s.id, by: operator() }) }, 'Lift') : 'ended'))))));
+      el('td', {}, s.lifted ? `lifted by ${s.lifted.by}, ${fmtTime(Date.parse(s.lifted.at))}` : s.active ? el('button', { class: 'lift', onclick: () => post('/api/alerts/lift', { id: s.id }) }, 'Lift') : 'ended'))))));
   }
 
   // A write to the alert log; what the console answered is shown, a refusal included.
   async function post(path, body) {
     const status = $('alerts-status');
-    if (!operator()) { status.textContent = 'Type your name under "operator" first: acknowledgements and silences record who.'; status.className = 'warning'; $('operator').focus(); return null; }
+    if (!me || !me.operator) { status.textContent = 'Log in first (top right): acknowledgements and silences record who and when.'; status.className = 'warning'; return null; }
     let resp, text;
     try {
       resp = await fetch(path, { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) });
@@ -459,11 +489,11 @@
 
   function acknowledge(ids) {
     if (!ids.length) { $('alerts-status').textContent = 'No alert selected.'; return; }
-    post('/api/alerts/ack', { ids, by: operator() });
+    post('/api/alerts/ack', { ids });
   }
 
   function silence(a) {
-    post('/api/alerts/silence', { building: a.building, sensor: a.sensor_id, kind: a.kind, duration_s: Number($('silence-for').value), by: operator() });
+    post('/api/alerts/silence', { building: a.building, sensor: a.sensor_id, kind: a.kind, duration_s: Number($('silence-for').value) });
   }
 
   // ---- Sensor view ------------------------------------------------------------------------
@@ -496,14 +526,14 @@
       const ms = parseInput(atInput.value);
       if (ms === null) {
         atInput.setAttribute('aria-invalid', 'true');
-        $('status-line').textContent = `"${atInput.value}" is not a time like ${fmtInput(Date.now())} (UTC)`;
+        $('status-line').textContent = `"${atInput.value}" is not a time like ${fmtInput(Date.now())} (${zoneLabel()})`;
       } else navigate({ at: msToNs(ms) });
     };
     atInput.addEventListener('keydown', (e) => { if (e.key === 'Enter') lookBack(); });
     const controls = el('div', { class: 'controls' },
       el('button', { id: 'btn-live', class: isLive ? 'active' : '', onclick: () => navigate({ at: null }) }, 'Live'),
       el('button', { id: 'btn-back', onclick: () => step(-1), title: 'one span back' }, '◀'),
-      el('label', {}, 'at (UTC) ', atInput),
+      el('label', {}, `at (${zoneLabel()}) `, atInput),
       el('button', { id: 'btn-go', onclick: lookBack }, 'Look back'),
       el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward, up to now', disabled: isLive || atMs >= latestAtMs(spanS) - 1000 ? 'disabled' : null }, '▶'),
       el('label', {}, 'span ', spanSel),
@@ -1094,8 +1124,7 @@
     const tStep = [100, 200, 500, 1000, 2000, 5000, 10000, 15000, 30000, 60000, 120000, 300000, 600000, 900000, 1800000].find((s) => spanMs / s <= 8) || 3600000;
     for (let t = Math.ceil(o.x0 / tStep) * tStep; t <= o.x1; t += tStep) {
       const x = X(t); g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
-      const d = new Date(t).toISOString();
-      const label = tStep < 1000 ? d.slice(14, 23) : d.slice(11, 19);
+      const label = fmtTick(t, tStep < 1000);
       // Centred under its line, but kept inside the canvas at either end.
       const lw = g.measureText(label).width;
       g.fillText(label, Math.max(2, Math.min(x - lw / 2, w - lw - 2)), h - 4 - lanes * 4);
@@ -1439,8 +1468,73 @@
     canvas.dataset.components = comps.length; canvas.dataset.drawn = '1';
   }
 
+  // ---- Operators: who is logged in, the login form, the time zone choice --------------------
+  let me = null;             // /api/me: { operator, login_required, accounts, time_zone }
+  async function loadMe() {
+    const body = await getJson('/api/me');
+    me = body.error ? { operator: null, login_required: false, error: body.error } : body;
+    siteZone = me.time_zone || null;
+    if (tzMode === 'site' && !siteZone) tzMode = 'utc';
+    renderWho();
+    renderZoneChoice();
+  }
+
+  function renderWho() {
+    const box = $('who');
+    if (!me) { box.replaceChildren(); return; }
+    if (me.operator) {
+      box.replaceChildren(el('span', { id: 'who-name', 'data-role': me.operator.role }, `${me.operator.name} (${me.operator.role})`), ' ',
+        me.operator.via === 'password' ? el('button', { id: 'logout', onclick: logout }, 'Log out') : null);
+    } else if (me.login_required || me.accounts) {
+      box.replaceChildren(el('a', { id: 'login-link', href: '#/login' }, 'Log in'));
+    } else box.replaceChildren(el('span', { class: 'meta', title: 'no operator accounts: triax-console operator add NAME --role operate' }, 'read-only'));
+  }
+
+  function renderZoneChoice() {
+    const sel = $('tz');
+    const opts = [['utc', 'UTC']];
+    if (siteZone) opts.push(['site', `site (${siteZone})`]);
+    opts.push(['browser', `this browser (${browserZone()})`]);
+    sel.replaceChildren(...opts.map(([v, t]) => el('option', { value: v, selected: v === tzMode ? 'selected' : null }, t)));
+    sel.onchange = () => { tzMode = sel.value; localStorage.setItem('triax.tz', tzMode); renderZoneChoice(); render(); };
+    $('tz-note').textContent = zoneName() === 'UTC' ? 'Times in UTC.' : `Times in ${zoneName()} (${tzMode === 'site' ? "the site's local time" : "this browser's local time"}), labelled with the zone.`;
+    document.documentElement.dataset.zone = zoneName();
+  }
+
+  let afterLogin = '#/';
+  function renderLogin() {
+    if (source) { source.close(); source = null; }
+    const name = el('input', { id: 'login-name', type: 'text', size: 20, autocomplete: 'username', spellcheck: 'false' });
+    const pw = el('input', { id: 'login-password', type: 'password', size: 20, autocomplete: 'current-password' });
+    const status = el('div', { id: 'login-status', class: 'meta' }, me && me.login_required ? 'This console shows its fleet to logged-in operators only.' : 'Log in to acknowledge, silence and annotate.');
+    const go = async () => {
+      let resp, text;
+      try {
+        resp = await fetch('/api/login', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ name: name.value.trim(), password: pw.value }) });
+        text = await resp.text();
+      } catch (e) { status.textContent = `console unreachable (${e.message || e})`; status.className = 'warning'; return; }
+      pw.value = '';
+      if (!resp.ok) { status.textContent = `console refused (${resp.status}): ${text.trim()}`; status.className = 'warning'; return; }
+      await loadMe();
+      location.hash = afterLogin === '#/login' ? '#/' : afterLogin;
+    };
+    for (const i of [name, pw]) i.addEventListener('keydown', (e) => { if (e.key === 'Enter') go(); });
+    $('view').replaceChildren(el('section', { class: 'card', id: 'login' }, el('h2', {}, 'Log in'),
+      el('div', { class: 'controls' }, el('label', {}, 'operator ', name), el('label', {}, 'password ', pw), el('button', { id: 'login-go', onclick: go }, 'Log in')),
+      status));
+    name.focus();
+  }
+
+  async function logout() {
+    try { await fetch('/api/logout', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: '{}' }); } catch (e) { /* the cookie ends with the console anyway */ }
+    await loadMe();
+    render();
+  }
+
   // ---- Routing ----------------------------------------------------------------------------
   function render() {
+    if (location.hash.startsWith('#/login')) { renderLogin(); return; }
+    if (me && me.login_required && !me.operator) { afterLogin = location.hash || '#/'; location.hash = '#/login'; return; }
     route = parseRoute();
     if (route.view === 'sensor') { renderSensor(); return; }
     if (route.view === 'building') { renderBuildingView(); return; }
@@ -1458,5 +1552,5 @@
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   // A window of modes comes every half hour or so: a look every 10 s is plenty.
   setInterval(() => { if (route && route.view === 'modes') loadModes(route); }, 10000);
-  render();
+  loadMe().then(render);
 })();

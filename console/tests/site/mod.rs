@@ -219,10 +219,39 @@ pub struct Console {
     pub addr: std::net::SocketAddr,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: Option<tokio::task::JoinHandle<()>>,
+    /// The session cookie its requests send (`name=value`), once logged in.
+    cookie: std::sync::Mutex<Option<String>>,
+}
+
+/// The password of every operator the tests make.
+pub const PASSWORD: &str = "correct horse battery";
+
+/// Writes an operators file with `accounts` (name, role), each with [`PASSWORD`]; an account
+/// whose role ends in `!` has no password (named by a proxy only).
+pub fn write_operators(path: &std::path::Path, accounts: &[(&str, &str)]) {
+    use triax_console::operators::{hash_password, write_accounts, Account, Role};
+    let accounts: Vec<Account> = accounts
+        .iter()
+        .map(|(name, role)| Account {
+            name: (*name).into(),
+            role: Role::parse(role.trim_end_matches('!')).unwrap(),
+            hash: (!role.ends_with('!')).then(|| hash_password(PASSWORD).unwrap()),
+        })
+        .collect();
+    write_accounts(path, &accounts).unwrap();
 }
 
 impl Console {
     pub async fn start(site: &Site, state_dir: Option<PathBuf>) -> Console {
+        Console::start_with(site, state_dir, |_| {}).await
+    }
+
+    /// [`Console::start`] with options changed by `change`.
+    pub async fn start_with(
+        site: &Site,
+        state_dir: Option<PathBuf>,
+        change: impl FnOnce(&mut ConsoleOptions),
+    ) -> Console {
         let config = ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![site.endpoint.clone()])
             .to_config()
             .unwrap();
@@ -238,6 +267,8 @@ impl Console {
             history_timeout: TIMEOUT,
             ..ConsoleOptions::default()
         };
+        let mut options = options;
+        change(&mut options);
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {
             triax_console::serve(session.clone(), listener, options, rx)
@@ -249,6 +280,39 @@ impl Console {
             addr,
             stop: Some(tx),
             task: Some(task),
+            cookie: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// Logs in as `name` with [`PASSWORD`]: later requests send the session's cookie.
+    pub async fn login(&self, name: &str) {
+        let body = json!({"name": name, "password": PASSWORD}).to_string();
+        let raw = self
+            .request_raw(&format!(
+                "POST /api/login HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len(),
+                a = self.addr
+            ))
+            .await;
+        assert!(raw.starts_with("HTTP/1.1 200"), "login as {name}: {raw}");
+        let cookie = raw
+            .lines()
+            .find_map(|l| l.strip_prefix("Set-Cookie: "))
+            .and_then(|c| c.split(';').next())
+            .unwrap_or_else(|| panic!("no session cookie: {raw}"))
+            .to_owned();
+        *self.cookie.lock().unwrap() = Some(cookie);
+    }
+
+    /// Forgets the session cookie (the session stays open on the console).
+    pub fn forget_login(&self) {
+        *self.cookie.lock().unwrap() = None;
+    }
+
+    fn cookie_header(&self) -> String {
+        match &*self.cookie.lock().unwrap() {
+            Some(c) => format!("Cookie: {c}\r\n"),
+            None => String::new(),
         }
     }
 
@@ -269,8 +333,9 @@ impl Console {
     /// GET `path`: the status and the body.
     pub async fn get(&self, path: &str) -> (u16, String) {
         self.request(&format!(
-            "GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n",
-            self.addr
+            "GET {path} HTTP/1.1\r\nHost: {}\r\n{}Connection: close\r\n\r\n",
+            self.addr,
+            self.cookie_header()
         ))
         .await
     }
@@ -286,15 +351,16 @@ impl Console {
     pub async fn post(&self, path: &str, body: &Value) -> (u16, String) {
         let body = body.to_string();
         self.request(&format!(
-            "POST {path} HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            "POST {path} HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n{}Connection: close\r\n\r\n{body}",
             body.len(),
+            self.cookie_header(),
             a = self.addr
         ))
         .await
     }
 
-    /// Sends `raw` as the whole request: the status and the body of the answer.
-    pub async fn request(&self, raw: &str) -> (u16, String) {
+    /// Sends `raw` as the whole request: the whole answer, head and body.
+    pub async fn request_raw(&self, raw: &str) -> String {
         use tokio::io::{AsyncReadExt, AsyncWriteExt};
         let mut s = tokio::net::TcpStream::connect(self.addr).await.unwrap();
         s.write_all(raw.as_bytes()).await.unwrap();
@@ -303,7 +369,12 @@ impl Console {
             .await
             .expect("the console answers")
             .unwrap();
-        let text = String::from_utf8_lossy(&out).into_owned();
+        String::from_utf8_lossy(&out).into_owned()
+    }
+
+    /// Sends `raw` as the whole request: the status and the body of the answer.
+    pub async fn request(&self, raw: &str) -> (u16, String) {
+        let text = self.request_raw(raw).await;
         let status = text
             .get(9..12)
             .and_then(|s| s.parse().ok())
@@ -525,15 +596,19 @@ impl Browser {
 
     /// Errors the page logged since the last call: uncaught exceptions and failed loads.
     pub fn assert_no_errors(&self, when: &str) {
+        let errors = self.errors();
+        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
+    }
+
+    /// The errors the page logged since the last look.
+    pub fn errors(&self) -> Vec<String> {
         let v = self.cmd("POST", "se/log", Some(json!({ "type": "browser" })));
-        let errors: Vec<String> = v
-            .as_array()
+        v.as_array()
             .expect("a browser log")
             .iter()
             .filter(|e| e["level"] == "SEVERE")
             .map(|e| e["message"].as_str().unwrap_or_default().to_owned())
-            .collect();
-        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
+            .collect()
     }
 
     pub fn screenshot(&self, name: &str) {
