@@ -295,15 +295,19 @@ pub async fn serve(
         options.status_interval,
         stop_rx.clone(),
     ));
-    let (json_tx, json_rx) = watch::channel::<Arc<str>>(Arc::from("null"));
-    let serialiser = tokio::spawn(serialise_fleet(fleet.clone(), json_tx, stop_rx.clone()));
+    let fleet_events = Arc::new(FleetEvents::new());
+    let serialiser = tokio::spawn(serialise_fleet(
+        fleet.clone(),
+        fleet_events.clone(),
+        stop_rx.clone(),
+    ));
     let connections = Arc::new(Semaphore::new(options.max_connections));
     let refusals = Arc::new(Semaphore::new(options.max_connections));
     let ctx = Arc::new(Context {
         session: session.clone(),
         fleet,
         feeds: Feeds::new(session, options.history_timeout),
-        fleet_json: json_rx,
+        fleet_events,
         streams: Arc::new(Semaphore::new(options.max_streams)),
         history_queries: Arc::new(Semaphore::new(options.max_history_queries)),
         stop: stop_rx,
@@ -350,10 +354,107 @@ pub async fn serve(
     Ok(())
 }
 
-/// Serialises the fleet view once a second for every open page (none open: nothing done).
+/// Deltas kept for streams that fall behind (a light stream reads every 5 s).
+const DELTAS_KEPT: usize = 16;
+
+/// The fleet events every open page shares: the brief the last delta was taken against, and
+/// the latest deltas, serialised once for every page.
+pub struct FleetEvents {
+    shared: std::sync::Mutex<EventsState>,
+    seq: watch::Sender<u64>,
+}
+
+struct EventsState {
+    seq: u64,
+    brief: Option<Arc<fleet::Brief>>,
+    recent: std::collections::VecDeque<(u64, Arc<str>)>,
+}
+
+impl FleetEvents {
+    fn new() -> FleetEvents {
+        FleetEvents {
+            shared: std::sync::Mutex::new(EventsState {
+                seq: 0,
+                brief: None,
+                recent: std::collections::VecDeque::new(),
+            }),
+            seq: watch::channel(0).0,
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, EventsState> {
+        self.shared.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A stream's start: the whole fleet as of delta `seq` (JSON, with `seq` in it), after
+    /// which the stream sends the deltas from `seq + 1` on.
+    pub fn start(&self, fleet: &Fleet) -> (u64, String, watch::Receiver<u64>) {
+        let rx = self.seq.subscribe();
+        let mut st = self.lock();
+        let brief = st
+            .brief
+            .get_or_insert_with(|| Arc::new(fleet.brief()))
+            .clone();
+        let seq = st.seq;
+        drop(st);
+        let mut v = serde_json::to_value(&*brief).unwrap_or_default();
+        v["seq"] = seq.into();
+        (seq, v.to_string(), rx)
+    }
+
+    /// The deltas after `seq`, in order; none if the stream is too far behind (it then starts
+    /// again with the whole fleet).
+    pub fn since(&self, seq: u64) -> Option<Vec<(u64, Arc<str>)>> {
+        let st = self.lock();
+        if st.seq == seq {
+            return Some(Vec::new());
+        }
+        let first = st.recent.front()?.0;
+        if first > seq + 1 {
+            return None;
+        }
+        Some(
+            st.recent
+                .iter()
+                .filter(|(s, _)| *s > seq)
+                .cloned()
+                .collect(),
+        )
+    }
+
+    /// Takes the next delta, if a page is open.
+    fn tick(&self, fleet: &Fleet) {
+        if self.seq.receiver_count() == 0 {
+            // Nobody reads: the next page starts from a brief of its own time.
+            self.lock().brief = None;
+            return;
+        }
+        let brief = Arc::new(fleet.brief());
+        let mut st = self.lock();
+        let Some(before) = st.brief.replace(brief.clone()) else {
+            return;
+        };
+        let seq = st.seq + 1;
+        let delta = brief.delta(&before, seq);
+        match serde_json::to_string(&delta) {
+            Ok(text) => {
+                st.recent.push_back((seq, Arc::from(text)));
+                while st.recent.len() > DELTAS_KEPT {
+                    st.recent.pop_front();
+                }
+                st.seq = seq;
+                drop(st);
+                let _ = self.seq.send(seq);
+            }
+            Err(e) => tracing::error!(cause = %e, "fleet delta does not serialise"),
+        }
+    }
+}
+
+/// Takes the fleet's delta once a second for the open pages (none open: nothing done).
 async fn serialise_fleet(
     fleet: Arc<Fleet>,
-    tx: watch::Sender<Arc<str>>,
+    events: Arc<FleetEvents>,
     mut stop: watch::Receiver<bool>,
 ) {
     let mut tick = tokio::time::interval(Duration::from_secs(1));
@@ -362,13 +463,6 @@ async fn serialise_fleet(
             _ = tick.tick() => {}
             _ = stop.changed() => return,
         }
-        if tx.receiver_count() > 1 {
-            match serde_json::to_string(&fleet.snapshot()) {
-                Ok(s) => {
-                    let _ = tx.send(Arc::from(s));
-                }
-                Err(e) => tracing::error!(cause = %e, "fleet view does not serialise"),
-            }
-        }
+        events.tick(&fleet);
     }
 }

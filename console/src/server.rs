@@ -67,7 +67,7 @@ pub struct Context {
     pub session: zenoh::Session,
     pub fleet: Arc<Fleet>,
     pub feeds: Feeds,
-    pub fleet_json: watch::Receiver<Arc<str>>,
+    pub fleet_events: Arc<crate::FleetEvents>,
     pub options: ConsoleOptions,
     pub streams: Arc<Semaphore>,
     pub history_queries: Arc<Semaphore>,
@@ -301,8 +301,22 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             ok(stream, JSON, json(&body), head_only).await
         }
         "/api/fleet" => {
-            p.only(&[])?;
-            ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await
+            p.only(&["building", "sensor"])?;
+            if p.get("building").is_none() {
+                if p.get("sensor").is_some() {
+                    return Err(Refusal::new(400, "parameter \"sensor\" needs \"building\""));
+                }
+                return ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await;
+            }
+            let b = p.building()?;
+            let sensor = match p.get("sensor") {
+                None => None,
+                Some(_) => Some(p.sensor()?),
+            };
+            let Some(view) = ctx.fleet.building_snapshot(&b, sensor.as_ref()) else {
+                return Err(Refusal::new(404, format!("no building {b} is known")));
+            };
+            ok(stream, JSON, json(&view), head_only).await
         }
         "/api/alerts" => {
             p.only(&[
@@ -1217,13 +1231,9 @@ async fn events(
     if http::start_events(stream).await.is_err() {
         return;
     }
-    let mut fleet = ctx.fleet_json.clone();
     let mut stop = ctx.stop.clone();
-    // The shared serialisation runs only while pages are open, so it may be missing or a
-    // while old: a page's first view is made for it.
-    fleet.mark_unchanged();
-    let first = json(&ctx.fleet.snapshot());
-    let first = String::from_utf8_lossy(&first);
+    // The whole fleet first (its brief: states, not counters), then what changes.
+    let (mut fleet_seq, first, mut fleet) = ctx.fleet_events.start(&ctx.fleet);
     if http::send_event(stream, "fleet", &first).await.is_err() {
         return;
     }
@@ -1253,15 +1263,29 @@ async fn events(
                 if changed.is_err() {
                     return;
                 }
+                fleet.mark_unchanged();
                 if lite && fleet_sent.elapsed() < LITE_FLEET_PERIOD {
-                    // Left marked as changed? No: the next one after the period carries it.
-                    fleet.mark_unchanged();
+                    // The deltas wait; the first one after the period sends them all.
                     continue;
                 }
                 fleet_sent = tokio::time::Instant::now();
-                let text = fleet.borrow_and_update().clone();
-                if http::send_event(stream, "fleet", &text).await.is_err() {
-                    return;
+                match ctx.fleet_events.since(fleet_seq) {
+                    Some(deltas) => {
+                        for (seq, text) in deltas {
+                            if http::send_event(stream, "fleet_delta", &text).await.is_err() {
+                                return;
+                            }
+                            fleet_seq = seq;
+                        }
+                    }
+                    None => {
+                        // Too far behind: the whole fleet again.
+                        let (seq, text, _) = ctx.fleet_events.start(&ctx.fleet);
+                        if http::send_event(stream, "fleet", &text).await.is_err() {
+                            return;
+                        }
+                        fleet_seq = seq;
+                    }
                 }
             }
             _ = tick.tick() => {

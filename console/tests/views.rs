@@ -1153,3 +1153,113 @@ async fn a_light_live_stream_carries_the_same_buckets_for_fewer_bytes() {
     assert!(body.contains("\"lite\""), "{body}");
     console.stop().await;
 }
+
+/// The fleet event sends the fleet's brief once, then what changed: nothing but the clock and
+/// the totals while the fleet is quiet, a sensor's new state when it changes. The page keeps
+/// its table from them, and reads the counters of the buildings it shows on demand.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_fleet_event_sends_what_changed() {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let site = Site::start(60).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let one = console.json("/api/fleet?building=hq&sensor=acc-02").await;
+    assert_eq!(one["sensors"].as_array().unwrap().len(), 1, "{one}");
+    assert!(one["sensors"][0]["samples"].as_u64().unwrap() > 0, "{one}");
+    assert_eq!(console.get("/api/fleet?building=nowhere").await.0, 404);
+    assert_eq!(console.get("/api/fleet?sensor=acc-01").await.0, 400);
+
+    // The stream: the whole brief first, then five quiet deltas, each a few hundred bytes.
+    let addr = console.addr;
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut lines = BufReader::new(s).lines();
+    let mut event = String::new();
+    let mut deltas: Vec<Value> = Vec::new();
+    let mut first: Option<Value> = None;
+    while deltas.len() < 5 {
+        let line = tokio::time::timeout(TIMEOUT, lines.next_line())
+            .await
+            .expect("the stream goes on")
+            .unwrap()
+            .expect("the stream stays open");
+        if let Some(e) = line.strip_prefix("event: ") {
+            event = e.to_owned();
+        } else if let Some(data) = line.strip_prefix("data: ") {
+            let v: Value = serde_json::from_str(data).unwrap();
+            match event.as_str() {
+                "fleet" => first = Some(v),
+                "fleet_delta" => {
+                    assert!(
+                        data.len() < 400,
+                        "a quiet delta of {} bytes: {data}",
+                        data.len()
+                    );
+                    deltas.push(v)
+                }
+                other => panic!("event {other:?}"),
+            }
+        }
+    }
+    let first = first.expect("the whole fleet first");
+    assert_eq!(first["buildings"][0]["sensors"][0]["states"], json!(["ok"]));
+    assert!(
+        first["buildings"][0]["sensors"][0].get("samples").is_none(),
+        "no counters in the event: {first}"
+    );
+    let seq = first["seq"].as_u64().unwrap();
+    for (i, d) in deltas.iter().enumerate() {
+        assert_eq!(d["seq"].as_u64().unwrap(), seq + 1 + i as u64, "{d}");
+        assert!(d.get("sensors").is_none(), "a quiet fleet: {d}");
+    }
+    // A state changes: the next delta carries that sensor, and the new alert whole.
+    site.alert("acc-02", "exceeded", "a verdict", (10, 20), true)
+        .await;
+    let changed = loop {
+        let line = tokio::time::timeout(TIMEOUT, lines.next_line())
+            .await
+            .expect("the stream goes on")
+            .unwrap()
+            .expect("the stream stays open");
+        let Some(data) = line.strip_prefix("data: ") else {
+            continue;
+        };
+        let v: Value = serde_json::from_str(data).unwrap();
+        if v.get("sensors").is_some() {
+            break v;
+        }
+    };
+    assert_eq!(changed["sensors"][0]["sensor_id"], "acc-02", "{changed}");
+    assert_eq!(changed["sensors"][0]["states"], json!(["exceeded"]));
+    assert_eq!(changed["alerts"][0]["statement"], "a verdict");
+    assert_eq!(
+        changed["sensors"][0]["latest_alert"],
+        changed["alerts"][0]["id"]
+    );
+
+    // The page: states from the events, counters from /api/fleet?building=.
+    let browser = Browser::start(false);
+    browser.go(&console.url());
+    browser
+        .wait("the three rows with their counters", "const r = [...document.querySelectorAll('tr.sensor')]; return r.length === 3 && r.every((x) => x.querySelector('.flagged-share').textContent.endsWith('%')) && r.every((x) => Number(x.children[4].textContent) > 0)")
+        .await;
+    site.alert("acc-03", "exceeded", "another", (10, 20), true)
+        .await;
+    let row = browser
+        .wait("acc-03's new state from a delta", "const r = document.querySelector('tr.sensor[data-sensor=\"acc-03\"]'); return r && r.dataset.states.includes('exceeded') && Number(document.getElementById('view').dataset.fleetDeltas) > 0 && r.children[10].textContent")
+        .await;
+    assert!(
+        row.as_str().unwrap().contains("exceeded peak acceleration"),
+        "{row}"
+    );
+    browser.screenshot("fleet-deltas");
+    browser.assert_no_errors("the fleet view");
+    drop(browser);
+    console.stop().await;
+}

@@ -199,7 +199,8 @@
       if (me.readyState === EventSource.CLOSED) explainRefusal(me, url, query);
       else setConn('reconnecting', 'console unreachable, retrying…');
     };
-    me.addEventListener('fleet', (e) => { const f = JSON.parse(e.data); if (f) { fleet = f; onFleet(); } });
+    me.addEventListener('fleet', (e) => { const f = JSON.parse(e.data); if (f) onFleetWhole(f); });
+    me.addEventListener('fleet_delta', (e) => onFleetDelta(JSON.parse(e.data), query));
     source.addEventListener('live', (e) => onLive(JSON.parse(e.data)));
     source.addEventListener('tilt', (e) => onTilt(JSON.parse(e.data)));
     source.addEventListener('problem', (e) => { const p = $('status-line'); if (p) p.textContent = JSON.parse(e.data).error; });
@@ -234,12 +235,97 @@
     return resp.json();
   }
 
-  function onFleet() {
+  // ---- The fleet: its brief from the event stream, the counters on demand -------------------
+  // The `fleet` event carries per building and sensor what changes seldom (states, calibration,
+  // the latest alert's id); `fleet_delta` what changed since, once a second. The counters that
+  // move with every status answer (samples, last seen, flagged share) are read for the
+  // buildings shown, from /api/fleet?building=, every 2 s.
+  let fleetSeq = null;
+  const alertById = new Map();
+  const rows = new Map();    // building → its /api/fleet?building= answer
+  const expanded = new Set();
+  const remember = (list) => { for (const a of list || []) alertById.set(a.id, a); while (alertById.size > 2000) alertById.delete(alertById.keys().next().value); };
+
+  function onFleetWhole(f) {
+    fleet = f; fleetSeq = f.seq;
+    remember(f.alerts);
+    onFleet(true);
+  }
+
+  function onFleetDelta(d, query) {
+    if (!fleet) return;
+    if (d.seq !== fleetSeq + 1) { connect(query); return; }   // one missed: start again whole
+    fleetSeq = d.seq;
+    for (const k of ['now', 'alerts_total', 'alerts_open', 'malformed_messages', 'ignored_buildings']) fleet[k] = d[k];
+    const building = (id) => fleet.buildings.find((b) => b.building === id);
+    for (const b of d.buildings || []) {
+      const x = building(b.building);
+      if (x) Object.assign(x, b); else fleet.buildings.push({ ...b, sensors: [] });
+    }
+    if (d.removed_buildings) fleet.buildings = fleet.buildings.filter((b) => !d.removed_buildings.includes(b.building));
+    fleet.buildings.sort((a, b) => a.building < b.building ? -1 : 1);
+    const touched = new Set();
+    for (const s of d.sensors || []) {
+      const b = building(s.building);
+      if (!b) continue;
+      const { building: _, ...brief } = s;
+      const i = b.sensors.findIndex((x) => x.sensor_id === s.sensor_id);
+      if (i >= 0) b.sensors[i] = brief; else b.sensors.push(brief);
+      touched.add(b);
+    }
+    for (const [bid, sid] of d.removed_sensors || []) { const b = building(bid); if (b) { b.sensors = b.sensors.filter((x) => x.sensor_id !== sid); touched.add(b); } }
+    for (const b of touched) b.sensors.sort((a, c) => a.sensor_id < c.sensor_id ? -1 : 1);
+    if (d.alerts) {
+      remember(d.alerts);
+      const ids = new Set(d.alerts.map((a) => a.id));
+      fleet.alerts = [...d.alerts, ...fleet.alerts.filter((a) => !ids.has(a.id))].slice(0, 100);
+    }
+    const changed = !!(d.buildings || d.sensors || d.removed_sensors || d.removed_buildings || d.alerts);
+    $('view').dataset.fleetDeltas = String(Number($('view').dataset.fleetDeltas || 0) + 1);
+    onFleet(changed);
+  }
+
+  // A sensor's row: its brief, and its building's counters where they have been read.
+  function sensorOf(b, s) {
+    const r = rows.get(b.building);
+    const c = r && r.sensors.find((x) => x.sensor_id === s.sensor_id);
+    const latest = s.latest_alert === null || s.latest_alert === undefined ? null
+      : (c && c.latest_alert && c.latest_alert.id === s.latest_alert ? c.latest_alert : alertById.get(s.latest_alert) || { id: s.latest_alert, missing: true });
+    const expires = s.valid_until ? (Date.parse(s.valid_until) - Date.parse(fleet.now)) / 86400000 : null;
+    return { flagged_share: null, last_seen: null, last_seen_age_s: null, samples: '…', gaps: 0, missing_batches: 0, rejects: '…', ...(c || {}), ...s, latest_alert: latest, expires_in_days: expires };
+  }
+  const buildingOf = (b) => ({ last_heard_s: null, malformed: null, dropped: null, history: null, ...(rows.get(b.building) || {}), ...b });
+
+  // Buildings whose sensors are listed: all of a small fleet, else those opened.
+  const isExpanded = (b) => fleet.buildings.length <= 3 || expanded.has(b.building);
+
+  let rowsFetching = false;
+  async function refreshRows() {
+    if (!fleet || !route || rowsFetching) return;
+    let wanted = [];
+    if (route.view === 'fleet') wanted = fleet.buildings.filter(isExpanded).map((b) => [b.building, null]);
+    else if (route.view === 'sensor') wanted = [[route.building, route.sensor]];
+    if (!wanted.length) return;
+    rowsFetching = true;
+    const myRoute = route;
+    for (const [b, sensor] of wanted) {
+      const q = new URLSearchParams({ building: b });
+      if (sensor) q.set('sensor', sensor);
+      const body = await getJson('/api/fleet?' + q);
+      if (!body.error) rows.set(b, body);
+    }
+    rowsFetching = false;
+    if (route !== myRoute) return;
+    if (route.view === 'fleet') renderFleet(); else if (route.view === 'sensor') renderSensorHeader();
+  }
+  setInterval(refreshRows, 2000);
+
+  function onFleet(changed) {
     $('clock').textContent = fmtTime(Date.parse(fleet.now));
     $('alert-count').textContent = fleet.alerts_open ? `(${fleet.alerts_open} open)` : '';
-    if (route.view === 'fleet') renderFleet();
+    if (route.view === 'fleet') { if (changed) renderFleet(); if (changed && !rows.size) refreshRows(); }
     else if (route.view === 'alerts') refreshAlerts();
-    else if (route.view === 'sensor') renderSensorHeader();
+    else if (route.view === 'sensor' && changed) renderSensorHeader();
   }
 
   // ---- Fleet view -------------------------------------------------------------------------
@@ -253,7 +339,9 @@
     view.replaceChildren(el('div', { id: 'fleet', 'data-buildings': fleet.buildings.length }, sections, extra));
   }
 
-  function renderBuilding(b) {
+  function renderBuilding(brief) {
+    if (!isExpanded(brief)) return renderBuildingSummary(brief);
+    const b = buildingOf(brief);
     const heard = b.last_heard_s === null ? 'never heard' : `last heard ${fmtAge(b.last_heard_s)}`;
     const h = b.history;
     const meta = el('div', { class: 'meta' },
@@ -265,10 +353,10 @@
       b.dropped !== null && el('span', {}, `${b.dropped} dropped`),
       h && el('span', {}, `history ${fmtBytes(h.bytes)} of ${fmtBytes(h.max_bytes)}` + (h.oldest_ns ? ` since ${fmtTime(nsToMs(h.oldest_ns))}` : '')),
       b.status_error && el('span', { class: 'notice' }, b.status_error));
-    const rows = b.sensors.map((s) => renderSensorRow(b, s));
+    const sensorRows = b.sensors.map((s) => renderSensorRow(b, sensorOf(b, s)));
     const table = el('table', {},
       el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Flagged', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', { title: t === 'Flagged' ? FLAGGED_TITLE : null }, t)))),
-      el('tbody', {}, rows));
+      el('tbody', {}, sensorRows));
     const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
     const listed = b.sensors.filter((s) => s.in_status).length;
     const more = b.total_sensors && b.total_sensors > listed ? el('p', { class: 'meta' }, `Showing ${listed} of ${b.total_sensors} sensors (the first status page).`) : null;
@@ -276,8 +364,26 @@
     return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state, 'data-worst': worst ?? 'none' },
       el('h2', {}, `Building ${b.building} `, worst ? badge(worst, worst.replace(/_/g, ' '), 'the worst state of its sensors') : null,
         badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer'),
-        ' ', el('a', { class: 'to-modes', href: `#/modes/${encodeURIComponent(b.building)}`, title: 'its modal frequencies, damping and shapes (triax-modes)' }, 'modes')),
+        ' ', el('a', { class: 'to-modes', href: `#/modes/${encodeURIComponent(b.building)}`, title: 'its modal frequencies, damping and shapes (triax-modes)' }, 'modes'),
+        ' ', el('a', { class: 'to-helicorder', href: `#/helicorder/${encodeURIComponent(b.building)}`, title: '24 h of a channel in rows' }, 'day'),
+        fleet.buildings.length > 3 ? [' ', el('button', { class: 'collapse', onclick: () => { expanded.delete(b.building); renderFleet(); } }, 'hide sensors')] : null),
       meta, table, more);
+  }
+
+  // A building of a large fleet, folded: its state and the sensors that are not ok.
+  function renderBuildingSummary(b) {
+    const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
+    const counts = new Map();
+    for (const s of b.sensors) counts.set(s.states[0], (counts.get(s.states[0]) || 0) + 1);
+    const notOk = b.sensors.filter((s) => s.states[0] !== 'ok');
+    return el('section', { class: 'card building folded', 'data-building': b.building, 'data-state': state, 'data-worst': b.worst_state ?? 'none' },
+      el('h2', {}, `Building ${b.building} `, b.worst_state ? badge(b.worst_state, b.worst_state.replace(/_/g, ' '), 'the worst state of its sensors') : null,
+        badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer'), ' ',
+        el('button', { class: 'expand', onclick: () => { expanded.add(b.building); renderFleet(); refreshRows(); } }, 'show sensors')),
+      el('div', { class: 'meta' }, el('span', { class: 'sensor-count' }, sensorCount(b)),
+        el('span', {}, [...counts].sort().map(([k, n]) => `${n} ${k.replace(/_/g, ' ')}`).join(', '))),
+      notOk.length ? el('div', { class: 'not-ok' }, notOk.slice(0, 50).map((s) => el('span', { class: 'sensor-chip' }, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id), ' ', s.states.map((st) => badge(st)))),
+        notOk.length > 50 ? ` and ${notOk.length - 50} more` : null) : null);
   }
 
   const FLAGGED_TITLE = 'Share of the samples of the last minute that carry a quality flag (flagged above 20 %)';
@@ -312,7 +418,8 @@
       el('td', {}, s.mode),
       el('td', {}, s.calibration_version ? `v${s.calibration_version}` : 'none'),
       el('td', {}, validity),
-      el('td', {}, a ? [verdict(a), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
+      el('td', {}, a && a.missing ? el('a', { href: `#/alerts?sensor=${encodeURIComponent(s.sensor_id)}` }, `alert #${a.id}`)
+        : a ? [verdict(a), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
   }
 
   // The middle of the window the alert judged (its own times, by the sensor's clock); the
@@ -570,6 +677,7 @@
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
+    refreshRows();
     loadDetail();
     if (r.error) { connect(''); return; }
     const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
@@ -950,7 +1058,9 @@
   function sensorRow() {
     if (!fleet || !route || route.view !== 'sensor') return null;
     const b = fleet.buildings.find((x) => x.building === route.building);
-    return b ? { b, s: b.sensors.find((x) => x.sensor_id === route.sensor) } : null;
+    if (!b) return null;
+    const s = b.sensors.find((x) => x.sensor_id === route.sensor);
+    return { b, s: s && sensorOf(b, s) };
   }
 
   function renderSensorHeader() {
@@ -1540,7 +1650,7 @@
     if (route.view === 'building') { renderBuildingView(); return; }
     if (route.view === 'modes') { renderModes(); return; }
     if (!source || source.url.includes('sensor=')) connect('');
-    if (route.view === 'alerts') renderAlerts(); else renderFleet();
+    if (route.view === 'alerts') renderAlerts(); else { renderFleet(); refreshRows(); }
   }
 
   // A script error must not pass unseen, leaving a view that looks current.

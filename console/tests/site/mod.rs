@@ -110,6 +110,7 @@ pub struct Site {
     pub session: zenoh::Session,
     pub t0_ns: i64,
     _history: zenoh::query::Queryable<()>,
+    _status: zenoh::query::Queryable<()>,
 }
 
 pub const SENSORS: [&str; 3] = ["acc-01", "acc-02", "acc-03"];
@@ -168,11 +169,46 @@ impl Site {
             })
             .await
             .unwrap();
+        // The gateway's status, as a gateway answers it: counters that grow with time.
+        let started = time::OffsetDateTime::now_utc();
+        let status = session
+            .declare_queryable("triax/hq/status")
+            .callback(move |q| {
+                let rfc = |t: time::OffsetDateTime| {
+                    t.format(&time::format_description::well_known::Rfc3339)
+                        .unwrap()
+                };
+                let now = time::OffsetDateTime::now_utc();
+                let batches = ((now_ns() - t0_ns) / period_ns) as u64;
+                let sensors: Vec<Value> = SENSORS
+                    .iter()
+                    .map(|s| {
+                        json!({
+                            "sensor_id": s, "last_seen": rfc(now), "batches": batches,
+                            "samples": batches * BATCH as u64, "gaps": 0, "missing_batches": 0,
+                            "late_batches": 0, "duplicates": 0, "rejects": 0,
+                            "flagged_samples": batches / 7 * 10, "keys_declared": true,
+                            "calibration_version": 4, "mode": "dynamic",
+                            "valid_from": rfc(now - time::Duration::DAY), "valid_until": null,
+                        })
+                    })
+                    .collect();
+                let body = json!({
+                    "format_version": 1, "building": "hq", "gateway": "gw-hq",
+                    "started_at": rfc(started), "reported_at": rfc(now), "malformed": 0,
+                    "dropped": 0, "pushes_accepted": 0, "pushes_refused": 0,
+                    "total_sensors": SENSORS.len(), "sensors": sensors,
+                });
+                let _ = q.reply("triax/hq/status", body.to_string()).wait();
+            })
+            .await
+            .unwrap();
         Site {
             endpoint,
             session,
             t0_ns,
             _history: history,
+            _status: status,
         }
     }
 
