@@ -1046,7 +1046,7 @@ async fn carried(addr: std::net::SocketAddr, query: String, until_ns: i64) -> Ca
             continue;
         };
         match event.as_str() {
-            "fleet" if started => out.fleet_events += 1,
+            "fleet" | "fleet_delta" if started => out.fleet_events += 1,
             "live" => {
                 let v: Value = serde_json::from_str(data).unwrap();
                 let view = &v["view"];
@@ -1114,6 +1114,9 @@ async fn a_light_live_stream_carries_the_same_buckets_for_fewer_bytes() {
         "light {light_bps:.0} B/s, full {full_bps:.0} B/s"
     );
     assert!(light.live_frames < full.live_frames);
+    // The figures count the fleet's events too: a delta a second on the full stream, the
+    // same deltas every 5 s on the light one.
+    assert!(full.fleet_events >= 10, "{}", full.fleet_events);
     // Every bucket both have whole (after the first frames, up to the end) is the same.
     assert_eq!(full.bucket_ns, light.bucket_ns);
     let (lo, hi) = (
