@@ -216,6 +216,8 @@ struct State {
 pub struct Fleet {
     options: FleetOptions,
     state: Mutex<State>,
+    /// Where verified alerts worth telling go, once notifications run.
+    notifier: std::sync::OnceLock<crate::notify::Notifier>,
 }
 
 impl Fleet {
@@ -237,6 +239,7 @@ impl Fleet {
         let fleet = Fleet {
             options,
             state: Mutex::new(state),
+            notifier: std::sync::OnceLock::new(),
         };
         for p in log.take_pending() {
             match fleet.decode_alert(&p.key, p.payload.as_bytes(), p.received_at) {
@@ -357,10 +360,23 @@ impl Fleet {
         {
             return;
         }
-        if let Some(log) = &mut s.log {
-            log.record(key, payload, &mut entry);
-        }
+        let silenced = match &mut s.log {
+            Some(log) => log.record(key, payload, &mut entry),
+            None => None,
+        };
+        let notice = (silenced.is_none() && entry.verified())
+            .then(|| alert_notice(&entry))
+            .flatten();
         self.keep_alert(&mut s, entry, true);
+        drop(s);
+        if let (Some(n), Some(notifier)) = (notice, self.notifier.get()) {
+            notifier.put(n);
+        }
+    }
+
+    /// Notifications from now on go to `notifier` (set once).
+    pub fn notify_to(&self, notifier: crate::notify::Notifier) {
+        let _ = self.notifier.set(notifier);
     }
 
     /// Puts an alert of a watched building in the fleet's view.
@@ -547,6 +563,42 @@ impl Fleet {
             self.state_of(st, Instant::now())
         })
     }
+}
+
+/// The notice a verified alert makes, if its level is one that is told (`exceeded`, `stale`).
+fn alert_notice(e: &AlertEntry) -> Option<crate::notify::Notice> {
+    use crate::notify::{Event, Notice};
+    let a = &e.alert;
+    let event = match a.level {
+        AlertLevel::Exceeded => Event::Exceeded,
+        AlertLevel::Stale => Event::Stale,
+        AlertLevel::Possible => return None,
+    };
+    let kind = serde_json::to_value(a.kind)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_default();
+    let summary = match event {
+        Event::Stale => format!("{kind}: stale, no data to judge (verified alert)"),
+        _ => format!(
+            "{kind} {:.4} ± {:.4} {} (k = {}) against the threshold {:.4}: {} (verified alert)",
+            a.value,
+            a.coverage_factor * a.standard_uncertainty,
+            a.unit,
+            a.coverage_factor,
+            a.threshold,
+            event.name()
+        ),
+    };
+    Some(Notice {
+        event,
+        building: a.building.clone(),
+        sensor: a.sensor_id.clone(),
+        alert_id: Some(e.id),
+        summary,
+        statement: Some(a.statement.clone()),
+        at_ns: i64::try_from(e.received_at.unix_timestamp_nanos()).unwrap_or(i64::MAX),
+    })
 }
 
 /// Up: heard within the limits; down: heard before, not lately; unknown: never heard.

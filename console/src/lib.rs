@@ -27,6 +27,7 @@ pub mod fleet;
 pub mod http;
 pub mod live;
 pub mod modes;
+pub mod notify;
 pub mod operators;
 pub mod server;
 pub mod spectrum;
@@ -89,6 +90,8 @@ pub struct ConsoleOptions {
     /// The site's time zone: quiet hours and rota shifts are in it, and the page offers it
     /// beside UTC.
     pub time_zone: Option<SiteTimeZone>,
+    /// Where notifications go ([`notify`]); none: nowhere.
+    pub notify: Option<notify::Config>,
 }
 
 /// A site's time zone by its IANA name, read from the system's time zone database.
@@ -145,6 +148,7 @@ impl Default for ConsoleOptions {
             operators_file: None,
             identity_header: None,
             time_zone: None,
+            notify: None,
         }
     }
 }
@@ -295,6 +299,27 @@ pub async fn serve(
         options.status_interval,
         stop_rx.clone(),
     ));
+    let (notifier, notify_tasks) = match options.notify.clone() {
+        None => (notify::Notifier::off(), Vec::new()),
+        Some(config) => {
+            let f = fleet.clone();
+            let acknowledged: Arc<dyn Fn(u64) -> bool + Send + Sync> =
+                Arc::new(move |id| f.with_log(|l| l.is_acknowledged(id)));
+            let (n, task) = notify::start(
+                config,
+                options.time_zone.clone(),
+                acknowledged,
+                stop_rx.clone(),
+            );
+            fleet.notify_to(n.clone());
+            let watcher = tokio::spawn(watch_sensor_states(
+                fleet.clone(),
+                n.clone(),
+                stop_rx.clone(),
+            ));
+            (n, vec![task, watcher])
+        }
+    };
     let fleet_events = Arc::new(FleetEvents::new());
     let serialiser = tokio::spawn(serialise_fleet(
         fleet.clone(),
@@ -315,6 +340,7 @@ pub async fn serve(
         modes,
         operators,
         logins: Arc::new(Semaphore::new(server::MAX_LOGINS_AT_ONCE)),
+        notifier,
         options,
     });
     tracing::info!(url = %url(addr), "console serving");
@@ -351,7 +377,68 @@ pub async fn serve(
     let _ = tokio::time::timeout(Duration::from_secs(3), connections.acquire_many(all)).await;
     poller.abort();
     serialiser.abort();
+    for t in notify_tasks {
+        t.abort();
+    }
     Ok(())
+}
+
+/// Tells when a sensor becomes `calibration_suspect` or `silent`: the fleet's states looked at
+/// once a second, each sensor's first look taken as it is (a console that starts beside a
+/// silent sensor does not call that news).
+async fn watch_sensor_states(
+    fleet: Arc<Fleet>,
+    notifier: notify::Notifier,
+    mut stop: watch::Receiver<bool>,
+) {
+    use fleet::SensorState;
+    use notify::{Event, Notice};
+    let mut seen: std::collections::HashMap<(BuildingId, triax_protocol::SensorId), [bool; 2]> =
+        std::collections::HashMap::new();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return,
+        }
+        let brief = fleet.brief();
+        let mut now_seen = std::collections::HashMap::with_capacity(seen.len());
+        for b in &brief.buildings {
+            for s in &b.sensors {
+                if !s.in_status {
+                    continue;
+                }
+                let key = (b.building.building.clone(), s.sensor_id.clone());
+                let is = [
+                    s.states.contains(&SensorState::CalibrationSuspect),
+                    s.states.contains(&SensorState::Silent),
+                ];
+                if let Some(was) = seen.get(&key) {
+                    for (i, event) in [Event::CalibrationSuspect, Event::Silent]
+                        .into_iter()
+                        .enumerate()
+                    {
+                        if is[i] && !was[i] {
+                            notifier.put(Notice {
+                                event,
+                                building: key.0.clone(),
+                                sensor: key.1.clone(),
+                                alert_id: None,
+                                summary: match event {
+                                    Event::Silent => "no batch for 10 s by its gateway's clock (silent)".into(),
+                                    _ => "the gateway's field health checks found its record in force suspect".into(),
+                                },
+                                statement: None,
+                                at_ns: live::wall_clock_ns(),
+                            });
+                        }
+                    }
+                }
+                now_seen.insert(key, is);
+            }
+        }
+        seen = now_seen;
+    }
 }
 
 /// Deltas kept for streams that fall behind (a light stream reads every 5 s).

@@ -59,6 +59,10 @@ struct Cli {
     /// that proxy.
     #[arg(long, value_name = "NAME", env = "TRIAX_CONSOLE_IDENTITY_HEADER")]
     identity_header: Option<String>,
+    /// Notifications: a TOML file of channels (webhook, SMTP) and per-building rotas (README,
+    /// "Notifications"). Default: none are sent.
+    #[arg(long, value_name = "FILE", env = "TRIAX_CONSOLE_NOTIFY_CONFIG")]
+    notify_config: Option<std::path::PathBuf>,
     /// The site's time zone, an IANA name (Europe/Zurich): the page offers its local time
     /// beside UTC, and quiet hours and rota shifts of notifications are in it. Default: UTC.
     #[arg(long, value_name = "ZONE", env = "TRIAX_CONSOLE_TIME_ZONE")]
@@ -282,6 +286,11 @@ async fn main() -> anyhow::Result<()> {
         )?,
         operators_file: operators_file(&cli)?,
         identity_header: cli.identity_header.clone(),
+        notify: cli
+            .notify_config
+            .as_deref()
+            .map(triax_console::notify::Config::load)
+            .transpose()?,
         time_zone: cli
             .time_zone
             .as_deref()

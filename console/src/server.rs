@@ -79,6 +79,8 @@ pub struct Context {
     pub operators: Arc<Operators>,
     /// Password checks at once (each is an Argon2 hash: tens of milliseconds and 19 MiB).
     pub logins: Arc<Semaphore>,
+    /// The notifications' queue and what they sent.
+    pub notifier: crate::notify::Notifier,
 }
 
 /// Password checks at once; more are answered 503.
@@ -330,6 +332,10 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
                 head_only,
             )
             .await
+        }
+        "/api/notifications" => {
+            p.only(&[])?;
+            ok(stream, JSON, json(&ctx.notifier.view()), head_only).await
         }
         "/api/silences" => {
             p.only(&[])?;

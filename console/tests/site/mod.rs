@@ -111,7 +111,13 @@ pub struct Site {
     pub t0_ns: i64,
     _history: zenoh::query::Queryable<()>,
     _status: zenoh::query::Queryable<()>,
+    /// What the status says of a sensor besides `ok`: `"silent"` (its last batch a minute
+    /// old) or `"suspect"` (the field health checks' verdict).
+    pub conditions: Conditions,
 }
+
+pub type Conditions =
+    std::sync::Arc<std::sync::Mutex<std::collections::HashMap<String, &'static str>>>;
 
 pub const SENSORS: [&str; 3] = ["acc-01", "acc-02", "acc-03"];
 
@@ -171,6 +177,8 @@ impl Site {
             .unwrap();
         // The gateway's status, as a gateway answers it: counters that grow with time.
         let started = time::OffsetDateTime::now_utc();
+        let conditions: Conditions = Default::default();
+        let cond = conditions.clone();
         let status = session
             .declare_queryable("triax/hq/status")
             .callback(move |q| {
@@ -183,8 +191,15 @@ impl Site {
                 let sensors: Vec<Value> = SENSORS
                     .iter()
                     .map(|s| {
+                        let c = cond.lock().unwrap().get(*s).copied();
+                        let seen = if c == Some("silent") {
+                            now - time::Duration::MINUTE
+                        } else {
+                            now
+                        };
                         json!({
-                            "sensor_id": s, "last_seen": rfc(now), "batches": batches,
+                            "sensor_id": s, "last_seen": rfc(seen), "batches": batches,
+                            "health": if c == Some("suspect") { json!("suspect") } else { Value::Null },
                             "samples": batches * BATCH as u64, "gaps": 0, "missing_batches": 0,
                             "late_batches": 0, "duplicates": 0, "rejects": 0,
                             "flagged_samples": batches / 7 * 10, "keys_declared": true,
@@ -209,6 +224,7 @@ impl Site {
             t0_ns,
             _history: history,
             _status: status,
+            conditions,
         }
     }
 
@@ -222,9 +238,23 @@ impl Site {
         window: (i64, i64),
         signed: bool,
     ) {
+        self.alert_in("hq", sensor, level, statement, window, signed)
+            .await
+    }
+
+    /// [`Site::alert`] in another building.
+    pub async fn alert_in(
+        &self,
+        building: &str,
+        sensor: &str,
+        level: &str,
+        statement: &str,
+        window: (i64, i64),
+        signed: bool,
+    ) {
         let a: Alert = from_json(
             &serde_json::to_vec(&json!({
-                "format_version": 1, "building": "hq", "sensor_id": sensor,
+                "format_version": 1, "building": building, "sensor_id": sensor,
                 "kind": "peak_acceleration", "level": level, "value": 0.052,
                 "standard_uncertainty": 0.002, "coverage_factor": 2.0, "threshold": 0.045,
                 "unit": "m/s^2", "window_s": (window.1 - window.0) as f64 / 1e9,
@@ -243,7 +273,7 @@ impl Site {
             to_json(&a)
         };
         self.session
-            .put(format!("triax/hq/alert/{sensor}"), payload)
+            .put(format!("triax/{building}/alert/{sensor}"), payload)
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .await
             .unwrap();
