@@ -29,6 +29,7 @@ pub mod live;
 pub mod modes;
 pub mod notify;
 pub mod operators;
+pub mod process;
 pub mod server;
 pub mod spectrum;
 pub mod trend;

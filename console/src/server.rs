@@ -373,6 +373,13 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             let body = history(ctx, &p).await?;
             ok(stream, JSON, json(&body), head_only).await
         }
+        "/api/processed" => {
+            p.only(&[
+                "building", "sensor", "from_ns", "to_ns", "width", "quantity", "band",
+            ])?;
+            let body = processed(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
         "/api/trend" => {
             p.only(&["building", "sensor", "from_ns", "to_ns"])?;
             let body = trend(ctx, &p).await?;
@@ -1018,6 +1025,59 @@ async fn trend(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refus
         "error": error,
         "minutes": minutes,
     }))
+}
+
+/// A filtered or integrated view of up to an hour ([`crate::process`]).
+async fn processed(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    use crate::process::{Band, Quantity};
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let width = p.int("width", Some(1000), WIDTH_RANGE)?;
+    let q = match p.get("quantity").unwrap_or("acceleration") {
+        v => Quantity::parse(v).ok_or_else(|| {
+            Refusal::new(
+                400,
+                format!(
+                    "parameter \"quantity\": {v:?} is not acceleration, velocity or displacement"
+                ),
+            )
+        })?,
+    };
+    let band = match p.get("band") {
+        None => Band {
+            low_hz: None,
+            high_hz: None,
+        },
+        Some(v) => {
+            Band::parse(v).map_err(|e| Refusal::new(400, format!("parameter \"band\": {e}")))?
+        }
+    };
+    if q != Quantity::Acceleration && band.low_hz.is_none() {
+        return Err(Refusal::new(
+            400,
+            "parameter \"band\": velocity and displacement need a lower edge (e.g. band=0.1-20): \
+             an integral without one drifts without bound",
+        ));
+    }
+    let settle = band.settle_ns();
+    let mut c = crate::spectrum::Collector::new(from_ns - settle, to_ns + settle);
+    let read = read_history(
+        ctx,
+        &b,
+        &s,
+        from_ns - settle,
+        to_ns + settle,
+        &mut |batch| c.push(batch),
+    )
+    .await?;
+    let bucket_ns = (to_ns - from_ns + width - 1) / width;
+    let view = crate::process::view(&c, q, band, from_ns, to_ns, bucket_ns);
+    Ok(match read {
+        Ok(n) => {
+            serde_json::json!({ "batches_read": n, "settle_s": settle as f64 / 1e9, "view": view })
+        }
+        Err(e) => serde_json::json!({ "error": e, "settle_s": settle as f64 / 1e9, "view": view }),
+    })
 }
 
 async fn spectrum(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
