@@ -1266,3 +1266,102 @@ async fn the_fleet_event_sends_what_changed() {
     drop(browser);
     console.stop().await;
 }
+
+/// Comparing: velocity and displacement by integration within a stated band, a filter per
+/// plot, and every sensor's axes overlaid in one plot of the building view.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn comparing_in_a_browser() {
+    let site = Site::start(15 * 60).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let now = now_ns();
+    let (from, to) = (now - 300_000_000_000, now - 180_000_000_000);
+    let q = |extra: &str| {
+        format!(
+            "/api/processed?building=hq&sensor=acc-01&from_ns={from}&to_ns={to}&width=600{extra}"
+        )
+    };
+    // Velocity of the 2.5 Hz sway of 0.05 m/s² in 0.5-20 Hz: a/ω through the filters.
+    let v = console.json(&q("&quantity=velocity&band=0.5-20")).await;
+    assert_eq!(v["error"], Value::Null, "{v}");
+    let view = &v["view"];
+    assert_eq!(view["unit"], "m/s");
+    assert_eq!(view["band"], json!({"low_hz": 0.5, "high_hz": 20.0}));
+    let peak = view["buckets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| b[2].as_f64().unwrap().max(-b[1].as_f64().unwrap()))
+        .fold(0.0f64, f64::max);
+    let w = 2.0 * std::f64::consts::PI * SWAY_HZ;
+    let want = SWAY_MPS2 / w;
+    assert!((peak / want - 1.0).abs() < 0.03, "{peak} against {want}");
+    assert_eq!(v["settle_s"], 6.0, "three periods of 0.5 Hz each side");
+    for (extra, names) in [
+        ("&quantity=velocity", "\"band\""),
+        ("&quantity=jerk", "\"quantity\""),
+        ("&band=20-5", "\"band\""),
+    ] {
+        let (status, body) = console.get(&q(extra)).await;
+        assert_eq!(status, 400, "{extra}: {body}");
+        assert!(body.contains(names), "{extra}: {body}");
+    }
+
+    let browser = Browser::start(false);
+    let url = console.url();
+    browser.go(&format!(
+        "{url}#/sensor/hq/acc-01?from={from}&to={to}&q=displacement&band=0.5-20"
+    ));
+    browser
+        .wait("the displacement view", "const p = document.getElementById('plot'); return p && p.dataset.source === 'processed' && document.getElementById('canvas-x').dataset.quantity === 'displacement'")
+        .await;
+    let title = browser.js("return document.getElementById('title-x').textContent");
+    assert!(
+        title
+            .as_str()
+            .unwrap()
+            .contains("displacement x (m), band 0.5–20 Hz"),
+        "{title}"
+    );
+    let readout = browser.js("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); c.dispatchEvent(new MouseEvent('mousemove', { clientX: r.left + r.width / 2, clientY: r.top + 50, bubbles: true })); const b = document.getElementById('readout'); return b.hidden ? null : b.innerText");
+    assert!(
+        readout.as_str().unwrap().contains(" m\n") || readout.as_str().unwrap().contains(" m"),
+        "{readout}"
+    );
+    browser.screenshot("sensor-displacement");
+    // Zooming keeps the quantity and band.
+    let hash = browser.js("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); const m = c._map; const x = (f) => r.left + m.left + f * m.pw; const ev = (t, f) => c.dispatchEvent(new MouseEvent(t, { clientX: x(f), clientY: r.top + 60, bubbles: true })); ev('mousedown', 0.3); ev('mousemove', 0.6); ev('mouseup', 0.6); return location.hash");
+    assert!(
+        hash.as_str()
+            .unwrap()
+            .contains("q=displacement&band=0.5-20"),
+        "{hash}"
+    );
+
+    // The building view: x and z of every sensor overlaid, and one plot filtered alone.
+    browser.go(&format!(
+        "{url}#/building/hq?from={from}&to={to}&overlay=xz"
+    ));
+    browser
+        .wait("the overlay of six series", "const c = document.getElementById('bcanvas-overlay'); return c && c.dataset.series === '6' && document.getElementById('building-plots').dataset.loaded === '3'")
+        .await;
+    let legend = browser.js("return document.getElementById('overlay-legend').textContent");
+    assert!(legend.as_str().unwrap().contains("acc-02 az"), "{legend}");
+    browser.js("const i = document.querySelector('input.plot-band[data-sensor=\"acc-02\"]'); i.value = '5-20'; i.dispatchEvent(new Event('change')); return 1");
+    let ranges = browser
+        .wait("acc-02 filtered alone", "const c = document.getElementById('bcanvas-acc-02'); const d = document.getElementById('bcanvas-acc-01'); return c.dataset.band === '5-20' && d.dataset.band === undefined && [c._map.hi - c._map.lo, d._map.hi - d._map.lo]")
+        .await;
+    let (filtered, plain) = (ranges[0].as_f64().unwrap(), ranges[1].as_f64().unwrap());
+    assert!(
+        filtered < 0.4 * plain,
+        "the sway is outside 5-20 Hz: {filtered} against {plain}"
+    );
+    browser.screenshot("building-overlay-and-filter");
+    browser.assert_no_errors("comparing");
+    drop(browser);
+    console.stop().await;
+}

@@ -130,7 +130,9 @@
     if (parts[0] === 'alerts') return { view: 'alerts', params };
     if (parts[0] === 'modes' && parts.length === 2) return { view: 'modes', building: parts[1] };
     if (parts[0] === 'building' && parts.length === 2) {
-      const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null };
+      const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null,
+        overlay: (params.get('overlay') || '').split('').filter((a, i, all) => AXES.includes(a) && all.indexOf(a) === i).join('') };
+      processingParams(params, r);
       const at = params.get('at');
       if (at !== null && /^\d{1,19}$/.test(at)) { r.at = Number(at); r.span = Math.min(HISTORY_MAX_SPAN_S, Math.max(1, Number(params.get('span')) || 60)); }
       const w = windowParams(params, r);
@@ -153,12 +155,27 @@
         else r.at = Number(at);
       }
       r.alert = /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null;
+      processingParams(params, r);
       r.window = r.error ? null : windowParams(params, r);
       if (r.window && r.at === null) r.at = msToNs(r.window[1] - 0.25 * (r.window[1] - r.window[0]));
       return r;
     }
     return { view: 'fleet' };
   }
+
+  // What a plot shows: acceleration as corrected, or band-passed, or integrated to velocity or
+  // displacement within a band (`q`, `band` in the link; /api/processed).
+  const QUANTITIES = { acceleration: 'm/s²', velocity: 'm/s', displacement: 'm' };
+  function processingParams(params, r) {
+    const q = params.get('q');
+    r.quantity = QUANTITIES[q] ? q : 'acceleration';
+    const band = params.get('band') || '';
+    r.band = /^[0-9.]*-[0-9.]*$/.test(band) && band !== '-' ? band : '';
+    if (r.quantity !== 'acceleration' && !r.band) r.band = '0.1-';
+  }
+  const processing = (r) => r.quantity !== 'acceleration' || !!r.band;
+  // The link's processing, to keep across zoom, pan and steps.
+  const processingExtra = (r = route) => (r.quantity && r.quantity !== 'acceleration' ? `&q=${r.quantity}` : '') + (r.band ? `&band=${encodeURIComponent(r.band)}` : '') + (r.overlay ? `&overlay=${r.overlay}` : '');
 
   // The window a link names: `from`/`to` (ns), `last` (seconds up to now), or `at`/`span`;
   // null for live. Up to 7 days; beyond an hour the view is a trend of per-minute aggregates.
@@ -620,7 +637,7 @@
   function renderSensor() {
     const r = route;
     live = null; tilt = []; historyView = null; detail = null;
-    trendView = null; spectrumView = null; spectrogramView = null; alertInfo = null;
+    trendView = null; spectrumView = null; spectrogramView = null; alertInfo = null; processedView = null;
     const isLive = !r.window;
     const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
     // The span asked for is listed even if it is not one of the usual ones.
@@ -645,8 +662,12 @@
       el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward, up to now', disabled: isLive || atMs >= latestAtMs(spanS) - 1000 ? 'disabled' : null }, '▶'),
       el('label', {}, 'span ', spanSel),
       el('span', { class: 'meta' }, 'last'),
-      [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : ''); } }, t)),
+      [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra(r); } }, t)),
       isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
+      el('label', { title: 'acceleration as corrected, or band-passed, or integrated to velocity or displacement within the band (history views)' }, 'show ',
+        el('select', { id: 'quantity' }, Object.keys(QUANTITIES).map((q) => el('option', { value: q, selected: q === r.quantity ? 'selected' : null }, q)))),
+      el('label', { title: 'the band in Hz, LOW-HIGH; either may be left out (velocity and displacement need LOW)' }, 'band ', el('input', { id: 'band', type: 'text', size: 8, spellcheck: 'false', placeholder: '0.1-20', value: r.band })), ' Hz ',
+      el('button', { id: 'btn-process', onclick: applyProcessing }, 'Apply'),
       el('button', { id: 'btn-spectrum', onclick: loadSpectrum, title: 'power spectral density per axis of the span shown' }, 'Spectrum'),
       el('button', { id: 'btn-spectrogram', onclick: loadSpectrogram, title: 'spectrogram of one axis over the span shown: its PSD per column of time' }, 'Spectrogram'),
       el('button', { id: 'btn-csv', onclick: exportCsv, title: 'every sample of the span shown (up to 1 h), as CSV' }, 'CSV'),
@@ -691,6 +712,14 @@
 
   const sensorBase = () => `#/sensor/${encodeURIComponent(route.building)}/${encodeURIComponent(route.sensor)}`;
 
+  // The quantity and band chosen: the window shown (a live one as history) read again so.
+  function applyProcessing() {
+    const r = { ...route, quantity: $('quantity').value, band: $('band').value.trim().replace(/\s+/g, '') };
+    if (r.quantity !== 'acceleration' && !/^[0-9.]+-/.test(r.band)) r.band = '0.1-' + (r.band.split('-')[1] || '');
+    const [fromMs, toMs] = currentWindow();
+    location.hash = sensorBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + processingExtra(r);
+  }
+
   // The alert a link came from: its window is shaded and its threshold drawn.
   async function loadAlert(id) {
     const myRoute = route;
@@ -703,8 +732,43 @@
   // A window of up to an hour is read from the history and decimated per pixel column; a
   // longer one is a trend of per-minute aggregates.
   function loadWindow(win) {
-    if ((win[1] - win[0]) / 1000 <= HISTORY_MAX_SPAN_S) loadHistoryWindow(win[0], win[1]);
-    else loadTrend(win[0], win[1]);
+    if ((win[1] - win[0]) / 1000 > HISTORY_MAX_SPAN_S) loadTrend(win[0], win[1]);
+    else if (processing(route)) loadProcessed(win[0], win[1]);
+    else loadHistoryWindow(win[0], win[1]);
+  }
+
+  let processedView = null;  // /api/processed answer of the sensor view
+  const processedQuery = (building, sensor, fromMs, toMs, quantity, band) => {
+    const q = new URLSearchParams({ building, sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), width: String(plotWidth()), quantity });
+    if (band) q.set('band', band);
+    return '/api/processed?' + q;
+  };
+  async function loadProcessed(fromMs, toMs) {
+    const myRoute = route;
+    $('status-line').textContent = `computing ${route.quantity} in ${route.band} Hz…`;
+    const body = await getJson(processedQuery(route.building, route.sensor, fromMs, toMs, route.quantity, route.band));
+    if (route !== myRoute) return;
+    if (!body.view) { $('status-line').textContent = `${route.quantity}: ${body.error}`; return; }
+    processedView = { ...body, fromMs, toMs };
+    const v = body.view;
+    $('plot').dataset.source = 'processed';
+    $('plot').dataset.buckets = v.buckets.length;
+    $('status-line').textContent = `${v.quantity} (${v.unit}), band ${bandText(v.band)}: ${v.samples_used} samples in ${v.runs.length} runs` + (v.runs_too_short ? `, ${v.runs_too_short} runs under 1 s left out` : '') +
+      `; ${v.filter}; ${body.settle_s} s read on either side for the filters to settle; no ±k·u band (not stated for filtered or integrated values)` + (body.error ? `; ${body.error}` : '');
+    scheduleDraw();
+  }
+  const bandText = (b) => `${b.low_hz ?? '0'}–${b.high_hz ?? 'Nyquist'} Hz`;
+
+  // A processed view as plot series: per bucket min and max, broken between runs.
+  function processedSeries(v, axes, name, colors) {
+    const bucketMs = v.bucket_ns / 1e6;
+    const starts = new Set(v.runs.map((r) => Math.floor(r[0] / v.bucket_ns)));
+    const gaps = [];
+    for (let i = 1; i < v.runs.length; i++) gaps.push({ start_ns: v.runs[i - 1][1], end_ns: v.runs[i][0] });
+    return {
+      bucketMs, gaps,
+      series: axes.map((i, k) => ({ name: name(i), color: colors[k], points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[1 + 2 * i], max: b[2 + 2 * i], lo: null, hi: null, flags: 0, gap: starts.has(b[0]) })) })),
+    };
   }
 
   async function loadTrend(fromMs, toMs) {
@@ -731,7 +795,7 @@
   function navigateWindow(fromMs, toMs) {
     const now = Date.now();
     if (toMs > now) { fromMs -= toMs - now; toMs = now; }
-    location.hash = sensorOrBuildingBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + (route.view === 'building' && route.axis !== 'x' ? `&axis=${route.axis}` : '');
+    location.hash = sensorOrBuildingBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + (route.view === 'building' && route.axis !== 'x' ? `&axis=${route.axis}` : '') + processingExtra();
   }
   const sensorOrBuildingBase = () => route.view === 'building' ? `#/building/${encodeURIComponent(route.building)}` : sensorBase();
 
@@ -989,7 +1053,7 @@
 
   function navigate(change) {
     const r = { ...route, ...change };
-    location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span);
+    location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span) + (r.at === null ? '' : processingExtra(r));
   }
 
   // The latest `at` worth reading: its window (three quarters before, one after) ends now.
@@ -1131,6 +1195,7 @@
     if (!route || route.view !== 'sensor') return;
     let buckets, gaps, x0, x1, correction, marker = null;
     if (route.window && (route.window[1] - route.window[0]) / 1000 > HISTORY_MAX_SPAN_S) { drawTrend(); return; }
+    if (route.window && processing(route)) { drawProcessed(); return; }
     if (!route.window) {
       if (!live) return;
       buckets = [...live.buckets.values()].sort((a, b) => a[0] - b[0]);
@@ -1301,6 +1366,20 @@
     g.strokeStyle = c.frame; g.strokeRect(left, top, pw, ph);
   }
 
+  function drawProcessed() {
+    if (!processedView) return;
+    const v = processedView.view;
+    const overlay = alertOverlay();
+    AXES.forEach((ax, i) => {
+      const p = processedSeries(v, [i], () => `${v.quantity} ${ax}`, [AXIS_COLORS[i]]);
+      $(`title-${ax}`).textContent = `${v.quantity} ${ax} (${v.unit}), band ${bandText(v.band)}`;
+      drawSeries($(`canvas-${ax}`), { x0: processedView.fromMs, x1: processedView.toMs, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: v.unit, shade: overlay.shade, series: p.series });
+      $(`canvas-${ax}`).dataset.quantity = v.quantity;
+    });
+    $('tilt-plot').hidden = true; $('freq-plot').hidden = true;
+    $('legend').replaceChildren(el('span', {}, `${v.quantity} in ${bandText(v.band)}; min … max per pixel column; no ±k·u band`));
+  }
+
   // Canvas colours from the page's (light or dark) scheme.
   function colors() {
     const cs = getComputedStyle(document.documentElement);
@@ -1358,23 +1437,32 @@
     const [fromMs, toMs] = r.window;
     const spanS = (toMs - fromMs) / 1000;
     const sensors = buildingSensors();
-    const axisSel = el('select', { id: 'b-axis', onchange: (e) => { location.hash = `#/building/${encodeURIComponent(r.building)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}&axis=${e.target.value}` + (r.alert ? `&alert=${r.alert}` : ''); } },
+    const base = (change) => { const x = { ...r, ...change }; return `#/building/${encodeURIComponent(r.building)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}&axis=${x.axis}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra(x); };
+    plotBands = new Map();
+    const axisSel = el('select', { id: 'b-axis', onchange: (e) => { location.hash = base({ axis: e.target.value }); } },
       AXES.map((a) => el('option', { value: a, selected: a === r.axis ? 'selected' : null }, `a${a}`)));
     $('view').replaceChildren(el('section', { class: 'card', id: 'building-view', 'data-building': r.building },
       el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / building ', r.building),
       el('div', { class: 'controls' },
         el('label', {}, 'axis ', axisSel),
         [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: 'last', 'data-last': n, onclick: () => { location.hash = `#/building/${encodeURIComponent(r.building)}?last=${n}&axis=${r.axis}` + (r.alert ? `&alert=${r.alert}` : ''); } }, `last ${t}`)),
+        el('label', { title: 'every sensor of these axes in one plot, above the others' }, 'overlay ', AXES.map((a) => [el('input', { type: 'checkbox', class: 'overlay-axis', value: a, checked: r.overlay.includes(a) ? 'checked' : null,
+          onchange: () => { location.hash = base({ overlay: [...document.querySelectorAll('input.overlay-axis:checked')].map((c) => c.value).join('') }); } }), a, ' '])),
+        el('label', {}, 'show ', el('select', { id: 'b-quantity', onchange: (e) => { location.hash = base({ quantity: e.target.value, band: e.target.value === 'acceleration' ? r.band : (r.band || '0.1-') }); } },
+          Object.keys(QUANTITIES).map((q) => el('option', { value: q, selected: q === r.quantity ? 'selected' : null }, q)))),
         el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
         el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG')),
       r.error ? el('div', { id: 'status-line', class: 'warning' }, `This link cannot be shown: ${r.error}.`) :
-        el('div', { id: 'status-line', class: 'meta' }, `${fmtTime(fromMs)} – ${fmtTime(toMs)} (${fmtSpan(Math.round(spanS))}), ${sensors.length} sensors, the same time axis; drag to zoom, Shift-drag to pan.`),
+        el('div', { id: 'status-line', class: 'meta' }, `${fmtTime(fromMs)} – ${fmtTime(toMs)} (${fmtSpan(Math.round(spanS))}), ${sensors.length} sensors, the same time axis; drag to zoom, Shift-drag to pan.` + (processing(r) ? ` Every plot: ${r.quantity}, band ${r.band} Hz.` : '')),
+      r.overlay ? el('div', { class: 'plot', id: 'overlay-plot' }, el('canvas', { id: 'bcanvas-overlay', width: 1000, height: 220 }), el('span', { class: 'title', id: 'overlay-title' }, `overlay: ${sensors.length} sensors, axes ${r.overlay.split('').join(', ')}`), el('div', { class: 'legend', id: 'overlay-legend' })) : null,
       el('div', { id: 'building-plots', 'data-loaded': 0 }, sensors.map((s) => el('div', { class: 'plot', 'data-sensor': s },
+        el('div', { class: 'plot-controls' }, el('label', { title: 'this plot only: its band in Hz, LOW-HIGH (Enter); empty: the view\'s' }, 'filter ',
+          el('input', { class: 'plot-band', 'data-sensor': s, type: 'text', size: 8, spellcheck: 'false', placeholder: r.band || 'none', onchange: (e) => setPlotBand(r, s, e.target.value.trim(), fromMs, toMs) })), ' Hz'),
         el('canvas', { id: `bcanvas-${s}`, width: 1000, height: 130 }),
-        el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') }, s), ` a${r.axis}`)))),
+        el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra({ ...r, overlay: '' }) }, s), ` ${r.quantity === 'acceleration' ? 'a' : r.quantity + ' '}${r.axis}`, el('span', { class: 'plot-band-note', 'data-sensor': s }))))),
       el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })));
     if (r.error) return;
-    for (const c of document.querySelectorAll('#building-plots canvas')) attachPointer(c, drawBuilding);
+    for (const c of document.querySelectorAll('#building-plots canvas, #bcanvas-overlay')) attachPointer(c, drawBuilding);
     if (r.alert) getJson(`/api/alerts?id=${r.alert}`).then((b) => { if (route === r && b.alerts && b.alerts.length) { alertInfo = b.alerts[0]; drawBuilding(); } });
     loadBuilding(r, sensors, fromMs, toMs);
   }
@@ -1386,17 +1474,38 @@
   }
 
   // One sensor after the other: the console reads two history views at once at most.
+  let plotBands = new Map(); // per sensor of the building view, its own band
   async function loadBuilding(r, sensors, fromMs, toMs) {
     const trend = (toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S;
     for (const s of sensors) {
-      const q = new URLSearchParams({ building: r.building, sensor: s, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
-      if (!trend) q.set('width', String(plotWidth()));
-      const body = await getJson((trend ? '/api/trend?' : '/api/history?') + q);
+      const body = await loadBuildingPlot(r, s, fromMs, toMs, trend);
       if (route !== r) return;
       buildingData.set(s, body);
       $('building-plots').dataset.loaded = buildingData.size;
       drawBuilding();
     }
+  }
+
+  async function loadBuildingPlot(r, s, fromMs, toMs, trend) {
+    const band = plotBands.get(s) || r.band;
+    if (!trend && (band || r.quantity !== 'acceleration')) {
+      const body = await getJson(processedQuery(r.building, s, fromMs, toMs, r.quantity, band));
+      return { ...body, processed: true };
+    }
+    const q = new URLSearchParams({ building: r.building, sensor: s, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
+    if (!trend) q.set('width', String(plotWidth()));
+    return getJson((trend ? '/api/trend?' : '/api/history?') + q);
+  }
+
+  // One plot's own filter: that plot read again with it.
+  async function setPlotBand(r, s, band, fromMs, toMs) {
+    if (band && !/^[0-9.]*-[0-9.]*$/.test(band)) { $('status-line').textContent = `"${band}" is not a band LOW-HIGH in Hz`; return; }
+    if (band) plotBands.set(s, band); else plotBands.delete(s);
+    const body = await loadBuildingPlot(r, s, fromMs, toMs, (toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S);
+    if (route !== r) return;
+    if (body.error && !body.view) $('status-line').textContent = `${s}: ${body.error}`;
+    buildingData.set(s, body);
+    drawBuilding();
   }
 
   function drawBuilding() {
@@ -1409,7 +1518,13 @@
       if (!canvas) continue;
       // The alert's threshold belongs to its own sensor; its window is shaded on every one.
       const mine = alertInfo && alertInfo.sensor_id === s ? overlay : { shade: overlay.shade };
-      if (body.minutes) {
+      const note = document.querySelector(`.plot-band-note[data-sensor="${CSS.escape(s)}"]`);
+      if (note) note.textContent = body.processed && body.view ? ` (${body.view.quantity}, ${bandText(body.view.band)}, ${body.view.unit})` : '';
+      if (body.processed && body.view) {
+        const p = processedSeries(body.view, [i], () => `${body.view.quantity} ${route.axis}`, [AXIS_COLORS[i]]);
+        drawSeries(canvas, { x0, x1, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: body.view.unit, shade: mine.shade, series: p.series });
+        canvas.dataset.band = plotBands.get(s) || route.band || '';
+      } else if (body.minutes) {
         drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined,
           series: [{ name: `peak a${route.axis}`, color: AXIS_COLORS[i], points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) }] });
       } else if (body.view) {
@@ -1421,6 +1536,41 @@
       }
       canvas.dataset.drawn = '1';
     }
+    drawOverlay();
+  }
+
+  const OVERLAY_COLORS = ['#175cd3', '#1d7a3a', '#9a3412', '#6941c6', '#c11574', '#0e7090', '#b54708', '#475467', '#d92d20', '#079455'];
+  // Every sensor's chosen axes in one plot, on the same time axis.
+  function drawOverlay() {
+    const canvas = $('bcanvas-overlay');
+    if (!canvas || !route.overlay) return;
+    const [x0, x1] = route.window;
+    const series = [];
+    const units = new Set();
+    let gaps = [], bucketMs = null;
+    for (const [s, body] of buildingData) {
+      for (const ax of route.overlay) {
+        const i = AXES.indexOf(ax);
+        const color = OVERLAY_COLORS[series.length % OVERLAY_COLORS.length];
+        if (body.processed && body.view) {
+          const p = processedSeries(body.view, [i], () => `${s} ${body.view.quantity === 'acceleration' ? 'a' : body.view.quantity + ' '}${ax} (${bandText(body.view.band)})`, [color]);
+          series.push(p.series[0]); units.add(body.view.unit); bucketMs = p.bucketMs;
+        } else if (body.view) {
+          const v = body.view; bucketMs = v.bucket_ns / 1e6; units.add('m/s²');
+          series.push({ name: `${s} a${ax}`, color, points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) });
+        } else if (body.minutes) {
+          units.add('m/s²'); bucketMs = 60000;
+          series.push({ name: `${s} peak a${ax}`, color, points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) });
+        }
+      }
+    }
+    const unit = [...units].join(' / ');
+    drawSeries(canvas, { x0, x1, marker: null, gaps, present: 0, bucketMs, unit, shade: alertOverlay().shade, series });
+    canvas.dataset.series = String(series.length);
+    canvas.dataset.drawn = '1';
+    const legend = $('overlay-legend');
+    legend.replaceChildren(...series.map((x) => [el('i', { 'data-color': x.color }), x.name]).flat(), ...(units.size > 1 ? [el('span', { class: 'warning' }, ' (mixed units: one plot per quantity reads better)')] : []));
+    for (const i of legend.querySelectorAll('i[data-color]')) i.style.background = i.dataset.color;
   }
 
   // ---- Modes view: a building's modal frequencies, damping and shapes (triax-modes) --------
