@@ -242,6 +242,7 @@ pub fn view(
         let out = process(values, fs, q, band);
         let period_ns = 1e9 / fs;
         let (mut first, mut last) = (None, None);
+        #[allow(clippy::needless_range_loop)] // i indexes the time and three axes at once
         for i in 0..n {
             let t = (start_ns + i as f64 * period_ns) as i64;
             if t < from_ns || t >= to_ns {

@@ -1033,16 +1033,13 @@ async fn processed(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, R
     let (b, s) = (p.building()?, p.sensor()?);
     let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
     let width = p.int("width", Some(1000), WIDTH_RANGE)?;
-    let q = match p.get("quantity").unwrap_or("acceleration") {
-        v => Quantity::parse(v).ok_or_else(|| {
-            Refusal::new(
-                400,
-                format!(
-                    "parameter \"quantity\": {v:?} is not acceleration, velocity or displacement"
-                ),
-            )
-        })?,
-    };
+    let v = p.get("quantity").unwrap_or("acceleration");
+    let q = Quantity::parse(v).ok_or_else(|| {
+        Refusal::new(
+            400,
+            format!("parameter \"quantity\": {v:?} is not acceleration, velocity or displacement"),
+        )
+    })?;
     let band = match p.get("band") {
         None => Band {
             low_hz: None,
