@@ -22,8 +22,10 @@
 //! `src/assets/`.
 
 pub mod alertlog;
+pub mod annotations;
 pub mod buckets;
 pub mod fleet;
+pub mod helicorder;
 pub mod http;
 pub mod live;
 pub mod modes;
@@ -289,6 +291,13 @@ pub async fn serve(
             action: "subscribe to the buildings' modes",
             message: e.to_string(),
         })?;
+    let annotations = match &options.state_dir {
+        Some(dir) => annotations::Annotations::open(dir).map_err(|e| ConsoleError::Option {
+            field: "state_dir",
+            reason: e.to_string(),
+        })?,
+        None => annotations::Annotations::in_memory(),
+    };
     let operators = Arc::new(operators::Operators::open(
         options.operators_file.clone(),
         options.identity_header.clone(),
@@ -342,6 +351,8 @@ pub async fn serve(
         operators,
         logins: Arc::new(Semaphore::new(server::MAX_LOGINS_AT_ONCE)),
         notifier,
+        annotations: std::sync::Mutex::new(annotations),
+        helicorder: tokio::sync::Mutex::new(helicorder::SecondsCache::default()),
         options,
     });
     tracing::info!(url = %url(addr), "console serving");

@@ -81,6 +81,10 @@ pub struct Context {
     pub logins: Arc<Semaphore>,
     /// The notifications' queue and what they sent.
     pub notifier: crate::notify::Notifier,
+    /// The operators' annotations.
+    pub annotations: std::sync::Mutex<crate::annotations::Annotations>,
+    /// Per-second minima and maxima of the sensors whose helicorder was drawn.
+    pub helicorder: tokio::sync::Mutex<crate::helicorder::SecondsCache>,
 }
 
 /// Password checks at once; more are answered 503.
@@ -186,7 +190,12 @@ fn require(ctx: &Context, who: Option<&Operator>, need: Role, what: &str) -> Res
 async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Result<(), Refusal> {
     let p = Params(&req.query);
     let who = operator_of(ctx, req);
-    if let Some(&(_, need)) = WRITE_ROUTES.iter().find(|(r, _)| *r == req.path) {
+    // `/api/annotations` is read with GET and written with POST; the others are POST only.
+    let write_route = WRITE_ROUTES
+        .iter()
+        .find(|(r, _)| *r == req.path)
+        .filter(|_| req.post || req.path != "/api/annotations");
+    if let Some(&(_, need)) = write_route {
         if !req.post {
             return Err(Refusal::method(
                 "POST",
@@ -333,6 +342,38 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             )
             .await
         }
+        "/api/annotations" => {
+            p.only(&["building", "from_ns", "to_ns", "format"])?;
+            let b = p.building()?;
+            let from_ns = p.int("from_ns", Some(0), 0..=i64::MAX)?;
+            let to_ns = p.int("to_ns", Some(i64::MAX), 0..=i64::MAX)?;
+            let (list, matched) = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .list(&b, from_ns, to_ns);
+            match p.get("format").unwrap_or("json") {
+                "json" => {
+                    let body = serde_json::json!({ "annotations": list, "matched": matched, "max_listed": crate::annotations::MAX_LISTED });
+                    ok(stream, JSON, json(&body), head_only).await
+                }
+                "csv" => {
+                    let _ = http::respond_download(
+                        stream,
+                        "text/csv; charset=utf-8",
+                        &format!("{b}_annotations.csv"),
+                        crate::annotations::to_csv(&list).as_bytes(),
+                        head_only,
+                    )
+                    .await;
+                    Ok(())
+                }
+                v => Err(Refusal::new(
+                    400,
+                    format!("parameter \"format\": {v:?} is not json or csv"),
+                )),
+            }
+        }
         "/api/notifications" => {
             p.only(&[])?;
             ok(stream, JSON, json(&ctx.notifier.view()), head_only).await
@@ -371,6 +412,11 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
                 "calibration",
             ])?;
             let body = history(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/helicorder" => {
+            p.only(&["building", "sensor", "axis", "from_ns", "to_ns", "row_s"])?;
+            let body = helicorder(ctx, &p).await?;
             ok(stream, JSON, json(&body), head_only).await
         }
         "/api/processed" => {
@@ -676,6 +722,41 @@ fn write(
                 .map_err(field)?;
             Ok(serde_json::to_value(s).unwrap_or_default())
         }
+        "/api/annotations" => {
+            b.only(&["building", "sensor", "from_ns", "to_ns", "text"])?;
+            let building = BuildingId::new(b.text("building", true)?)
+                .map_err(|e| Refusal::new(400, format!("field \"building\": {e}")))?;
+            let sensor = match b.text("sensor", false)? {
+                s if s.is_empty() => None,
+                s => Some(
+                    SensorId::new(s)
+                        .map_err(|e| Refusal::new(400, format!("field \"sensor\": {e}")))?,
+                ),
+            };
+            let (from_ns, to_ns) = (b.int("from_ns")?, b.int("to_ns")?);
+            let text = b.text("text", true)?;
+            let a = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .add(building, sensor, from_ns, to_ns, &text, &by, now)
+                .map_err(field)?;
+            Ok(serde_json::to_value(a).unwrap_or_default())
+        }
+        "/api/annotations/delete" => {
+            b.only(&["id"])?;
+            let id = b.ids("id")?;
+            let [id] = id[..] else {
+                return Err(Refusal::new(400, "field \"id\": one annotation id"));
+            };
+            let a = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .delete(id, &by, who.role >= Role::Admin, now)
+                .map_err(field)?;
+            Ok(serde_json::json!({ "deleted": a }))
+        }
         other => Err(Refusal::new(404, format!("no such page: {other:?}"))),
     }
 }
@@ -706,6 +787,16 @@ impl Body<'_> {
                 400,
                 format!("field {name:?}: {v} is not a string"),
             )),
+        }
+    }
+
+    /// A whole number (ns since the Unix epoch, for instance).
+    fn int(&self, name: &str) -> Result<i64, Refusal> {
+        match self.0.get(name) {
+            Some(v) => v.as_i64().ok_or_else(|| {
+                Refusal::new(400, format!("field {name:?}: {v} is not a whole number"))
+            }),
+            None => Err(Refusal::new(400, format!("field {name:?} is required"))),
         }
     }
 
@@ -1024,6 +1115,69 @@ async fn trend(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refus
         "batches_read": read,
         "error": error,
         "minutes": minutes,
+    }))
+}
+
+/// Up to 24 h of one axis in rows, from the per-second store ([`crate::helicorder`]).
+async fn helicorder(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    use crate::helicorder::{SecondsBuilder, MAX_SPAN_NS, SECOND_NS};
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_SPAN_NS)?;
+    let axis = match p.get("axis").unwrap_or("x") {
+        "x" => 0,
+        "y" => 1,
+        "z" => 2,
+        v => {
+            return Err(Refusal::new(
+                400,
+                format!("parameter \"axis\": {v:?} is not x, y or z"),
+            ))
+        }
+    };
+    let row_s = p.int("row_s", Some(900), 60..=3600)?;
+    let from_s = from_ns.div_euclid(SECOND_NS);
+    let span_s = (to_ns - from_ns + SECOND_NS - 1) / SECOND_NS;
+    let rows = ((span_s + row_s - 1) / row_s).max(1) as usize;
+    let to_s = from_s + rows as i64 * row_s;
+    let missing = ctx.helicorder.lock().await.missing(&b, &s, from_s, to_s);
+    let whole_before_s = crate::live::wall_clock_ns() / SECOND_NS - 60;
+    let mut read = 0;
+    let mut error = None;
+    for (a, z) in missing {
+        // An hour at a time: each read is one history view, and the store fills as it goes.
+        let mut at = a;
+        while at < z && error.is_none() {
+            let end = (at + 3600).min(z);
+            let mut builder = SecondsBuilder::new(at * SECOND_NS, end * SECOND_NS);
+            match read_history(ctx, &b, &s, at * SECOND_NS, end * SECOND_NS, &mut |batch| {
+                builder.push(batch)
+            })
+            .await?
+            {
+                Ok(n) => {
+                    read += n;
+                    ctx.helicorder.lock().await.store(
+                        &b,
+                        &s,
+                        at,
+                        end,
+                        whole_before_s,
+                        builder.finish(),
+                    );
+                }
+                Err(e) => error = Some(e),
+            }
+            at = end;
+        }
+    }
+    let cache = ctx.helicorder.lock().await;
+    let seconds = cache.get(&b, &s, from_s, to_s);
+    let drum = crate::helicorder::drum(&seconds, axis, from_s, rows, row_s);
+    Ok(serde_json::json!({
+        "batches_read": read,
+        "cached_seconds": cache.cached_seconds(),
+        "error": error,
+        "helicorder": drum,
     }))
 }
 

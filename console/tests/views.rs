@@ -1365,3 +1365,208 @@ async fn comparing_in_a_browser() {
     drop(browser);
     console.stop().await;
 }
+
+/// Logs the browser in as `name` through the page's form.
+async fn browser_login(browser: &Browser, url: &str, name: &str) {
+    browser.go(&format!("{url}#/login"));
+    browser
+        .wait(
+            "the login form",
+            "return document.getElementById('login-name')",
+        )
+        .await;
+    browser.js(&format!("document.getElementById('login-name').value = '{name}'; document.getElementById('login-password').value = '{PASSWORD}'; document.getElementById('login-go').click(); return 1"));
+    browser
+        .wait("logged in", &format!("const w = document.getElementById('who-name'); return w && w.textContent.startsWith('{name} ')"))
+        .await;
+}
+
+/// Marking: annotations of one's own, kept, shown on every plot of their building (a sensor's
+/// only on its own), removed by their author or an admin, exported as CSV; and a day at a
+/// glance: the helicorder of two hours from the per-second store, with gaps, flags and the
+/// annotations, the second look read from the store.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn marking_and_a_day_at_a_glance() {
+    let site = Site::start(2 * 3600).await;
+    let dir = tempfile::tempdir().unwrap();
+    let operators = dir.path().join("operators");
+    write_operators(
+        &operators,
+        &[("alice", "operate"), ("bob", "operate"), ("root", "admin")],
+    );
+    let state = dir.path().join("state");
+    let console = Console::start_with(&site, Some(state.clone()), |o| {
+        o.operators_file = Some(operators.clone());
+    })
+    .await;
+    console.login("alice").await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let now = now_ns();
+    let min = 60_000_000_000i64;
+    let (status, crane) = console
+        .post(
+            "/api/annotations",
+            &json!({"building": "hq", "from_ns": now - 30 * min, "to_ns": now - 20 * min, "text": "crane lift"}),
+        )
+        .await;
+    assert_eq!(status, 200, "{crane}");
+    let crane: Value = serde_json::from_str(&crane).unwrap();
+    assert_eq!(
+        (crane["by"].as_str(), crane["source"].as_str()),
+        (Some("alice"), Some("operator"))
+    );
+    for (body, names) in [
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now + min, "text": ""}),
+            "\"text\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now - min, "text": "x"}),
+            "\"to_ns\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": "soon", "to_ns": now, "text": "x"}),
+            "\"from_ns\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now, "text": "x", "by": "eve"}),
+            "\"by\"",
+        ),
+    ] {
+        let (status, text) = console.post("/api/annotations", &body).await;
+        assert_eq!(status, 400, "{body}: {text}");
+        assert!(text.contains(names), "{body}: {text}");
+    }
+    console.login("bob").await;
+    let (status, moved) = console
+        .post(
+            "/api/annotations",
+            &json!({"building": "hq", "sensor": "acc-02", "from_ns": now - 25 * min, "to_ns": now - 25 * min, "text": "=sensor moved \"2 m\""}),
+        )
+        .await;
+    assert_eq!(status, 200, "{moved}");
+    let (status, text) = console
+        .post("/api/annotations/delete", &json!({"id": crane["id"]}))
+        .await;
+    assert_eq!(status, 400, "not bob's: {text}");
+    assert!(text.contains("only its author or an admin"), "{text}");
+    let (status, csv) = console.get("/api/annotations?building=hq&format=csv").await;
+    assert_eq!(status, 200);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        lines[0],
+        "id,building,sensor,from_utc,to_utc,from_ns,to_ns,text,by,at,source"
+    );
+    assert_eq!(lines.len(), 3, "{csv}");
+    assert!(
+        lines[2].contains(",acc-02,") && lines[2].contains("\"'=sensor moved \"\"2 m\"\"\""),
+        "{csv}"
+    );
+
+    let browser = Browser::start(false);
+    let url = console.url();
+    browser_login(&browser, &url, "alice").await;
+    // On every plot of the building: the building's note everywhere, acc-02's on acc-02 only.
+    browser.go(&format!("{url}#/sensor/hq/acc-01?last=3600"));
+    browser
+        .wait("acc-01's plots with the crane lift", "const c = document.getElementById('canvas-x'); return c && document.getElementById('plot').dataset.source === 'history' && c.dataset.notes === '1' && document.querySelectorAll('#notes-list tr.note').length === 2")
+        .await;
+    browser.go(&format!("{url}#/building/hq?last=3600"));
+    browser
+        .wait("the building's plots with their notes", "const n = (s) => { const c = document.getElementById('bcanvas-' + s); return c && c.dataset.drawn && c.dataset.notes; }; return document.getElementById('building-plots').dataset.loaded === '3' && n('acc-01') === '1' && n('acc-02') === '2' && n('acc-03') === '1'")
+        .await;
+    // One of one's own, from the page: the span shown.
+    browser.js("document.getElementById('note-text').value = 'floor 3 works'; document.getElementById('note-add').click(); return 1");
+    browser
+        .wait("the new note listed and drawn", "return document.querySelectorAll('#notes-list tr.note').length === 3 && document.getElementById('bcanvas-acc-01').dataset.notes === '2'")
+        .await;
+    browser.screenshot("building-annotations");
+    let listed = console.json("/api/annotations?building=hq").await;
+    assert_eq!(listed["matched"], 3, "{listed}");
+    assert_eq!(listed["annotations"][2]["by"], "alice");
+
+    // The helicorder of two hours: 8 rows of 15 min, one column a second.
+    let t0 = std::time::Instant::now();
+    browser.go(&format!("{url}#/helicorder/hq/acc-01?hours=2&row=900"));
+    let drawn = browser
+        .wait("the helicorder", "const c = document.getElementById('heli-canvas'); return c && c.dataset.drawn && [c.dataset.rows, c.dataset.gaps, c.dataset.flagged, c.dataset.notes, c.dataset.drawMs, c.dataset.fetchMs]")
+        .await;
+    let first_s = t0.elapsed().as_secs_f64();
+    let n = |i: usize| drawn[i].as_str().unwrap().parse::<f64>().unwrap();
+    assert_eq!(n(0), 8.0, "{drawn}");
+    assert!(
+        n(1) >= 1.0,
+        "the seconds before the history began and after now are gaps: {drawn}"
+    );
+    assert!(n(2) > 100.0, "every 7th batch is flagged: {drawn}");
+    assert!(n(3) >= 2.0, "the crane lift and the works: {drawn}");
+    browser.screenshot("helicorder");
+    // Again: from the per-second store, reading only the last minute.
+    let h = console
+        .json(&format!(
+            "/api/helicorder?building=hq&sensor=acc-01&from_ns={}&to_ns={}&row_s=900",
+            now - 7_200_000_000_000,
+            now
+        ))
+        .await;
+    assert!(
+        h["batches_read"].as_u64().unwrap() < 300,
+        "{}",
+        h["batches_read"]
+    );
+    let d = &h["helicorder"];
+    assert_eq!(
+        (d["rows"].as_u64(), d["columns"].as_u64()),
+        (Some(8), Some(900))
+    );
+    // The sway of ±0.05 m/s² about the mean, in µm/s².
+    let row = d["data"][4].as_array().unwrap();
+    let top = row.iter().filter_map(Value::as_i64).max().unwrap();
+    assert!((45_000..=56_000).contains(&top), "{top}");
+    browser.assert_no_errors("annotations and helicorder");
+    eprintln!(
+        "helicorder of 2 h: first look {first_s:.1} s in all, {} ms the page's read, drawn in {} ms",
+        n(5),
+        n(4)
+    );
+    drop(browser);
+    console.stop().await;
+}
+
+/// The helicorder of 24 h at 100 Hz: read once into the per-second store, then drawn from it.
+/// Run by hand, in release (BENCHMARKS.md):
+/// `cargo test --release -p triax-console --test views -- --ignored helicorder_of_a_day --nocapture`
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore]
+async fn helicorder_of_a_day() {
+    let site = Site::start(24 * 3600).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let browser = Browser::start(false);
+    let url = console.url();
+    let mut looks = Vec::new();
+    for look in 0..4 {
+        let t0 = std::time::Instant::now();
+        browser.go(&format!(
+            "{url}#/helicorder/hq/acc-01?hours=24&row=900&look={look}"
+        ));
+        let d = browser
+            .wait("the helicorder of a day", "const c = document.getElementById('heli-canvas'); return c && c.dataset.drawn && [c.dataset.rows, c.dataset.drawMs, c.dataset.fetchMs]")
+            .await;
+        looks.push((t0.elapsed().as_secs_f64(), d));
+    }
+    for (i, (s, d)) in looks.iter().enumerate() {
+        eprintln!("look {i}: {s:.2} s in all; rows, draw ms, read ms: {d}");
+    }
+    browser.screenshot("helicorder-day");
+    drop(browser);
+    console.stop().await;
+}

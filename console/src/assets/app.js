@@ -129,6 +129,15 @@
     const parts = path.split('/').filter(Boolean);
     if (parts[0] === 'alerts') return { view: 'alerts', params };
     if (parts[0] === 'modes' && parts.length === 2) return { view: 'modes', building: parts[1] };
+    if (parts[0] === 'helicorder' && (parts.length === 2 || parts.length === 3)) {
+      const num = (k, d, ok) => { const v = Number(params.get(k)); return params.get(k) !== null && ok(v) ? v : d; };
+      const r = { view: 'helicorder', building: parts[1], sensor: parts[2] || null, axis: AXES.includes(params.get('axis')) ? params.get('axis') : 'x',
+        hours: num('hours', 24, (v) => [1, 2, 6, 12, 24].includes(v)), row: num('row', 900, (v) => [300, 600, 900, 1800, 3600].includes(v)),
+        end: num('end', null, (v) => Number.isFinite(v) && v > 0) };
+      const endMs = r.end === null ? Date.now() : r.end / 1e6;
+      r.window = [endMs - r.hours * 3600e3, endMs];
+      return r;
+    }
     if (parts[0] === 'building' && parts.length === 2) {
       const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null,
         overlay: (params.get('overlay') || '').split('').filter((a, i, all) => AXES.includes(a) && all.indexOf(a) === i).join('') };
@@ -343,6 +352,7 @@
     if (route.view === 'fleet') { if (changed) renderFleet(); if (changed && !rows.size) refreshRows(); }
     else if (route.view === 'alerts') refreshAlerts();
     else if (route.view === 'sensor' && changed) renderSensorHeader();
+    else if (route.view === 'helicorder' && !$('helicorder')) renderHelicorder();
   }
 
   // ---- Fleet view -------------------------------------------------------------------------
@@ -674,6 +684,7 @@
       el('button', { id: 'btn-mseed', onclick: exportMseed, title: 'every calibrated sample of the span shown (up to 1 h), as miniSEED 2: acceleration (location 00), standard uncertainty (U0) and flags (Q0) per axis' }, 'miniSEED'),
       el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
       el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG'),
+      el('a', { id: 'btn-day', href: `#/helicorder/${encodeURIComponent(r.building)}/${encodeURIComponent(r.sensor)}`, title: '24 h of a channel in rows (helicorder)' }, 'day'),
       el('a', { id: 'btn-building', href: `#/building/${encodeURIComponent(r.building)}` + (r.window ? `?from=${msToNs(r.window[0])}&to=${msToNs(r.window[1])}` : '') + (r.alert ? `${r.window ? '&' : '?'}alert=${r.alert}` : '') }, 'building view'));
     const plots = el('div', { id: 'plot', 'data-source': r.error ? 'none' : isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
       AXES.map((ax) => el('div', { class: 'plot' }, el('canvas', { id: `canvas-${ax}`, width: 1000, height: 170 }), el('span', { class: 'title', id: `title-${ax}` }, `a${ax}`))),
@@ -696,6 +707,7 @@
       el('div', { id: 'spectrogram-line', class: 'meta' }),
       el('div', { class: 'plot' }, el('canvas', { id: 'canvas-spectrogram', width: 1000, height: 260 }), el('span', { class: 'title', id: 'spectrogram-title' }, 'PSD per column of time, dB re 1 (m/s²)²/Hz'))),
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
+    notesPanel(r.building, r.sensor),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
     refreshRows();
@@ -706,6 +718,7 @@
     $('plot').dataset.stream = liteStream() ? 'light' : 'full';
     for (const c of document.querySelectorAll('#plot canvas')) attachPointer(c, () => scheduleDraw());
     if (r.alert) loadAlert(r.alert);
+    loadNotes(r.building, ...(r.window || [Date.now() - LIVE_MAX_SPAN_S * 1000, Date.now() + 3600e3]));
     if (isLive) connect(q.toString());
     else { connect(''); loadWindow(r.window); }
   }
@@ -1016,7 +1029,7 @@
   const exportName = (ext) => { const [f, t] = currentWindow(); return `${route.building}_${route.sensor || 'building'}_${fmtInput(f).replace(/[: ]/g, '-')}_${Math.round((t - f) / 1000)}s.${ext}`; };
 
   function exportImage(kind) {
-    const canvases = [...document.querySelectorAll('#plot canvas, #building-plots canvas')].filter((c) => c.offsetParent !== null && c.dataset.plotTop !== undefined);
+    const canvases = [...document.querySelectorAll('#plot canvas, #bcanvas-overlay, #building-plots canvas, #heli-canvas')].filter((c) => c.offsetParent !== null && c.dataset.plotTop !== undefined);
     if (!canvases.length) { $('status-line').textContent = 'Nothing drawn yet to export.'; return; }
     if (kind === 'png') {
       const out = document.createElement('canvas');
@@ -1304,6 +1317,23 @@
       const lw = g.measureText(label).width;
       g.fillText(label, Math.max(2, Math.min(x - lw / 2, w - lw - 2)), h - 4 - lanes * 4);
     }
+    // The operators' annotations of this building: a band each, its note written at its top.
+    const notes = o.notes !== undefined ? o.notes : notesFor(route && route.sensor);
+    let drawnNotes = 0;
+    for (const a of notes) {
+      const na = nsToMs(a.from_ns), nb = nsToMs(a.to_ns);
+      if (nb < o.x0 || na > o.x1) continue;
+      const xa = Math.max(left, X(na)), xb = Math.min(left + pw, Math.max(X(nb), xa + 2));
+      const event = a.source !== 'operator';
+      g.fillStyle = event ? 'rgba(217,119,6,.16)' : 'rgba(105,65,198,.13)';
+      g.fillRect(xa, top, xb - xa, ph);
+      g.fillStyle = event ? '#b54708' : '#6941c6';
+      g.fillRect(xa, top, 2, ph);
+      const label = a.text.length > 40 ? a.text.slice(0, 39) + '…' : a.text;
+      g.fillText(label, Math.min(xa + 4, left + pw - g.measureText(label).width - 2), top + 12 + 12 * (drawnNotes % 3));
+      drawnNotes++;
+    }
+    canvas.dataset.notes = String(drawnNotes);
     if (o.shade) {
       const a = Math.max(left, X(o.shade[0])), b = Math.min(left + pw, Math.max(X(o.shade[1]), a + 2));
       if (b > a) { g.fillStyle = c.shade; g.fillRect(a, top, b - a, ph); }
@@ -1428,6 +1458,183 @@
     void present;
   }
 
+  // ---- A day at a glance: the helicorder -----------------------------------------------------
+  // Up to 24 h of one axis in rows (15 min each by default), from the console's per-second
+  // minima and maxima (/api/helicorder); gaps shaded grey, flagged seconds ticked in the flag's
+  // colour above the trace, annotations shaded.
+  let heliView = null;
+  let heliGain = 1;
+  function renderHelicorder() {
+    const r = route;
+    heliView = null; currentNotes = [];
+    if (!source || source.url.includes('sensor=')) connect('');
+    const sensors = buildingSensors();
+    const sensor = r.sensor || sensors[0];
+    if (!sensor) { $('view').replaceChildren(el('section', { class: 'card' }, el('h2', {}, `Building ${r.building}: day`), el('p', { class: 'notice' }, 'No sensor of this building is known yet.'))); return; }
+    const link = (change) => { const x = { ...r, sensor, ...change }; return `#/helicorder/${encodeURIComponent(r.building)}/${encodeURIComponent(x.sensor)}?axis=${x.axis}&hours=${x.hours}&row=${x.row}` + (x.end === null ? '' : `&end=${x.end}`); };
+    const sel = (id, values, current, f) => el('select', { id, onchange: (e) => { location.hash = link(f(e.target.value)); } }, values.map(([v, t]) => el('option', { value: v, selected: String(v) === String(current) ? 'selected' : null }, t)));
+    const endNs = Number(msToNs(r.window[1]));
+    $('view').replaceChildren(el('section', { class: 'card', id: 'helicorder', 'data-building': r.building, 'data-sensor': sensor },
+      el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / ', el('a', { href: `#/building/${encodeURIComponent(r.building)}` }, r.building), ' / ', el('a', { href: sensorHref(r.building, sensor) }, sensor), ' / day'),
+      el('div', { class: 'controls' },
+        el('label', {}, 'sensor ', sel('heli-sensor', (sensors.includes(sensor) ? sensors : [sensor, ...sensors]).map((x) => [x, x]), sensor, (v) => ({ sensor: v }))),
+        el('label', {}, 'axis ', sel('heli-axis', AXES.map((a) => [a, `a${a}`]), r.axis, (v) => ({ axis: v }))),
+        el('label', {}, 'hours ', sel('heli-hours', [1, 2, 6, 12, 24].map((h) => [h, `${h} h`]), r.hours, (v) => ({ hours: Number(v) }))),
+        el('label', {}, 'row ', sel('heli-row', [[300, '5 min'], [600, '10 min'], [900, '15 min'], [1800, '30 min'], [3600, '1 h']], r.row, (v) => ({ row: Number(v) }))),
+        el('button', { id: 'heli-back', onclick: () => { location.hash = link({ end: endNs - r.hours * 3600e9 }); } }, '◀'),
+        el('button', { id: 'heli-now', class: r.end === null ? 'active' : '', onclick: () => { location.hash = link({ end: null }); } }, 'now'),
+        el('button', { id: 'heli-fwd', disabled: r.end === null ? 'disabled' : null, onclick: () => { const e = endNs + r.hours * 3600e9; location.hash = link({ end: e >= Date.now() * 1e6 ? null : e }); } }, '▶'),
+        el('button', { id: 'heli-gain-down', onclick: () => { heliGain /= 2; drawHelicorder(); } }, 'gain −'),
+        el('button', { id: 'heli-gain-up', onclick: () => { heliGain *= 2; drawHelicorder(); } }, 'gain +'),
+        el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG')),
+      el('div', { id: 'status-line', class: 'meta' }, `reading ${r.hours} h of a${r.axis}…`),
+      el('div', { class: 'plot', id: 'heli-plot' }, el('canvas', { id: 'heli-canvas', width: 1000, height: 700 })),
+      el('div', { class: 'legend', id: 'heli-legend' })),
+    notesPanel(r.building, sensor));
+    loadNotes(r.building, r.window[0], r.window[1]);
+    loadHelicorder(r, sensor);
+  }
+
+  async function loadHelicorder(r, sensor) {
+    const t0 = performance.now();
+    const q = new URLSearchParams({ building: r.building, sensor, axis: r.axis, from_ns: msToNs(r.window[0]), to_ns: msToNs(r.window[1]), row_s: String(r.row) });
+    const body = await getJson('/api/helicorder?' + q);
+    if (route !== r) return;
+    const fetched = performance.now() - t0;
+    if (!body.helicorder) { $('status-line').textContent = `helicorder: ${body.error}`; return; }
+    heliView = body;
+    const d = drawHelicorder();
+    const h = body.helicorder;
+    const c = $('heli-canvas');
+    c.dataset.fetchMs = fetched.toFixed(0);
+    $('status-line').textContent = `a${h.axis} − ${fmtNum(h.mean_mps2, 6)} m/s², ${h.rows} rows of ${fmtSpan(h.row_ns / 1e9)}, one column a second (min … max); ` +
+      `${h.gap_seconds} seconds without a sample; read in ${fetched.toFixed(0)} ms (${body.batches_read} batches from the history, the rest from the console's store), drawn in ${d.toFixed(0)} ms` + (body.error ? `; ${body.error}` : '');
+  }
+
+  function drawHelicorder() {
+    const canvas = $('heli-canvas');
+    if (!heliView || !canvas) return 0;
+    const t0 = performance.now();
+    const h = heliView.helicorder;
+    const rowPx = Math.max(8, Math.min(40, Math.floor(760 / h.rows)));
+    const top = 8, bottom = 18, left = 70, right = 8;
+    canvas.style.height = `${top + bottom + rowPx * h.rows}px`;
+    const { g, w, c } = canvasContext(canvas, top + bottom + rowPx * h.rows);
+    const pw = w - left - right;
+    const sample = [];
+    for (const row of h.data) for (let i = 0; i < row.length; i += 17) if (row[i] !== null) sample.push(Math.abs(row[i]));
+    sample.sort((a, b) => a - b);
+    const amp = Math.max(1, sample[Math.floor(0.99 * (sample.length - 1))] || 1);
+    // The 99th percentile of |a − mean| reaches half a row either way: rows do not overlap.
+    const k = heliGain * 0.45 * rowPx / amp;
+    const colW = pw / h.columns;
+    const colors = ['#175cd3', '#b42318', '#1d7a3a', c.muted];
+    let gaps = 0, flagged = 0, notes = 0;
+    g.textBaseline = 'middle';
+    for (let r = 0; r < h.rows; r++) {
+      const y0 = top + (r + 0.5) * rowPx;
+      const row = h.data[r];
+      // Gaps: runs of seconds without a sample.
+      g.fillStyle = 'rgba(127,127,127,.18)';
+      for (let i = 0; i < h.columns; i++) {
+        if (row[2 * i] !== null) continue;
+        let j = i; while (j < h.columns && row[2 * j] === null) j++;
+        g.fillRect(left + i * colW, y0 - rowPx / 2, (j - i) * colW, rowPx); gaps += j - i; i = j;
+      }
+      g.strokeStyle = colors[r % colors.length]; g.lineWidth = 1; g.beginPath();
+      const clip = (v) => Math.max(y0 - 1.5 * rowPx, Math.min(y0 + 1.5 * rowPx, y0 - v * k));
+      for (let i = 0; i < h.columns; i++) {
+        const lo = row[2 * i], hi = row[2 * i + 1];
+        if (lo === null) continue;
+        const x = left + (i + 0.5) * colW;
+        g.moveTo(x, clip(hi)); g.lineTo(x, clip(lo) + 0.5);
+      }
+      g.stroke();
+      for (const [col, bits] of h.flags[r]) {
+        const bit = FLAGS.findIndex((_, b) => bits & (1 << b));
+        g.fillStyle = bit >= 0 ? FLAGS[bit][1] : c.muted;
+        g.fillRect(left + col * colW, y0 - rowPx / 2, Math.max(1, colW), 2); flagged++;
+      }
+      const rowStart = nsToMs(h.from_ns) + r * h.row_ns / 1e6;
+      for (const a of notesFor($('helicorder').dataset.sensor)) {
+        const a0 = Math.max(nsToMs(a.from_ns), rowStart), a1 = Math.min(nsToMs(a.to_ns), rowStart + h.row_ns / 1e6);
+        if (a1 < a0) continue;
+        g.fillStyle = a.source === 'operator' ? 'rgba(105,65,198,.2)' : 'rgba(217,119,6,.2)';
+        const xa = left + (a0 - rowStart) / (h.row_ns / 1e6) * pw;
+        g.fillRect(xa, y0 - rowPx / 2, Math.max(2, (a1 - a0) / (h.row_ns / 1e6) * pw), rowPx); notes++;
+      }
+      if (rowPx >= 10 || r % Math.ceil(10 / rowPx) === 0) { g.fillStyle = c.muted; g.fillText(fmtTick(rowStart, false).slice(0, 5), 4, y0); }
+    }
+    g.fillStyle = c.muted; g.textBaseline = 'alphabetic';
+    for (let m = 0; m <= 4; m++) { const x = left + pw * m / 4; g.fillText(`+${fmtSpan(Math.round(h.row_ns / 1e9 * m / 4))}`, Math.min(x, w - 50), top + rowPx * h.rows + 14); }
+    const ms = performance.now() - t0;
+    Object.assign(canvas.dataset, { drawn: '1', rows: String(h.rows), gaps: String(gaps), flagged: String(flagged), notes: String(notes), drawMs: ms.toFixed(1), plotTop: String(top) });
+    $('heli-legend').replaceChildren(`${fmtNum(amp * h.scale_mps2 / heliGain / 0.45, 3)} m/s² per ${rowPx} px row height; grey: no sample; ticks above a trace: flagged seconds (`,
+      ...FLAGS.filter((_, b) => h.flags.some((f) => f.some(([, bits]) => bits & (1 << b)))).map(([n, col]) => { const i = el('i', {}); i.style.background = col; return [i, n.replace(/_/g, ' ')]; }).flat(), '); purple: annotations.');
+    return ms;
+  }
+
+  // ---- Annotations: the operators' own marks, on every plot of their building ---------------
+  // (PROTOCOL-free: the console's own, /api/annotations). `source` other than `operator` is
+  // kept for the event reports' marks, drawn in another colour; the console makes none.
+  let currentNotes = [];
+  let notesKey = '';
+  const notesFor = (sensor) => currentNotes.filter((a) => !a.sensor || !sensor || a.sensor === sensor);
+  async function loadNotes(building, fromMs, toMs) {
+    const myRoute = route;
+    notesKey = `${building}:${fromMs}:${toMs}`;
+    const q = new URLSearchParams({ building, from_ns: msToNs(Math.max(0, fromMs)), to_ns: msToNs(toMs) });
+    const body = await getJson('/api/annotations?' + q);
+    if (route !== myRoute) return;
+    currentNotes = body.annotations || [];
+    const csv = $('notes-csv');
+    if (csv) csv.href = '/api/annotations?' + q + '&format=csv';
+    renderNotesList(body.error);
+    if (route.view === 'building') drawBuilding(); else if (route.view === 'helicorder') drawHelicorder(); else scheduleDraw();
+  }
+
+  function notesPanel(building, sensor) {
+    const text = el('input', { id: 'note-text', type: 'text', size: 40, maxlength: 500, placeholder: 'crane lift, sensor moved, …' });
+    const from = el('input', { id: 'note-from', type: 'text', size: 19, spellcheck: 'false', placeholder: 'YYYY-MM-DD HH:MM:SS' });
+    const to = el('input', { id: 'note-to', type: 'text', size: 19, spellcheck: 'false', placeholder: 'YYYY-MM-DD HH:MM:SS' });
+    const only = sensor ? el('input', { id: 'note-sensor-only', type: 'checkbox' }) : null;
+    const fill = () => { const [a, b] = route.view === 'sensor' ? currentWindow() : route.window; from.value = fmtInput(a); to.value = fmtInput(b); };
+    const add = async () => {
+      const status = $('notes-status');
+      const a = parseInput(from.value), b = parseInput(to.value);
+      if (a === null || b === null) { status.textContent = `from and to are times like ${fmtInput(Date.now())} (${zoneLabel()})`; status.className = 'warning'; return; }
+      const body = { building, from_ns: Number(msToNs(a)), to_ns: Number(msToNs(b)), text: text.value };
+      if (only && only.checked) body.sensor = sensor;
+      let resp, answer;
+      try { resp = await fetch('/api/annotations', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) }); answer = await resp.text(); } catch (e) { status.textContent = `console unreachable (${e.message || e})`; return; }
+      if (!resp.ok) { status.textContent = `console refused (${resp.status}): ${answer.trim()}`; status.className = 'warning'; return; }
+      status.className = 'meta'; status.textContent = 'kept'; text.value = '';
+      const [wa, wb] = route.view === 'sensor' ? currentWindow() : route.window;
+      loadNotes(building, wa, wb);
+    };
+    setTimeout(fill, 0);
+    return el('section', { class: 'card', id: 'notes' }, el('h3', {}, 'Annotations'),
+      el('div', { class: 'controls' }, el('label', {}, `from (${zoneLabel()}) `, from), el('label', {}, 'to ', to), el('button', { onclick: fill, title: 'the span shown' }, 'span shown'),
+        el('label', {}, 'note ', text), only ? el('label', {}, only, ` ${sensor} only`) : null, el('button', { id: 'note-add', onclick: add }, 'Add'),
+        el('a', { id: 'notes-csv', href: '#', download: `${building}_annotations.csv` }, 'CSV')),
+      el('div', { id: 'notes-status', class: 'meta' }, me && me.operator ? `shown on every plot of building ${building}` : 'log in to annotate'),
+      el('div', { id: 'notes-list' }));
+  }
+
+  function renderNotesList(error) {
+    const box = $('notes-list');
+    if (!box) return;
+    if (error) { box.replaceChildren(el('p', { class: 'warning' }, error)); return; }
+    box.replaceChildren(currentNotes.length ? el('table', {}, el('tbody', {}, currentNotes.map((a) => el('tr', { class: 'note', 'data-id': a.id, 'data-source': a.source },
+      el('td', {}, `${fmtTime(nsToMs(a.from_ns))} – ${fmtTime(nsToMs(a.to_ns))}`), el('td', {}, a.sensor || 'whole building'), el('td', { class: 'statement' }, a.text),
+      el('td', {}, a.source === 'operator' ? `by ${a.by}, ${fmtTime(Date.parse(a.at))}` : `from ${a.source}`),
+      el('td', {}, me && me.operator && (me.operator.name === a.by || me.operator.role === 'admin') ? el('button', { class: 'note-delete', onclick: async () => {
+        const resp = await fetch('/api/annotations/delete', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ id: a.id }) });
+        if (!resp.ok) { $('notes-status').textContent = `console refused (${resp.status}): ${(await resp.text()).trim()}`; return; }
+        const [wa, wb] = route.view === 'sensor' ? currentWindow() : route.window; loadNotes(a.building, wa, wb);
+      } }, 'Remove') : null))))) : el('p', { class: 'meta' }, 'None in this span.'));
+  }
+
   // ---- Building view: several sensors, time-aligned ----------------------------------------
   let buildingData = null;   // per sensor, its /api/history or /api/trend answer
   function renderBuildingView() {
@@ -1460,8 +1667,10 @@
           el('input', { class: 'plot-band', 'data-sensor': s, type: 'text', size: 8, spellcheck: 'false', placeholder: r.band || 'none', onchange: (e) => setPlotBand(r, s, e.target.value.trim(), fromMs, toMs) })), ' Hz'),
         el('canvas', { id: `bcanvas-${s}`, width: 1000, height: 130 }),
         el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra({ ...r, overlay: '' }) }, s), ` ${r.quantity === 'acceleration' ? 'a' : r.quantity + ' '}${r.axis}`, el('span', { class: 'plot-band-note', 'data-sensor': s }))))),
-      el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })));
+      el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })),
+      notesPanel(r.building, null));
     if (r.error) return;
+    loadNotes(r.building, fromMs, toMs);
     for (const c of document.querySelectorAll('#building-plots canvas, #bcanvas-overlay')) attachPointer(c, drawBuilding);
     if (r.alert) getJson(`/api/alerts?id=${r.alert}`).then((b) => { if (route === r && b.alerts && b.alerts.length) { alertInfo = b.alerts[0]; drawBuilding(); } });
     loadBuilding(r, sensors, fromMs, toMs);
@@ -1522,16 +1731,16 @@
       if (note) note.textContent = body.processed && body.view ? ` (${body.view.quantity}, ${bandText(body.view.band)}, ${body.view.unit})` : '';
       if (body.processed && body.view) {
         const p = processedSeries(body.view, [i], () => `${body.view.quantity} ${route.axis}`, [AXIS_COLORS[i]]);
-        drawSeries(canvas, { x0, x1, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: body.view.unit, shade: mine.shade, series: p.series });
+        drawSeries(canvas, { x0, x1, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: body.view.unit, shade: mine.shade, series: p.series, notes: notesFor(s) });
         canvas.dataset.band = plotBands.get(s) || route.band || '';
       } else if (body.minutes) {
-        drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined,
+        drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined, notes: notesFor(s),
           series: [{ name: `peak a${route.axis}`, color: AXIS_COLORS[i], points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) }] });
       } else if (body.view) {
         const v = body.view, bucketMs = v.bucket_ns / 1e6;
         let present = 0;
         for (const b of v.buckets) present |= b[2];
-        drawSeries(canvas, { x0, x1, marker: null, gaps: v.gaps, present, correction: v.correction, bucketMs, unit: 'm/s²', ...mine,
+        drawSeries(canvas, { x0, x1, marker: null, gaps: v.gaps, present, correction: v.correction, bucketMs, unit: 'm/s²', ...mine, notes: notesFor(s),
           series: [{ name: `a${route.axis}`, color: AXIS_COLORS[i], points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }] });
       }
       canvas.dataset.drawn = '1';
@@ -1565,7 +1774,7 @@
       }
     }
     const unit = [...units].join(' / ');
-    drawSeries(canvas, { x0, x1, marker: null, gaps, present: 0, bucketMs, unit, shade: alertOverlay().shade, series });
+    drawSeries(canvas, { x0, x1, marker: null, gaps, present: 0, bucketMs, unit, shade: alertOverlay().shade, series, notes: notesFor(null) });
     canvas.dataset.series = String(series.length);
     canvas.dataset.drawn = '1';
     const legend = $('overlay-legend');
@@ -1799,6 +2008,7 @@
     if (route.view === 'sensor') { renderSensor(); return; }
     if (route.view === 'building') { renderBuildingView(); return; }
     if (route.view === 'modes') { renderModes(); return; }
+    if (route.view === 'helicorder') { renderHelicorder(); return; }
     if (!source || source.url.includes('sensor=')) connect('');
     if (route.view === 'alerts') renderAlerts(); else { renderFleet(); refreshRows(); }
   }
@@ -1808,7 +2018,7 @@
   window.addEventListener('error', (e) => pageError(e.message));
   window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
-  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); drawModes(); });
+  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); drawModes(); if (route && route.view === 'helicorder') drawHelicorder(); });
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   // A window of modes comes every half hour or so: a look every 10 s is plenty.
   setInterval(() => { if (route && route.view === 'modes') loadModes(route); }, 10000);
