@@ -1497,7 +1497,9 @@
 
   async function loadHelicorder(r, sensor) {
     const t0 = performance.now();
-    const q = new URLSearchParams({ building: r.building, sensor, axis: r.axis, from_ns: msToNs(r.window[0]), to_ns: msToNs(r.window[1]), row_s: String(r.row) });
+    // Rows start on whole multiples of their length (15 min: :00, :15, …), as a drum's do.
+    const fromMs = Math.floor(r.window[0] / (r.row * 1000)) * r.row * 1000;
+    const q = new URLSearchParams({ building: r.building, sensor, axis: r.axis, from_ns: msToNs(fromMs), to_ns: msToNs(r.window[1]), row_s: String(r.row) });
     const body = await getJson('/api/helicorder?' + q);
     if (route !== r) return;
     const fetched = performance.now() - t0;
