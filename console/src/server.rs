@@ -159,6 +159,33 @@ fn operator_of(ctx: &Context, req: &Request) -> Option<Operator> {
     ctx.operators.identify(req.cookie.as_deref(), header)
 }
 
+/// What `/api/me` answers, and the page carries from the start.
+fn me_json(ctx: &Context, who: Option<&Operator>) -> serde_json::Value {
+    serde_json::json!({
+        "operator": who,
+        "login_required": ctx.operators.login_required(),
+        "accounts": ctx.operators.path().is_some() && !ctx.operators.accounts().is_empty(),
+        "proxy_header": ctx.operators.identity_header(),
+        "time_zone": ctx.options.time_zone.as_ref().map(|z| z.name()),
+    })
+}
+
+/// `text` escaped for a double-quoted HTML attribute.
+fn html_attribute(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
 /// Refuses a request whose operator may not do what `need` allows.
 fn require(ctx: &Context, who: Option<&Operator>, need: Role, what: &str) -> Result<(), Refusal> {
     match who {
@@ -274,13 +301,15 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
     match req.path.as_str() {
         "/" | "/index.html" => {
             p.only(&[])?;
-            ok(
-                stream,
-                "text/html; charset=utf-8",
-                INDEX_HTML.into(),
-                head_only,
-            )
-            .await
+            // Who the page is for, in the page itself, so that it knows before its first
+            // request whether to ask for a login (the cookie is HttpOnly: no script reads it).
+            let me = html_attribute(&me_json(ctx, who.as_ref()).to_string());
+            let page = INDEX_HTML.replacen(
+                r#"<meta name="triax-me" content="">"#,
+                &format!(r#"<meta name="triax-me" content="{me}">"#),
+                1,
+            );
+            ok(stream, "text/html; charset=utf-8", page.into(), head_only).await
         }
         "/app.js" => {
             p.only(&[])?;
@@ -302,14 +331,7 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
         }
         "/api/me" => {
             p.only(&[])?;
-            let body = serde_json::json!({
-                "operator": who,
-                "login_required": ctx.operators.login_required(),
-                "accounts": ctx.operators.path().is_some() && !ctx.operators.accounts().is_empty(),
-                "proxy_header": ctx.operators.identity_header(),
-                "time_zone": ctx.options.time_zone.as_ref().map(|z| z.name()),
-            });
-            ok(stream, JSON, json(&body), head_only).await
+            ok(stream, JSON, json(&me_json(ctx, who.as_ref())), head_only).await
         }
         "/api/fleet" => {
             p.only(&["building", "sensor"])?;

@@ -344,6 +344,33 @@ window_s = 10
     );
     let status = console.json("/api/notifications").await;
     assert_eq!(status["failed"], 0, "{status}");
+    // The alerts view says what left.
+    let browser = Browser::start(false);
+    browser.go(&format!("{}#/login", console.url()));
+    browser
+        .wait(
+            "the login form",
+            "return document.getElementById('login-name')",
+        )
+        .await;
+    browser.js(&format!("document.getElementById('login-name').value = 'alice'; document.getElementById('login-password').value = '{PASSWORD}'; document.getElementById('login-go').click(); return 1"));
+    browser
+        .wait("logged in", "return document.getElementById('who-name')")
+        .await;
+    browser.go(&format!("{}#/alerts", console.url()));
+    let line = browser
+        .wait("the notifications line", "const n = document.getElementById('notify-status'); return n && Number(n.dataset.sent) > 0 && n.textContent")
+        .await;
+    assert!(
+        line.as_str()
+            .unwrap()
+            .contains("Notifications on annex, boss, flood, hook, mail:")
+            && line.as_str().unwrap().contains("0 failed"),
+        "{line}"
+    );
+    browser.screenshot("alerts-notifications");
+    browser.assert_no_errors("the notifications line");
+    drop(browser);
     eprintln!(
         "verified alert put to webhook received: {:.1} ms; flood of 300 published in {published:?}, {messages} messages",
         latency.as_secs_f64() * 1e3

@@ -89,6 +89,12 @@ async fn alert_log_survives_a_restart() {
     assert_eq!(status, 401, "an unknown operator");
     console.login("viewer").await;
     assert_eq!(console.json("/api/me").await["operator"]["role"], "view");
+    let (_, page) = console.get("/").await;
+    assert!(
+        page.contains(r#"<meta name="triax-me" content="{&quot;accounts&quot;:true,"#)
+            && page.contains("&quot;name&quot;:&quot;viewer&quot;"),
+        "the page knows who it is for: {page}"
+    );
     until_alerts_arrive(&site, &console).await;
     site.alert(
         "acc-01",
@@ -1497,7 +1503,10 @@ async fn marking_and_a_day_at_a_glance() {
         .await;
     let first_s = t0.elapsed().as_secs_f64();
     let n = |i: usize| drawn[i].as_str().unwrap().parse::<f64>().unwrap();
-    assert!([8.0, 9.0].contains(&n(0)), "2 h from a whole quarter: {drawn}");
+    assert!(
+        [8.0, 9.0].contains(&n(0)),
+        "2 h from a whole quarter: {drawn}"
+    );
     assert!(
         n(1) >= 1.0,
         "the seconds before the history began and after now are gaps: {drawn}"

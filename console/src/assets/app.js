@@ -498,6 +498,7 @@
         el('button', { id: 'ack-selected', onclick: () => acknowledge(checkedIds()) }, 'Acknowledge selected'),
         el('span', { class: 'meta' }, 'silence for ', silenceFor)),
       el('div', { id: 'alerts-status', class: 'meta' }, 'reading the alert log…'),
+      el('div', { id: 'notify-status', class: 'meta' }),
       el('table', { id: 'alert-table' },
         el('thead', {}, el('tr', {}, ['At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement', 'Handled', 'Select'].map((t) => el('th', {}, t)))),
         el('tbody', { id: 'alert-rows' }))),
@@ -527,7 +528,7 @@
     for (const k of ['building', 'sensor', 'kind', 'level', 'state']) if (f[k]) q.set(k, f[k]);
     if (f.since_s && /^\d+$/.test(f.since_s)) q.set('from_ns', msToNs(Date.now() - Number(f.since_s) * 1000));
     const myRoute = route;
-    const [body, silences] = await Promise.all([getJson('/api/alerts?' + q), getJson('/api/silences')]);
+    const [body, silences, notes] = await Promise.all([getJson('/api/alerts?' + q), getJson('/api/silences'), getJson('/api/notifications')]);
     alertsFetching = false;
     if (route !== myRoute) return;
     alertsSeen = seen;
@@ -538,6 +539,7 @@
       `; the log keeps ${body.kept} (at most ${body.max_alerts}, ${body.retention_days} days)` + (body.file ? ` in ${body.file}` : ', in memory only') + `; ${body.open} open.`;
     updateAlertRows(body.alerts);
     if (!silences.error) renderSilences(silences);
+    if (!notes.error) renderNotifyStatus(notes);
   }
 
   function statementCell(text) {
@@ -592,6 +594,18 @@
       at++;
     }
     if (!alerts.length && !body.children.length) $('alerts-status').textContent += ' None to show.';
+  }
+
+  // What notifications left the console (--notify-config), and the last one.
+  function renderNotifyStatus(n) {
+    const box = $('notify-status');
+    if (!box) return;
+    if (!n.configured) { box.textContent = 'Notifications: none configured (--notify-config).'; return; }
+    const last = n.recent && n.recent[0];
+    box.replaceChildren(`Notifications on ${n.channels.join(', ')}: ${n.sent} sent, `, el('span', { class: n.failed ? 'warning' : null }, `${n.failed} failed`),
+      `, ${n.held} held for quiet hours, ${n.unrouted} not routed` + (n.dropped ? `, ${n.dropped} dropped (queue full)` : ''),
+      last ? `; last: ${last.kind} on ${last.channel} at ${fmtTime(nsToMs(last.at_ns))}` + (last.error ? ` (failed: ${last.error})` : '') : '');
+    box.dataset.sent = String(n.sent);
   }
 
   function renderSilences(list) {
@@ -1943,7 +1957,11 @@
   let me = null;             // /api/me: { operator, login_required, accounts, time_zone }
   async function loadMe() {
     const body = await getJson('/api/me');
-    me = body.error ? { operator: null, login_required: false, error: body.error } : body;
+    applyMe(body.error ? { operator: null, login_required: false, error: body.error } : body);
+  }
+
+  function applyMe(m) {
+    me = m;
     siteZone = me.time_zone || null;
     if (tzMode === 'site' && !siteZone) tzMode = 'utc';
     renderWho();
@@ -2024,5 +2042,14 @@
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   // A window of modes comes every half hour or so: a look every 10 s is plenty.
   setInterval(() => { if (route && route.view === 'modes') loadModes(route); }, 10000);
-  loadMe().then(render);
+  // The view at once (a console without accounts needs no answer first); once /api/me has
+  // answered, the login form if one is needed, or the view again in the site's zone if chosen.
+  // Who the page is for comes with it (the server writes it into a meta tag), so that the
+  // first view is the right one: the login form when one is needed.
+  try {
+    const m = document.querySelector('meta[name="triax-me"]');
+    if (m && m.content) applyMe(JSON.parse(m.content));
+  } catch (e) { /* /api/me below says it again */ }
+  render();
+  loadMe();
 })();
