@@ -85,7 +85,8 @@ struct Cli {
     #[arg(long, value_name = "FILE")]
     trusted_alert_key_file: Vec<std::path::PathBuf>,
     /// Directory of the console's own state: the alert log (alerts.jsonl), which keeps the
-    /// alerts received, their acknowledgements and the silences across restarts. Default:
+    /// alerts received, their acknowledgements and the silences across restarts, the
+    /// annotations (annotations.jsonl) and the operators' accounts (operators). Default:
     /// $XDG_STATE_HOME/triax-console, or ~/.local/state/triax-console.
     #[arg(
         long,
@@ -95,8 +96,8 @@ struct Cli {
         global = true
     )]
     state_dir: Option<std::path::PathBuf>,
-    /// Keep the alert log in memory only: it starts empty and is lost on exit.
-    #[arg(long)]
+    /// Keep the alert log and annotations in memory only: they start empty and are lost on exit.
+    #[arg(long, global = true)]
     no_state: bool,
     /// Alerts the log keeps at most (unverified ones are dropped first).
     #[arg(long, default_value_t = triax_console::alertlog::DEFAULT_MAX_ALERTS)]
