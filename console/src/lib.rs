@@ -1,7 +1,7 @@
 //! The operators' console: the fleet at a glance, each sensor's corrected stream with its
 //! uncertainty band, and the alerts, in a browser.
 //!
-//! The console joins Zenoh like any client and only reads: it subscribes to the gateways'
+//! The console joins Zenoh like any client and only reads the site: it subscribes to the gateways'
 //! heartbeats and to the alerts, polls the gateways' status, and, for a sensor someone is
 //! looking at, subscribes to its corrected and tilt streams and queries its history. It never
 //! puts. It serves one page, by default on 127.0.0.1, that draws what the server has already
@@ -18,7 +18,9 @@
 //!
 //! Module map: [`server`] (routes), [`http`] (requests, responses, events), [`fleet`] (what is
 //! known of the buildings, gateways, sensors and alerts), [`live`] (the streams being watched),
-//! [`buckets`] (decimation), [`modes`] (the buildings' modes heard); the page itself is in
+//! [`buckets`] (decimation), [`modes`] (the buildings' modes heard), [`operators`] (accounts,
+//! roles, sessions), [`notify`] (notifications), [`process`] (filtered and integrated views),
+//! [`annotations`], [`helicorder`] (the day view's per-second store); the page itself is in
 //! `src/assets/`.
 
 pub mod alertlog;

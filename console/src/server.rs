@@ -4,10 +4,17 @@
 //! |---|---|
 //! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
 //! | `/app.js`, `/app.css`, `/favicon.svg` | its script, style and icon, embedded in the binary |
-//! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
+//! | `/api/me` | who the request comes from, and whether a login is needed |
+//! | `POST /api/login`, `/api/logout` | a session cookie for an operator's name and password, and its end ([`crate::operators`]) |
+//! | `/api/fleet[?building=[&sensor=]]` | the fleet view as JSON ([`crate::fleet::Snapshot`]), or one building's (one sensor's) row with its counters |
 //! | `/api/alerts[?id=&building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
 //! | `/api/silences` | the silences kept, newest first |
-//! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body) |
+//! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body; role operate) |
+//! | `POST /api/health/clear` | clear a field-health latch (role admin): not available yet, 501 |
+//! | `/api/notifications` | what the notifications sent ([`crate::notify`]) |
+//! | `/api/annotations?building=[&from_ns=&to_ns=&format=csv]`, `POST /api/annotations`, `POST /api/annotations/delete` | the operators' annotations ([`crate::annotations`]) |
+//! | `/api/processed?building=&sensor=&from_ns=&to_ns=[&width=&quantity=&band=]` | band-passed acceleration, velocity or displacement, up to 1 h ([`crate::process`]) |
+//! | `/api/helicorder?building=&sensor=&from_ns=&to_ns=[&axis=&row_s=]` | up to 24 h of one axis in rows ([`crate::helicorder`]) |
 //! | `/api/modes?building=` | the building's modes heard since the console started: per track its frequency trend with its band, the latest window's modes and shapes ([`crate::modes`]) |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
 //! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
@@ -16,10 +23,11 @@
 //! | `/api/spectrogram?building=&sensor=&from_ns=&to_ns=[&axis=&segment=&columns=]` | one axis's PSD per column of time, up to 1 h ([`crate::spectrum::Spectrogram`]) |
 //! | `/api/export.csv?building=&sensor=&from_ns=&to_ns=` | every sample of up to 1 h, as CSV |
 //! | `/api/export.mseed?building=&sensor=&from_ns=&to_ns=[&network=]` | every calibrated sample of up to 1 h, as miniSEED 2 |
-//! | `/events[?building=&sensor=&span_s=&width=]` | Server-Sent Events: `fleet` every second; with a sensor, `live` and `tilt` |
+//! | `/events[?building=&sensor=&span_s=&width=&lite=]` | Server-Sent Events: `fleet` once, then `fleet_delta` every second; with a sensor, `live` and `tilt` |
 //!
 //! Anything else is 404; an unknown or malformed parameter or body field is 400 naming it.
-//! `POST` is answered on the three write routes only (405 elsewhere, and 405 to a `GET` there),
+//! Once operator accounts exist (or a proxy names operators), every route but the page's files and
+//! `/api/me` needs a logged-in operator (401). `POST` is answered on the write routes only (405 elsewhere, and 405 to a `GET` there),
 //! and only with a JSON body (`Content-Type: application/json`, 415 otherwise) and an `Origin`,
 //! if sent, that is the console's own (`http://` and the request's `Host`; 403 otherwise): a
 //! page elsewhere can neither send such a request without a CORS preflight, which the console
@@ -1452,12 +1460,12 @@ async fn export_csv(ctx: &Context, p: &Params<'_>) -> Result<(String, String), R
     Ok((format!("{b}_{s}_{from_ns}_{to_ns}.csv"), out))
 }
 
-/// The event stream of one page: the fleet every second and, for a sensor view, its live frames
+/// The event stream of one page: the fleet (its brief, then its deltas every second) and, for a sensor view, its live frames
 /// and tilt. Ends when the page goes, a write stalls, or the console stops.
 ///
 /// A light stream (`lite`, for slow links) sends a live frame once a second holding only the
 /// buckets that changed (from the bucket of the earliest batch that arrived since the last
-/// frame, a late one included), and the fleet every 5 s: the page draws the same buckets,
+/// frame, a late one included), and the fleet's deltas every 5 s: the page draws the same buckets,
 /// later.
 async fn events(
     ctx: &Context,
