@@ -6,7 +6,7 @@
 //!
 //! The decisions are made by [`Dispatcher`], which does no I/O and takes the time as an
 //! argument, so that shifts, quiet hours, digests and escalation are tested with a clock of the
-//! test's own; [`run`] feeds it notices and the clock, and sends what it decides on each
+//! test's own; [`start`] feeds it notices and the clock, and sends what it decides on each
 //! channel's own task. Senders are small hand-written clients on tokio, as the console's server
 //! is: HTTP/1.1 `POST` with a `Content-Length` to an `http://` URL, and SMTP (`EHLO`, `MAIL`,
 //! `RCPT`, `DATA`, `QUIT`) to a relay, without TLS or authentication: the site's own relay (a
