@@ -378,7 +378,8 @@ impl AlertLog {
     }
 
     /// Records a new alert: gives it its id (written into `entry`) and appends it to the file.
-    pub fn record(&mut self, key: &str, payload: &[u8], entry: &mut AlertEntry) {
+    /// Returns the silence that covers it, if one does.
+    pub fn record(&mut self, key: &str, payload: &[u8], entry: &mut AlertEntry) -> Option<u64> {
         entry.id = self.next_id;
         self.next_id += 1;
         let payload = String::from_utf8_lossy(payload).into_owned();
@@ -398,6 +399,14 @@ impl AlertLog {
         });
         self.bound(entry.received_at);
         self.compact_if_needed();
+        silenced_by
+    }
+
+    /// Whether alert `id` is kept and acknowledged.
+    pub fn is_acknowledged(&self, id: u64) -> bool {
+        self.alerts
+            .iter()
+            .any(|l| l.entry.id == id && l.ack.is_some())
     }
 
     /// Drops what is past the retention or the count, unverified alerts first.

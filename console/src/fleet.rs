@@ -216,6 +216,8 @@ struct State {
 pub struct Fleet {
     options: FleetOptions,
     state: Mutex<State>,
+    /// Where verified alerts worth telling go, once notifications run.
+    notifier: std::sync::OnceLock<crate::notify::Notifier>,
 }
 
 impl Fleet {
@@ -237,6 +239,7 @@ impl Fleet {
         let fleet = Fleet {
             options,
             state: Mutex::new(state),
+            notifier: std::sync::OnceLock::new(),
         };
         for p in log.take_pending() {
             match fleet.decode_alert(&p.key, p.payload.as_bytes(), p.received_at) {
@@ -357,10 +360,23 @@ impl Fleet {
         {
             return;
         }
-        if let Some(log) = &mut s.log {
-            log.record(key, payload, &mut entry);
-        }
+        let silenced = match &mut s.log {
+            Some(log) => log.record(key, payload, &mut entry),
+            None => None,
+        };
+        let notice = (silenced.is_none() && entry.verified())
+            .then(|| alert_notice(&entry))
+            .flatten();
         self.keep_alert(&mut s, entry, true);
+        drop(s);
+        if let (Some(n), Some(notifier)) = (notice, self.notifier.get()) {
+            notifier.put(n);
+        }
+    }
+
+    /// Notifications from now on go to `notifier` (set once).
+    pub fn notify_to(&self, notifier: crate::notify::Notifier) {
+        let _ = self.notifier.set(notifier);
     }
 
     /// Puts an alert of a watched building in the fleet's view.
@@ -414,8 +430,37 @@ impl Fleet {
         self.lock().alerts.iter().cloned().collect()
     }
 
+    /// One building's view with every sensor's counters (`/api/fleet?building=`), or only
+    /// `sensor`'s row; none if the building is not tracked.
+    pub fn building_snapshot(
+        &self,
+        b: &BuildingId,
+        sensor: Option<&SensorId>,
+    ) -> Option<BuildingView> {
+        let now = Instant::now();
+        let wall = OffsetDateTime::now_utc();
+        let s = self.lock();
+        let st = s.buildings.get(b)?;
+        let mut v = self.building_view(b, st, now, wall);
+        if let Some(id) = sensor {
+            v.sensors.retain(|x| &x.sensor_id == id);
+        }
+        Some(v)
+    }
+
+    /// The fleet event's form of the fleet: what changes seldom (states, calibration, the
+    /// latest alert), none of the counters that move with every status answer.
+    pub fn brief(&self) -> Brief {
+        let snap = self.snapshot_with(ALERTS_IN_SNAPSHOT);
+        Brief::of(&snap)
+    }
+
     /// What the fleet view shows, now.
     pub fn snapshot(&self) -> Snapshot {
+        self.snapshot_with(ALERTS_IN_SNAPSHOT)
+    }
+
+    fn snapshot_with(&self, alerts: usize) -> Snapshot {
         let now = Instant::now();
         let wall = OffsetDateTime::now_utc();
         let s = self.lock();
@@ -427,7 +472,7 @@ impl Fleet {
         Snapshot {
             now: wall,
             buildings,
-            alerts: s.alerts.iter().take(ALERTS_IN_SNAPSHOT).cloned().collect(),
+            alerts: s.alerts.iter().take(alerts).cloned().collect(),
             alerts_total: s.alerts_total,
             alerts_restored: s.alerts_restored,
             alerts_open: s.log.as_ref().map_or(0, |l| l.open_count()),
@@ -518,6 +563,42 @@ impl Fleet {
             self.state_of(st, Instant::now())
         })
     }
+}
+
+/// The notice a verified alert makes, if its level is one that is told (`exceeded`, `stale`).
+fn alert_notice(e: &AlertEntry) -> Option<crate::notify::Notice> {
+    use crate::notify::{Event, Notice};
+    let a = &e.alert;
+    let event = match a.level {
+        AlertLevel::Exceeded => Event::Exceeded,
+        AlertLevel::Stale => Event::Stale,
+        AlertLevel::Possible => return None,
+    };
+    let kind = serde_json::to_value(a.kind)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_default();
+    let summary = match event {
+        Event::Stale => format!("{kind}: stale, no data to judge (verified alert)"),
+        _ => format!(
+            "{kind} {:.4} ± {:.4} {} (k = {}) against the threshold {:.4}: {} (verified alert)",
+            a.value,
+            a.coverage_factor * a.standard_uncertainty,
+            a.unit,
+            a.coverage_factor,
+            a.threshold,
+            event.name()
+        ),
+    };
+    Some(Notice {
+        event,
+        building: a.building.clone(),
+        sensor: a.sensor_id.clone(),
+        alert_id: Some(e.id),
+        summary,
+        statement: Some(a.statement.clone()),
+        at_ns: i64::try_from(e.received_at.unix_timestamp_nanos()).unwrap_or(i64::MAX),
+    })
 }
 
 /// Up: heard within the limits; down: heard before, not lately; unknown: never heard.
@@ -748,6 +829,216 @@ pub struct Snapshot {
     /// Buildings heard of beyond [`MAX_BUILDINGS`].
     pub ignored_buildings: u64,
     pub expiry_warning_days: f64,
+}
+
+/// A sensor in the fleet event: its states and what changes seldom.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SensorBrief {
+    pub sensor_id: SensorId,
+    pub states: Vec<SensorState>,
+    pub mode: Mode,
+    pub calibration_version: Option<u64>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub valid_until: Option<OffsetDateTime>,
+    /// The latest alert's id; the alert itself is in the event that first carried it.
+    pub latest_alert: Option<u64>,
+    pub in_status: bool,
+}
+
+/// A building in the fleet event, without its sensors' counters (those are at
+/// `/api/fleet?building=`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BuildingBrief {
+    pub building: BuildingId,
+    pub gateway: Option<String>,
+    pub state: GatewayState,
+    pub status_error: Option<String>,
+    #[serde(with = "time::serde::rfc3339::option")]
+    pub started_at: Option<OffsetDateTime>,
+    pub total_sensors: Option<u64>,
+    pub worst_state: Option<SensorState>,
+}
+
+/// The fleet as the fleet event carries it: per building its brief and its sensors' briefs,
+/// and the latest alerts whole.
+#[derive(Debug, Clone, Serialize)]
+pub struct Brief {
+    #[serde(with = "time::serde::rfc3339")]
+    pub now: OffsetDateTime,
+    pub buildings: Vec<BriefBuilding>,
+    pub alerts: Vec<AlertEntry>,
+    pub alerts_total: u64,
+    pub alerts_restored: u64,
+    pub alerts_open: usize,
+    pub malformed_messages: u64,
+    pub ignored_buildings: u64,
+    pub expiry_warning_days: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct BriefBuilding {
+    #[serde(flatten)]
+    pub building: BuildingBrief,
+    pub sensors: Vec<SensorBrief>,
+}
+
+impl Brief {
+    pub fn of(snap: &Snapshot) -> Brief {
+        Brief {
+            now: snap.now,
+            buildings: snap
+                .buildings
+                .iter()
+                .map(|b| BriefBuilding {
+                    building: BuildingBrief {
+                        building: b.building.clone(),
+                        gateway: b.gateway.clone(),
+                        state: b.state,
+                        status_error: b.status_error.clone(),
+                        started_at: b.started_at,
+                        total_sensors: b.total_sensors,
+                        worst_state: b.worst_state,
+                    },
+                    sensors: b
+                        .sensors
+                        .iter()
+                        .map(|s| SensorBrief {
+                            sensor_id: s.sensor_id.clone(),
+                            states: s.states.clone(),
+                            mode: s.mode,
+                            calibration_version: s.calibration_version,
+                            valid_until: s.valid_until,
+                            latest_alert: s.latest_alert.as_ref().map(|a| a.id),
+                            in_status: s.in_status,
+                        })
+                        .collect(),
+                })
+                .collect(),
+            alerts: snap.alerts.clone(),
+            alerts_total: snap.alerts_total,
+            alerts_restored: snap.alerts_restored,
+            alerts_open: snap.alerts_open,
+            malformed_messages: snap.malformed_messages,
+            ignored_buildings: snap.ignored_buildings,
+            expiry_warning_days: snap.expiry_warning_days,
+        }
+    }
+
+    /// What changed from `before` to `self`, as the `fleet_delta` event carries it: every value
+    /// whole (not a difference), so that a delta applied to a newer state than `before` still
+    /// leaves the page right.
+    pub fn delta(&self, before: &Brief, seq: u64) -> Delta {
+        let old: std::collections::HashMap<&BuildingId, &BriefBuilding> = before
+            .buildings
+            .iter()
+            .map(|b| (&b.building.building, b))
+            .collect();
+        let mut d = Delta {
+            seq,
+            now: self.now,
+            alerts_total: self.alerts_total,
+            alerts_open: self.alerts_open,
+            malformed_messages: self.malformed_messages,
+            ignored_buildings: self.ignored_buildings,
+            buildings: Vec::new(),
+            sensors: Vec::new(),
+            removed_sensors: Vec::new(),
+            removed_buildings: Vec::new(),
+            alerts: Vec::new(),
+        };
+        for b in &self.buildings {
+            let id = &b.building.building;
+            let prev = old.get(id);
+            if prev.is_none_or(|p| p.building != b.building) {
+                d.buildings.push(b.building.clone());
+            }
+            let prev_sensors: std::collections::HashMap<&SensorId, &SensorBrief> = prev
+                .map(|p| p.sensors.iter().map(|s| (&s.sensor_id, s)).collect())
+                .unwrap_or_default();
+            for s in &b.sensors {
+                if prev_sensors.get(&s.sensor_id).is_none_or(|p| *p != s) {
+                    d.sensors.push(SensorChange {
+                        building: id.clone(),
+                        sensor: s.clone(),
+                    });
+                }
+            }
+            if let Some(p) = prev {
+                let now: std::collections::HashSet<&SensorId> =
+                    b.sensors.iter().map(|s| &s.sensor_id).collect();
+                for s in &p.sensors {
+                    if !now.contains(&s.sensor_id) {
+                        d.removed_sensors.push((id.clone(), s.sensor_id.clone()));
+                    }
+                }
+            }
+        }
+        let ids: std::collections::HashSet<&BuildingId> = self
+            .buildings
+            .iter()
+            .map(|b| &b.building.building)
+            .collect();
+        d.removed_buildings = before
+            .buildings
+            .iter()
+            .map(|b| &b.building.building)
+            .filter(|b| !ids.contains(b))
+            .cloned()
+            .collect();
+        let known: std::collections::HashSet<u64> = before.alerts.iter().map(|a| a.id).collect();
+        d.alerts = self
+            .alerts
+            .iter()
+            .filter(|a| !known.contains(&a.id))
+            .cloned()
+            .collect();
+        d
+    }
+}
+
+/// A sensor whose brief changed, and its building.
+#[derive(Debug, Clone, Serialize)]
+pub struct SensorChange {
+    pub building: BuildingId,
+    #[serde(flatten)]
+    pub sensor: SensorBrief,
+}
+
+/// What changed in the fleet since the event before (`fleet_delta`).
+#[derive(Debug, Clone, Serialize)]
+pub struct Delta {
+    /// One more than the delta before; a page that misses one gets the whole fleet again.
+    pub seq: u64,
+    #[serde(with = "time::serde::rfc3339")]
+    pub now: OffsetDateTime,
+    pub alerts_total: u64,
+    pub alerts_open: usize,
+    pub malformed_messages: u64,
+    pub ignored_buildings: u64,
+    /// Buildings new or changed (without their sensors).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub buildings: Vec<BuildingBrief>,
+    /// Sensors new or changed.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub sensors: Vec<SensorChange>,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub removed_sensors: Vec<(BuildingId, SensorId)>,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub removed_buildings: Vec<BuildingId>,
+    /// Alerts new since (whole, newest first).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub alerts: Vec<AlertEntry>,
+}
+
+impl Delta {
+    /// Nothing but the clock and the counters.
+    pub fn is_quiet(&self) -> bool {
+        self.buildings.is_empty()
+            && self.sensors.is_empty()
+            && self.removed_sensors.is_empty()
+            && self.removed_buildings.is_empty()
+            && self.alerts.is_empty()
+    }
 }
 
 /// The Zenoh side: subscriptions to heartbeats and alerts (kept while the returned handles
@@ -1205,6 +1496,68 @@ mod tests {
         }
         assert_eq!(f.alerts().len(), MAX_ALERTS);
         assert_eq!(f.alerts()[0].alert.statement, (MAX_ALERTS + 9).to_string());
+    }
+
+    #[test]
+    fn the_fleet_delta_carries_what_changed_and_nothing_that_only_counts() {
+        let f = Fleet::new(FleetOptions {
+            buildings: vec![],
+            status_interval: Duration::from_secs(2),
+            expiry_warning: WARN,
+            trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
+        });
+        let answer = |samples: u64, flagged: u64| {
+            let mut st = gateway_status(
+                0,
+                (0..100)
+                    .map(|i| counted(&format!("acc-{i:03}"), samples, flagged))
+                    .collect(),
+            );
+            st.reported_at = OffsetDateTime::now_utc();
+            for s in &mut st.sensors {
+                s.last_seen = Some(st.reported_at);
+                s.valid_from = Some(st.reported_at - time::Duration::DAY);
+            }
+            st
+        };
+        f.status(answer(1000, 0));
+        let first = f.brief();
+        // Counters move, states do not: the delta is the clock and the totals.
+        f.status(answer(2000, 0));
+        let quiet = f.brief().delta(&first, 1);
+        assert!(quiet.is_quiet(), "{quiet:?}");
+        let text = serde_json::to_string(&quiet).unwrap();
+        assert!(text.len() < 200, "{} bytes: {text}", text.len());
+        // A sensor's state changes and an alert arrives: those, and only those.
+        let before = f.brief();
+        let mut st = answer(3000, 0);
+        st.sensors[7].gaps = 1;
+        f.status(st);
+        f.alert(
+            "triax/hq/alert/acc-042",
+            &signed_json(&service_key(), "hq", "acc-042", "exceeded", "a verdict"),
+        );
+        let d = f.brief().delta(&before, 2);
+        let changed: Vec<&str> = d
+            .sensors
+            .iter()
+            .map(|c| c.sensor.sensor_id.as_str())
+            .collect();
+        assert_eq!(changed, ["acc-007", "acc-042"], "{d:?}");
+        assert_eq!(d.sensors[0].sensor.states, [SensorState::Gaps]);
+        assert_eq!(d.sensors[1].sensor.states, [SensorState::Exceeded]);
+        assert_eq!(d.sensors[1].sensor.latest_alert, Some(d.alerts[0].id));
+        assert_eq!(d.alerts.len(), 1);
+        assert_eq!(
+            d.buildings.len(),
+            1,
+            "its worst state changed: {:?}",
+            d.buildings
+        );
+        assert_eq!(d.buildings[0].worst_state, Some(SensorState::Exceeded));
+        // Applied to the brief before, the delta gives the brief after.
+        let after = f.brief();
+        assert!(after.delta(&after, 3).is_quiet());
     }
 
     #[test]

@@ -61,6 +61,20 @@ pub struct Request {
     pub content_length: usize,
     /// The body of a `POST`.
     pub body: Vec<u8>,
+    /// The `Cookie` header, if any.
+    pub cookie: Option<String>,
+    /// Every other header, its name in lower case, in order (the head is bounded, so is this).
+    pub headers: Vec<(String, String)>,
+}
+
+impl Request {
+    /// The value of header `name` (lower case) among the others, if sent once; none if absent
+    /// or sent twice (two values name two things: neither is taken).
+    pub fn header(&self, name: &str) -> Option<&str> {
+        let mut found = self.headers.iter().filter(|(k, _)| k == name);
+        let first = found.next()?;
+        found.next().is_none().then_some(first.1.as_str())
+    }
 }
 
 /// A request refused before routing: the status to answer and why.
@@ -195,6 +209,8 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
     let mut origin = None;
     let mut content_type = None;
     let mut content_length = 0;
+    let mut cookie = None;
+    let mut headers = Vec::new();
     for h in lines {
         let Some((name, value)) = h.split_once(':') else {
             return Err(Refusal::new(400, "malformed header line"));
@@ -239,6 +255,13 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
                 400,
                 "Transfer-Encoding is not accepted: send a Content-Length",
             ));
+        } else if name.eq_ignore_ascii_case("cookie") {
+            if cookie.is_some() {
+                return Err(Refusal::new(400, "more than one Cookie header"));
+            }
+            cookie = Some(value.to_owned());
+        } else {
+            headers.push((name.trim().to_ascii_lowercase(), value.to_owned()));
         }
     }
     if !target.starts_with('/') {
@@ -265,6 +288,8 @@ pub fn parse_head(head: &[u8]) -> Result<Request, Refusal> {
         content_type,
         content_length,
         body: Vec::new(),
+        cookie,
+        headers,
     })
 }
 
@@ -313,6 +338,7 @@ fn reason(status: u16) -> &'static str {
     match status {
         200 => "OK",
         400 => "Bad Request",
+        401 => "Unauthorized",
         403 => "Forbidden",
         404 => "Not Found",
         405 => "Method Not Allowed",
@@ -322,6 +348,7 @@ fn reason(status: u16) -> &'static str {
         422 => "Unprocessable Content",
         431 => "Request Header Fields Too Large",
         500 => "Internal Server Error",
+        501 => "Not Implemented",
         502 => "Bad Gateway",
         503 => "Service Unavailable",
         505 => "HTTP Version Not Supported",
@@ -340,6 +367,19 @@ pub async fn respond(
     respond_allowing(stream, status, content_type, body, head_only, "GET, HEAD").await
 }
 
+/// [`respond`] with a `Set-Cookie` header.
+pub async fn respond_setting_cookie(
+    stream: &mut TcpStream,
+    content_type: &str,
+    body: &[u8],
+    cookie: &str,
+) -> std::io::Result<()> {
+    // A cookie value is made here of a name, hex and fixed attributes: no line break.
+    debug_assert!(!cookie.contains(['\r', '\n']));
+    let extra = format!("Set-Cookie: {cookie}\r\n");
+    respond_full(stream, 200, content_type, body, false, &extra).await
+}
+
 async fn respond_allowing(
     stream: &mut TcpStream,
     status: u16,
@@ -353,8 +393,19 @@ async fn respond_allowing(
     } else {
         String::new()
     };
+    respond_full(stream, status, content_type, body, head_only, &allow).await
+}
+
+async fn respond_full(
+    stream: &mut TcpStream,
+    status: u16,
+    content_type: &str,
+    body: &[u8],
+    head_only: bool,
+    extra: &str,
+) -> std::io::Result<()> {
     let head = format!(
-        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n{COMMON_HEADERS}{allow}\r\n",
+        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n{COMMON_HEADERS}{extra}\r\n",
         reason(status),
         body.len(),
     );

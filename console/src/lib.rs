@@ -1,7 +1,7 @@
 //! The operators' console: the fleet at a glance, each sensor's corrected stream with its
 //! uncertainty band, and the alerts, in a browser.
 //!
-//! The console joins Zenoh like any client and only reads: it subscribes to the gateways'
+//! The console joins Zenoh like any client and only reads the site: it subscribes to the gateways'
 //! heartbeats and to the alerts, polls the gateways' status, and, for a sensor someone is
 //! looking at, subscribes to its corrected and tilt streams and queries its history. It never
 //! puts. It serves one page, by default on 127.0.0.1, that draws what the server has already
@@ -18,15 +18,22 @@
 //!
 //! Module map: [`server`] (routes), [`http`] (requests, responses, events), [`fleet`] (what is
 //! known of the buildings, gateways, sensors and alerts), [`live`] (the streams being watched),
-//! [`buckets`] (decimation), [`modes`] (the buildings' modes heard); the page itself is in
+//! [`buckets`] (decimation), [`modes`] (the buildings' modes heard), [`operators`] (accounts,
+//! roles, sessions), [`notify`] (notifications), [`process`] (filtered and integrated views),
+//! [`annotations`], [`helicorder`] (the day view's per-second store); the page itself is in
 //! `src/assets/`.
 
 pub mod alertlog;
+pub mod annotations;
 pub mod buckets;
 pub mod fleet;
+pub mod helicorder;
 pub mod http;
 pub mod live;
 pub mod modes;
+pub mod notify;
+pub mod operators;
+pub mod process;
 pub mod server;
 pub mod spectrum;
 pub mod trend;
@@ -78,6 +85,54 @@ pub struct ConsoleOptions {
     pub max_logged_alerts: usize,
     /// How long the log keeps an alert.
     pub alert_retention: Duration,
+    /// The operators' accounts file ([`operators`]); none: no accounts (read-only, open on
+    /// loopback).
+    pub operators_file: Option<std::path::PathBuf>,
+    /// A request header that a reverse proxy in front of the console sets to the operator's
+    /// name (`X-Remote-User`); trusted as it comes, so only with the console on loopback
+    /// behind that proxy.
+    pub identity_header: Option<String>,
+    /// The site's time zone: quiet hours and rota shifts are in it, and the page offers it
+    /// beside UTC.
+    pub time_zone: Option<SiteTimeZone>,
+    /// Where notifications go ([`notify`]); none: nowhere.
+    pub notify: Option<notify::Config>,
+}
+
+/// A site's time zone by its IANA name, read from the system's time zone database.
+#[derive(Debug, Clone)]
+pub struct SiteTimeZone {
+    name: String,
+    tz: jiff::tz::TimeZone,
+}
+
+impl SiteTimeZone {
+    /// The zone named `name` (`Europe/Zurich`); an error says why there is none.
+    pub fn get(name: &str) -> Result<SiteTimeZone, ConsoleError> {
+        let tz = jiff::tz::TimeZone::get(name).map_err(|e| ConsoleError::Option {
+            field: "time_zone",
+            reason: format!("{name:?} is not a time zone of this system's database: {e}"),
+        })?;
+        Ok(SiteTimeZone {
+            name: name.to_owned(),
+            tz,
+        })
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The wall-clock time of day at `t_ns` (ns since the Unix epoch), as minutes after
+    /// midnight, and the day of the week (Monday 1 to Sunday 7).
+    pub fn minute_of_day(&self, t_ns: i64) -> (u32, u8) {
+        let ts = jiff::Timestamp::from_nanosecond(i128::from(t_ns)).unwrap_or_default();
+        let z = ts.to_zoned(self.tz.clone());
+        (
+            u32::from(z.hour() as u8) * 60 + u32::from(z.minute() as u8),
+            z.weekday().to_monday_one_offset() as u8,
+        )
+    }
 }
 
 impl Default for ConsoleOptions {
@@ -95,6 +150,10 @@ impl Default for ConsoleOptions {
             state_dir: None,
             max_logged_alerts: alertlog::DEFAULT_MAX_ALERTS,
             alert_retention: alertlog::DEFAULT_RETENTION,
+            operators_file: None,
+            identity_header: None,
+            time_zone: None,
+            notify: None,
         }
     }
 }
@@ -122,6 +181,8 @@ pub enum ConsoleError {
     },
     #[error(transparent)]
     AlertLog(#[from] alertlog::AlertLogError),
+    #[error(transparent)]
+    Operators(#[from] operators::OperatorError),
     #[error("option `{field}`: {reason}")]
     Option { field: &'static str, reason: String },
 }
@@ -232,6 +293,17 @@ pub async fn serve(
             action: "subscribe to the buildings' modes",
             message: e.to_string(),
         })?;
+    let annotations = match &options.state_dir {
+        Some(dir) => annotations::Annotations::open(dir).map_err(|e| ConsoleError::Option {
+            field: "state_dir",
+            reason: e.to_string(),
+        })?,
+        None => annotations::Annotations::in_memory(),
+    };
+    let operators = Arc::new(operators::Operators::open(
+        options.operators_file.clone(),
+        options.identity_header.clone(),
+    )?);
     let (stop_tx, stop_rx) = watch::channel(false);
     let poller = tokio::spawn(fleet::poll_status(
         session.clone(),
@@ -239,20 +311,50 @@ pub async fn serve(
         options.status_interval,
         stop_rx.clone(),
     ));
-    let (json_tx, json_rx) = watch::channel::<Arc<str>>(Arc::from("null"));
-    let serialiser = tokio::spawn(serialise_fleet(fleet.clone(), json_tx, stop_rx.clone()));
+    let (notifier, notify_tasks) = match options.notify.clone() {
+        None => (notify::Notifier::off(), Vec::new()),
+        Some(config) => {
+            let f = fleet.clone();
+            let acknowledged: Arc<dyn Fn(u64) -> bool + Send + Sync> =
+                Arc::new(move |id| f.with_log(|l| l.is_acknowledged(id)));
+            let (n, task) = notify::start(
+                config,
+                options.time_zone.clone(),
+                acknowledged,
+                stop_rx.clone(),
+            );
+            fleet.notify_to(n.clone());
+            let watcher = tokio::spawn(watch_sensor_states(
+                fleet.clone(),
+                n.clone(),
+                stop_rx.clone(),
+            ));
+            (n, vec![task, watcher])
+        }
+    };
+    let fleet_events = Arc::new(FleetEvents::new());
+    let serialiser = tokio::spawn(serialise_fleet(
+        fleet.clone(),
+        fleet_events.clone(),
+        stop_rx.clone(),
+    ));
     let connections = Arc::new(Semaphore::new(options.max_connections));
     let refusals = Arc::new(Semaphore::new(options.max_connections));
     let ctx = Arc::new(Context {
         session: session.clone(),
         fleet,
         feeds: Feeds::new(session, options.history_timeout),
-        fleet_json: json_rx,
+        fleet_events,
         streams: Arc::new(Semaphore::new(options.max_streams)),
         history_queries: Arc::new(Semaphore::new(options.max_history_queries)),
         stop: stop_rx,
         trends: tokio::sync::Mutex::new(trend::TrendCache::default()),
         modes,
+        operators,
+        logins: Arc::new(Semaphore::new(server::MAX_LOGINS_AT_ONCE)),
+        notifier,
+        annotations: std::sync::Mutex::new(annotations),
+        helicorder: tokio::sync::Mutex::new(helicorder::SecondsCache::default()),
         options,
     });
     tracing::info!(url = %url(addr), "console serving");
@@ -289,13 +391,171 @@ pub async fn serve(
     let _ = tokio::time::timeout(Duration::from_secs(3), connections.acquire_many(all)).await;
     poller.abort();
     serialiser.abort();
+    for t in notify_tasks {
+        t.abort();
+    }
     Ok(())
 }
 
-/// Serialises the fleet view once a second for every open page (none open: nothing done).
+/// Tells when a sensor becomes `calibration_suspect` or `silent`: the fleet's states looked at
+/// once a second, each sensor's first look taken as it is (a console that starts beside a
+/// silent sensor does not call that news).
+async fn watch_sensor_states(
+    fleet: Arc<Fleet>,
+    notifier: notify::Notifier,
+    mut stop: watch::Receiver<bool>,
+) {
+    use fleet::SensorState;
+    use notify::{Event, Notice};
+    let mut seen: std::collections::HashMap<(BuildingId, triax_protocol::SensorId), [bool; 2]> =
+        std::collections::HashMap::new();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return,
+        }
+        let brief = fleet.brief();
+        let mut now_seen = std::collections::HashMap::with_capacity(seen.len());
+        for b in &brief.buildings {
+            for s in &b.sensors {
+                if !s.in_status {
+                    continue;
+                }
+                let key = (b.building.building.clone(), s.sensor_id.clone());
+                let is = [
+                    s.states.contains(&SensorState::CalibrationSuspect),
+                    s.states.contains(&SensorState::Silent),
+                ];
+                if let Some(was) = seen.get(&key) {
+                    for (i, event) in [Event::CalibrationSuspect, Event::Silent]
+                        .into_iter()
+                        .enumerate()
+                    {
+                        if is[i] && !was[i] {
+                            notifier.put(Notice {
+                                event,
+                                building: key.0.clone(),
+                                sensor: key.1.clone(),
+                                alert_id: None,
+                                summary: match event {
+                                    Event::Silent => "no batch for 10 s by its gateway's clock (silent)".into(),
+                                    _ => "the gateway's field health checks found its record in force suspect".into(),
+                                },
+                                statement: None,
+                                at_ns: live::wall_clock_ns(),
+                            });
+                        }
+                    }
+                }
+                now_seen.insert(key, is);
+            }
+        }
+        seen = now_seen;
+    }
+}
+
+/// Deltas kept for streams that fall behind (a light stream reads every 5 s).
+const DELTAS_KEPT: usize = 16;
+
+/// The fleet events every open page shares: the brief the last delta was taken against, and
+/// the latest deltas, serialised once for every page.
+pub struct FleetEvents {
+    shared: std::sync::Mutex<EventsState>,
+    seq: watch::Sender<u64>,
+}
+
+struct EventsState {
+    seq: u64,
+    brief: Option<Arc<fleet::Brief>>,
+    recent: std::collections::VecDeque<(u64, Arc<str>)>,
+}
+
+impl FleetEvents {
+    fn new() -> FleetEvents {
+        FleetEvents {
+            shared: std::sync::Mutex::new(EventsState {
+                seq: 0,
+                brief: None,
+                recent: std::collections::VecDeque::new(),
+            }),
+            seq: watch::channel(0).0,
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, EventsState> {
+        self.shared.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A stream's start: the whole fleet as of delta `seq` (JSON, with `seq` in it), after
+    /// which the stream sends the deltas from `seq + 1` on.
+    pub fn start(&self, fleet: &Fleet) -> (u64, String, watch::Receiver<u64>) {
+        let rx = self.seq.subscribe();
+        let mut st = self.lock();
+        let brief = st
+            .brief
+            .get_or_insert_with(|| Arc::new(fleet.brief()))
+            .clone();
+        let seq = st.seq;
+        drop(st);
+        let mut v = serde_json::to_value(&*brief).unwrap_or_default();
+        v["seq"] = seq.into();
+        (seq, v.to_string(), rx)
+    }
+
+    /// The deltas after `seq`, in order; none if the stream is too far behind (it then starts
+    /// again with the whole fleet).
+    pub fn since(&self, seq: u64) -> Option<Vec<(u64, Arc<str>)>> {
+        let st = self.lock();
+        if st.seq == seq {
+            return Some(Vec::new());
+        }
+        let first = st.recent.front()?.0;
+        if first > seq + 1 {
+            return None;
+        }
+        Some(
+            st.recent
+                .iter()
+                .filter(|(s, _)| *s > seq)
+                .cloned()
+                .collect(),
+        )
+    }
+
+    /// Takes the next delta, if a page is open.
+    fn tick(&self, fleet: &Fleet) {
+        if self.seq.receiver_count() == 0 {
+            // Nobody reads: the next page starts from a brief of its own time.
+            self.lock().brief = None;
+            return;
+        }
+        let brief = Arc::new(fleet.brief());
+        let mut st = self.lock();
+        let Some(before) = st.brief.replace(brief.clone()) else {
+            return;
+        };
+        let seq = st.seq + 1;
+        let delta = brief.delta(&before, seq);
+        match serde_json::to_string(&delta) {
+            Ok(text) => {
+                st.recent.push_back((seq, Arc::from(text)));
+                while st.recent.len() > DELTAS_KEPT {
+                    st.recent.pop_front();
+                }
+                st.seq = seq;
+                drop(st);
+                let _ = self.seq.send(seq);
+            }
+            Err(e) => tracing::error!(cause = %e, "fleet delta does not serialise"),
+        }
+    }
+}
+
+/// Takes the fleet's delta once a second for the open pages (none open: nothing done).
 async fn serialise_fleet(
     fleet: Arc<Fleet>,
-    tx: watch::Sender<Arc<str>>,
+    events: Arc<FleetEvents>,
     mut stop: watch::Receiver<bool>,
 ) {
     let mut tick = tokio::time::interval(Duration::from_secs(1));
@@ -304,13 +564,6 @@ async fn serialise_fleet(
             _ = tick.tick() => {}
             _ = stop.changed() => return,
         }
-        if tx.receiver_count() > 1 {
-            match serde_json::to_string(&fleet.snapshot()) {
-                Ok(s) => {
-                    let _ = tx.send(Arc::from(s));
-                }
-                Err(e) => tracing::error!(cause = %e, "fleet view does not serialise"),
-            }
-        }
+        events.tick(&fleet);
     }
 }

@@ -5,7 +5,9 @@
 //! triax-console                                         # every building found, page on 127.0.0.1:9760
 //! triax-console --connect tcp/site-router:7447 --zenoh-mode client --buildings hq,annex
 //! triax-console --listen localhost:9760                 # a name is resolved (loopback only)
-//! triax-console --listen 0.0.0.0:9760 --allow-remote    # no authentication: see the warning
+//! triax-console --listen 0.0.0.0:9760 --allow-remote    # logins only with operator accounts
+//! printf '%s\n' "$PASSWORD" | triax-console operator add alice --role operate
+//! triax-console operator list
 //! ```
 
 use std::time::Duration;
@@ -29,16 +31,42 @@ use triax_protocol::BuildingId;
            Default: none, the console only connects (--connect, or multicast scouting), unless \
            a --zenoh-config file lists listen endpoints")))]
 struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
     #[command(flatten)]
     zenoh: ZenohArgs,
     /// Address of the page (HTTP), HOST:PORT with an IP address or a name (localhost:9760). A
     /// non-loopback address needs --allow-remote.
     #[arg(id = "http_listen", long = "listen", value_name = "ADDR", env = "TRIAX_CONSOLE_LISTEN", default_value = DEFAULT_LISTEN)]
     http_listen: String,
-    /// Serve on a non-loopback address. The console has NO authentication: anyone who reaches
-    /// the port sees every building it sees.
+    /// Serve on a non-loopback address. Without operator accounts the console has NO
+    /// authentication: anyone who reaches the port sees every building it sees.
     #[arg(long)]
     allow_remote: bool,
+    /// The operators' accounts (NAME ROLE HASH a line; written by `triax-console operator
+    /// add`). Once it holds an account, every page needs a login. Default: operators in the
+    /// state directory.
+    #[arg(
+        long,
+        value_name = "FILE",
+        env = "TRIAX_CONSOLE_OPERATORS_FILE",
+        global = true
+    )]
+    operators_file: Option<std::path::PathBuf>,
+    /// A request header set by a reverse proxy in front of the console to the logged-in
+    /// operator's name (e.g. X-Remote-User); the role is the account's of that name in the
+    /// operators file, else view. Trusted as sent: only with the console on loopback behind
+    /// that proxy.
+    #[arg(long, value_name = "NAME", env = "TRIAX_CONSOLE_IDENTITY_HEADER")]
+    identity_header: Option<String>,
+    /// Notifications: a TOML file of channels (webhook, SMTP) and per-building rotas (README,
+    /// "Notifications"). Default: none are sent.
+    #[arg(long, value_name = "FILE", env = "TRIAX_CONSOLE_NOTIFY_CONFIG")]
+    notify_config: Option<std::path::PathBuf>,
+    /// The site's time zone, an IANA name (Europe/Zurich): the page offers its local time
+    /// beside UTC, and quiet hours and rota shifts of notifications are in it. Default: UTC.
+    #[arg(long, value_name = "ZONE", env = "TRIAX_CONSOLE_TIME_ZONE")]
+    time_zone: Option<String>,
     /// Buildings to watch (comma-separated); default: every building whose gateway answers a
     /// status query or sends a heartbeat or an alert.
     #[arg(long, env = "TRIAX_CONSOLE_BUILDINGS", value_delimiter = ',')]
@@ -57,17 +85,19 @@ struct Cli {
     #[arg(long, value_name = "FILE")]
     trusted_alert_key_file: Vec<std::path::PathBuf>,
     /// Directory of the console's own state: the alert log (alerts.jsonl), which keeps the
-    /// alerts received, their acknowledgements and the silences across restarts. Default:
+    /// alerts received, their acknowledgements and the silences across restarts, the
+    /// annotations (annotations.jsonl) and the operators' accounts (operators). Default:
     /// $XDG_STATE_HOME/triax-console, or ~/.local/state/triax-console.
     #[arg(
         long,
         value_name = "DIR",
         env = "TRIAX_CONSOLE_STATE_DIR",
-        conflicts_with = "no_state"
+        conflicts_with = "no_state",
+        global = true
     )]
     state_dir: Option<std::path::PathBuf>,
-    /// Keep the alert log in memory only: it starts empty and is lost on exit.
-    #[arg(long)]
+    /// Keep the alert log and annotations in memory only: they start empty and are lost on exit.
+    #[arg(long, global = true)]
     no_state: bool,
     /// Alerts the log keeps at most (unverified ones are dropped first).
     #[arg(long, default_value_t = triax_console::alertlog::DEFAULT_MAX_ALERTS)]
@@ -78,6 +108,115 @@ struct Cli {
     /// Log filter (tracing env-filter syntax).
     #[arg(long, env = "TRIAX_LOG", default_value = "info")]
     log: String,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum Command {
+    /// Manage the operators' accounts (the operators file) instead of serving.
+    Operator {
+        #[command(subcommand)]
+        action: OperatorAction,
+    },
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum OperatorAction {
+    /// Adds an account, or replaces its role and password. The password (at least 10
+    /// characters) is read as one line from standard input.
+    Add {
+        /// Letters, digits and . _ @ -, at most 64 characters.
+        name: String,
+        /// view (sees everything), operate (also acknowledges, silences, annotates) or admin
+        /// (also clears a field-health latch, removes anyone's annotation).
+        #[arg(long, value_parser = ["view", "operate", "admin"])]
+        role: String,
+        /// No password: an account that only the reverse proxy's identity header can name
+        /// (--identity-header), for its role.
+        #[arg(long)]
+        proxy_only: bool,
+    },
+    /// Removes an account; its sessions end at their next request.
+    Remove { name: String },
+    /// Lists the accounts and their roles.
+    List,
+}
+
+/// The operators file: `--operators-file`, or `operators` in the state directory.
+fn operators_file(cli: &Cli) -> anyhow::Result<Option<std::path::PathBuf>> {
+    if let Some(f) = &cli.operators_file {
+        return Ok(Some(f.clone()));
+    }
+    Ok(state_dir(cli)?.map(|d| d.join(triax_console::operators::FILE_NAME)))
+}
+
+fn operator_command(cli: &Cli, action: &OperatorAction) -> anyhow::Result<()> {
+    use triax_console::operators::{self, Account, Role};
+    let path = operators_file(cli)?.context(
+        "no operators file: give --operators-file FILE or --state-dir DIR (not --no-state)",
+    )?;
+    let mut accounts = operators::read_accounts(&path)?;
+    match action {
+        OperatorAction::Add {
+            name,
+            role,
+            proxy_only,
+        } => {
+            operators::check_name(name).map_err(|e| anyhow::anyhow!("operator {name:?}: {e}"))?;
+            let role = Role::parse(role).context("--role")?;
+            let hash = if *proxy_only {
+                None
+            } else {
+                use std::io::{BufRead, IsTerminal};
+                if std::io::stdin().is_terminal() {
+                    eprint!("password for {name} (echoed; or pipe it in): ");
+                }
+                let mut line = String::new();
+                std::io::stdin()
+                    .lock()
+                    .read_line(&mut line)
+                    .context("reading the password from standard input")?;
+                let password = line.trim_end_matches(['\r', '\n']);
+                Some(operators::hash_password(password)?)
+            };
+            let account = Account {
+                name: name.clone(),
+                role,
+                hash,
+            };
+            match accounts.iter_mut().find(|a| a.name == *name) {
+                Some(a) => *a = account,
+                None => accounts.push(account),
+            }
+            operators::write_accounts(&path, &accounts)?;
+            println!("operator {name} ({}) in {}", role.name(), path.display());
+        }
+        OperatorAction::Remove { name } => {
+            let before = accounts.len();
+            accounts.retain(|a| a.name != *name);
+            anyhow::ensure!(
+                accounts.len() < before,
+                "no operator {name:?} in {}",
+                path.display()
+            );
+            operators::write_accounts(&path, &accounts)?;
+            println!("operator {name} removed from {}", path.display());
+        }
+        OperatorAction::List => {
+            for a in &accounts {
+                println!(
+                    "{} {}{}",
+                    a.name,
+                    a.role.name(),
+                    if a.hash.is_none() {
+                        " (proxy only)"
+                    } else {
+                        ""
+                    }
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 fn seconds(flag: &str, s: f64) -> anyhow::Result<Duration> {
@@ -125,6 +264,9 @@ fn state_dir(cli: &Cli) -> anyhow::Result<Option<std::path::PathBuf>> {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    if let Some(Command::Operator { action }) = &cli.command {
+        return operator_command(&cli, action);
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_new(&cli.log)
@@ -143,6 +285,19 @@ async fn main() -> anyhow::Result<()> {
             "--alert-retention-days",
             cli.alert_retention_days * 86_400.0,
         )?,
+        operators_file: operators_file(&cli)?,
+        identity_header: cli.identity_header.clone(),
+        notify: cli
+            .notify_config
+            .as_deref()
+            .map(triax_console::notify::Config::load)
+            .transpose()?,
+        time_zone: cli
+            .time_zone
+            .as_deref()
+            .map(triax_console::SiteTimeZone::get)
+            .transpose()
+            .context("--time-zone")?,
         ..ConsoleOptions::default()
     };
     // Listening nowhere unless asked: the console only reads, so it has no reason to accept
@@ -159,7 +314,21 @@ async fn main() -> anyhow::Result<()> {
         r => r.with_context(|| format!("binding --listen {}", cli.http_listen))?,
     };
     let addr = listener.local_addr().context("the page's address")?;
-    if !addr.ip().is_loopback() {
+    let has_accounts = options
+        .operators_file
+        .as_deref()
+        .map(triax_console::operators::read_accounts)
+        .transpose()
+        .context("--operators-file")?
+        .is_some_and(|a| !a.is_empty());
+    if !addr.ip().is_loopback() && options.identity_header.is_some() {
+        eprintln!(
+            "WARNING: --identity-header is trusted as sent, and the console serves on {addr}: \
+             anyone who reaches this port can name themselves any operator. Serve on loopback \
+             behind the proxy that sets it."
+        );
+    }
+    if !addr.ip().is_loopback() && !has_accounts && options.identity_header.is_none() {
         eprintln!(
             "WARNING: the console serves on {addr} with NO AUTHENTICATION: anyone who can reach \
              this port sees every building, sensor and alert it sees. Put it behind a firewall, \

@@ -4,10 +4,17 @@
 //! |---|---|
 //! | `/` | the page (`index.html`; the views are chosen by the URL's fragment) |
 //! | `/app.js`, `/app.css`, `/favicon.svg` | its script, style and icon, embedded in the binary |
-//! | `/api/fleet` | the fleet view as JSON ([`crate::fleet::Snapshot`]) |
+//! | `/api/me` | who the request comes from, and whether a login is needed |
+//! | `POST /api/login`, `/api/logout` | a session cookie for an operator's name and password, and its end ([`crate::operators`]) |
+//! | `/api/fleet[?building=[&sensor=]]` | the fleet view as JSON ([`crate::fleet::Snapshot`]), or one building's (one sensor's) row with its counters |
 //! | `/api/alerts[?id=&building=&sensor=&kind=&level=&state=&from_ns=&to_ns=&limit=]` | the alert log, filtered, newest first |
 //! | `/api/silences` | the silences kept, newest first |
-//! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body) |
+//! | `POST /api/alerts/ack`, `/api/alerts/silence`, `/api/alerts/lift` | acknowledge alerts, silence or lift a silence (JSON body; role operate) |
+//! | `POST /api/health/clear` | clear a field-health latch (role admin): not available yet, 501 |
+//! | `/api/notifications` | what the notifications sent ([`crate::notify`]) |
+//! | `/api/annotations?building=[&from_ns=&to_ns=&format=csv]`, `POST /api/annotations`, `POST /api/annotations/delete` | the operators' annotations ([`crate::annotations`]) |
+//! | `/api/processed?building=&sensor=&from_ns=&to_ns=[&width=&quantity=&band=]` | band-passed acceleration, velocity or displacement, up to 1 h ([`crate::process`]) |
+//! | `/api/helicorder?building=&sensor=&from_ns=&to_ns=[&axis=&row_s=]` | up to 24 h of one axis in rows ([`crate::helicorder`]) |
 //! | `/api/modes?building=` | the building's modes heard since the console started: per track its frequency trend with its band, the latest window's modes and shapes ([`crate::modes`]) |
 //! | `/api/sensor?building=&sensor=` | the sensor's status and calibration record, asked of its gateway |
 //! | `/api/history?building=&sensor=&from_ns=&to_ns=&width=[&calibration=]` | a past range, decimated |
@@ -16,10 +23,11 @@
 //! | `/api/spectrogram?building=&sensor=&from_ns=&to_ns=[&axis=&segment=&columns=]` | one axis's PSD per column of time, up to 1 h ([`crate::spectrum::Spectrogram`]) |
 //! | `/api/export.csv?building=&sensor=&from_ns=&to_ns=` | every sample of up to 1 h, as CSV |
 //! | `/api/export.mseed?building=&sensor=&from_ns=&to_ns=[&network=]` | every calibrated sample of up to 1 h, as miniSEED 2 |
-//! | `/events[?building=&sensor=&span_s=&width=]` | Server-Sent Events: `fleet` every second; with a sensor, `live` and `tilt` |
+//! | `/events[?building=&sensor=&span_s=&width=&lite=]` | Server-Sent Events: `fleet` once, then `fleet_delta` every second; with a sensor, `live` and `tilt` |
 //!
 //! Anything else is 404; an unknown or malformed parameter or body field is 400 naming it.
-//! `POST` is answered on the three write routes only (405 elsewhere, and 405 to a `GET` there),
+//! Once operator accounts exist (or a proxy names operators), every route but the page's files and
+//! `/api/me` needs a logged-in operator (401). `POST` is answered on the write routes only (405 elsewhere, and 405 to a `GET` there),
 //! and only with a JSON body (`Content-Type: application/json`, 415 otherwise) and an `Origin`,
 //! if sent, that is the console's own (`http://` and the request's `Host`; 403 otherwise): a
 //! page elsewhere can neither send such a request without a CORS preflight, which the console
@@ -39,6 +47,7 @@ use crate::buckets::{Aggregator, View, MAX_BUCKETS};
 use crate::fleet::{Fleet, GatewayState};
 use crate::http::{self, Refusal, Request};
 use crate::live::{Feeds, KEEP_NS};
+use crate::operators::{Login, Operator, Operators, Role};
 use crate::ConsoleOptions;
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
@@ -66,7 +75,7 @@ pub struct Context {
     pub session: zenoh::Session,
     pub fleet: Arc<Fleet>,
     pub feeds: Feeds,
-    pub fleet_json: watch::Receiver<Arc<str>>,
+    pub fleet_events: Arc<crate::FleetEvents>,
     pub options: ConsoleOptions,
     pub streams: Arc<Semaphore>,
     pub history_queries: Arc<Semaphore>,
@@ -74,7 +83,20 @@ pub struct Context {
     pub trends: tokio::sync::Mutex<crate::trend::TrendCache>,
     /// The buildings' modes heard on `triax/*/modes`.
     pub modes: Arc<std::sync::Mutex<crate::modes::ModesBook>>,
+    /// The operators' accounts and sessions.
+    pub operators: Arc<Operators>,
+    /// Password checks at once (each is an Argon2 hash: tens of milliseconds and 19 MiB).
+    pub logins: Arc<Semaphore>,
+    /// The notifications' queue and what they sent.
+    pub notifier: crate::notify::Notifier,
+    /// The operators' annotations.
+    pub annotations: std::sync::Mutex<crate::annotations::Annotations>,
+    /// Per-second minima and maxima of the sensors whose helicorder was drawn.
+    pub helicorder: tokio::sync::Mutex<crate::helicorder::SecondsCache>,
 }
+
+/// Password checks at once; more are answered 503.
+pub const MAX_LOGINS_AT_ONCE: usize = 2;
 
 /// How long a connection over the limit gets to send its request before its 503.
 const BUSY_READ_TIMEOUT: Duration = Duration::from_secs(1);
@@ -113,12 +135,102 @@ pub async fn handle(ctx: Arc<Context>, mut stream: TcpStream, _permit: OwnedSema
     }
 }
 
-/// The routes that write the alert log, the only ones that take `POST`.
-const WRITE_ROUTES: [&str; 3] = ["/api/alerts/ack", "/api/alerts/silence", "/api/alerts/lift"];
+/// The routes that write, the only ones that take `POST`, and the role each needs (none: any
+/// visitor, for logging in and out).
+const WRITE_ROUTES: [(&str, Option<Role>); 8] = [
+    ("/api/login", None),
+    ("/api/logout", None),
+    ("/api/alerts/ack", Some(Role::Operate)),
+    ("/api/alerts/silence", Some(Role::Operate)),
+    ("/api/alerts/lift", Some(Role::Operate)),
+    ("/api/annotations", Some(Role::Operate)),
+    ("/api/annotations/delete", Some(Role::Operate)),
+    ("/api/health/clear", Some(Role::Admin)),
+];
+
+/// What anyone may fetch before logging in: the page itself, and who they are.
+const PUBLIC_ROUTES: [&str; 6] = [
+    "/",
+    "/index.html",
+    "/app.js",
+    "/app.css",
+    "/favicon.svg",
+    "/api/me",
+];
+
+/// Who sent `req`: a session's operator, or the trusted proxy header's.
+fn operator_of(ctx: &Context, req: &Request) -> Option<Operator> {
+    let header = ctx
+        .operators
+        .identity_header()
+        .and_then(|name| req.header(name));
+    ctx.operators.identify(req.cookie.as_deref(), header)
+}
+
+/// What `/api/me` answers, and the page carries from the start.
+fn me_json(ctx: &Context, who: Option<&Operator>) -> serde_json::Value {
+    serde_json::json!({
+        "operator": who,
+        "login_required": ctx.operators.login_required(),
+        "accounts": ctx.operators.path().is_some() && !ctx.operators.accounts().is_empty(),
+        "proxy_header": ctx.operators.identity_header(),
+        "time_zone": ctx.options.time_zone.as_ref().map(|z| z.name()),
+    })
+}
+
+/// `text` escaped for a double-quoted HTML attribute.
+fn html_attribute(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// Refuses a request whose operator may not do what `need` allows.
+fn require(ctx: &Context, who: Option<&Operator>, need: Role, what: &str) -> Result<(), Refusal> {
+    match who {
+        Some(o) if o.role >= need => Ok(()),
+        Some(o) => Err(Refusal::new(
+            403,
+            format!(
+                "operator {:?} has the role {}: {what} needs {}",
+                o.name,
+                o.role.name(),
+                need.name()
+            ),
+        )),
+        None if ctx.operators.login_required() => Err(Refusal::new(
+            401,
+            format!("{what} needs a logged-in operator: log in first (POST /api/login)"),
+        )),
+        None => Err(Refusal::new(
+            403,
+            format!(
+                "{what} needs a logged-in operator, and this console has no operator accounts: \
+                 create one with `triax-console operator add NAME --role {}`",
+                need.name()
+            ),
+        )),
+    }
+}
 
 async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Result<(), Refusal> {
     let p = Params(&req.query);
-    if WRITE_ROUTES.contains(&req.path.as_str()) {
+    let who = operator_of(ctx, req);
+    // `/api/annotations` is read with GET and written with POST; the others are POST only.
+    let write_route = WRITE_ROUTES
+        .iter()
+        .find(|(r, _)| *r == req.path)
+        .filter(|_| req.post || req.path != "/api/annotations");
+    if let Some(&(_, need)) = write_route {
         if !req.post {
             return Err(Refusal::method(
                 "POST",
@@ -126,9 +238,52 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             ));
         }
         p.only(&[])?;
-        let body = write(ctx, req)?;
-        let _ = http::respond(stream, 200, "application/json", &json(&body), false).await;
+        // The origin first: a page elsewhere learns nothing, not even whether one is logged in.
+        let body = check_write(req)?;
+        if let Some(need) = need {
+            require(ctx, who.as_ref(), need, &format!("POST {}", req.path))?;
+        }
+        match req.path.as_str() {
+            "/api/login" => return login(ctx, stream, &body).await,
+            "/api/logout" => {
+                Body(&body).only(&[])?;
+                if let Some(t) = req
+                    .cookie
+                    .as_deref()
+                    .and_then(crate::operators::session_token)
+                {
+                    ctx.operators.logout(t);
+                }
+                let _ = http::respond_setting_cookie(
+                    stream,
+                    "application/json",
+                    b"{\"logged_out\":true}",
+                    &crate::operators::clear_cookie(),
+                )
+                .await;
+                return Ok(());
+            }
+            _ => {}
+        }
+        // `require` passed: there is an operator.
+        let Some(who) = who else {
+            return Err(Refusal::new(401, "log in first"));
+        };
+        let answer = write(ctx, req, &body, &who)?;
+        let _ = http::respond(stream, 200, "application/json", &json(&answer), false).await;
         return Ok(());
+    }
+    if ctx.operators.login_required()
+        && who.is_none()
+        && !PUBLIC_ROUTES.contains(&req.path.as_str())
+    {
+        return Err(Refusal::new(
+            401,
+            format!(
+                "{} needs a logged-in operator: log in on the console's page (POST /api/login)",
+                req.path
+            ),
+        ));
     }
     if req.post {
         return Err(Refusal::new(
@@ -154,13 +309,15 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
     match req.path.as_str() {
         "/" | "/index.html" => {
             p.only(&[])?;
-            ok(
-                stream,
-                "text/html; charset=utf-8",
-                INDEX_HTML.into(),
-                head_only,
-            )
-            .await
+            // Who the page is for, in the page itself, so that it knows before its first
+            // request whether to ask for a login (the cookie is HttpOnly: no script reads it).
+            let me = html_attribute(&me_json(ctx, who.as_ref()).to_string());
+            let page = INDEX_HTML.replacen(
+                r#"<meta name="triax-me" content="">"#,
+                &format!(r#"<meta name="triax-me" content="{me}">"#),
+                1,
+            );
+            ok(stream, "text/html; charset=utf-8", page.into(), head_only).await
         }
         "/app.js" => {
             p.only(&[])?;
@@ -180,9 +337,27 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
             p.only(&[])?;
             ok(stream, "image/svg+xml", FAVICON_SVG.into(), head_only).await
         }
-        "/api/fleet" => {
+        "/api/me" => {
             p.only(&[])?;
-            ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await
+            ok(stream, JSON, json(&me_json(ctx, who.as_ref())), head_only).await
+        }
+        "/api/fleet" => {
+            p.only(&["building", "sensor"])?;
+            if p.get("building").is_none() {
+                if p.get("sensor").is_some() {
+                    return Err(Refusal::new(400, "parameter \"sensor\" needs \"building\""));
+                }
+                return ok(stream, JSON, json(&ctx.fleet.snapshot()), head_only).await;
+            }
+            let b = p.building()?;
+            let sensor = match p.get("sensor") {
+                None => None,
+                Some(_) => Some(p.sensor()?),
+            };
+            let Some(view) = ctx.fleet.building_snapshot(&b, sensor.as_ref()) else {
+                return Err(Refusal::new(404, format!("no building {b} is known")));
+            };
+            ok(stream, JSON, json(&view), head_only).await
         }
         "/api/alerts" => {
             p.only(&[
@@ -196,6 +371,42 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
                 head_only,
             )
             .await
+        }
+        "/api/annotations" => {
+            p.only(&["building", "from_ns", "to_ns", "format"])?;
+            let b = p.building()?;
+            let from_ns = p.int("from_ns", Some(0), 0..=i64::MAX)?;
+            let to_ns = p.int("to_ns", Some(i64::MAX), 0..=i64::MAX)?;
+            let (list, matched) = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .list(&b, from_ns, to_ns);
+            match p.get("format").unwrap_or("json") {
+                "json" => {
+                    let body = serde_json::json!({ "annotations": list, "matched": matched, "max_listed": crate::annotations::MAX_LISTED });
+                    ok(stream, JSON, json(&body), head_only).await
+                }
+                "csv" => {
+                    let _ = http::respond_download(
+                        stream,
+                        "text/csv; charset=utf-8",
+                        &format!("{b}_annotations.csv"),
+                        crate::annotations::to_csv(&list).as_bytes(),
+                        head_only,
+                    )
+                    .await;
+                    Ok(())
+                }
+                v => Err(Refusal::new(
+                    400,
+                    format!("parameter \"format\": {v:?} is not json or csv"),
+                )),
+            }
+        }
+        "/api/notifications" => {
+            p.only(&[])?;
+            ok(stream, JSON, json(&ctx.notifier.view()), head_only).await
         }
         "/api/silences" => {
             p.only(&[])?;
@@ -231,6 +442,18 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
                 "calibration",
             ])?;
             let body = history(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/helicorder" => {
+            p.only(&["building", "sensor", "axis", "from_ns", "to_ns", "row_s"])?;
+            let body = helicorder(ctx, &p).await?;
+            ok(stream, JSON, json(&body), head_only).await
+        }
+        "/api/processed" => {
+            p.only(&[
+                "building", "sensor", "from_ns", "to_ns", "width", "quantity", "band",
+            ])?;
+            let body = processed(ctx, &p).await?;
             ok(stream, JSON, json(&body), head_only).await
         }
         "/api/trend" => {
@@ -363,8 +586,8 @@ fn alert_query(p: &Params<'_>) -> Result<AlertQuery, Refusal> {
     Ok(q)
 }
 
-/// Checks a write's origin and body and applies it to the alert log.
-fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
+/// Checks a write's origin and content type, and reads its body: a JSON object.
+fn check_write(req: &Request) -> Result<serde_json::Map<String, serde_json::Value>, Refusal> {
     if let Some(origin) = &req.origin {
         let own = req.host.as_deref().map(|h| format!("http://{h}"));
         if own
@@ -397,17 +620,80 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
     }
     let body: serde_json::Value = serde_json::from_slice(&req.body)
         .map_err(|e| Refusal::new(400, format!("the body is not JSON: {e}")))?;
-    let Some(obj) = body.as_object() else {
-        return Err(Refusal::new(400, "the body must be a JSON object"));
+    match body {
+        serde_json::Value::Object(o) => Ok(o),
+        _ => Err(Refusal::new(400, "the body must be a JSON object")),
+    }
+}
+
+/// `POST /api/login`: a name and password checked against the accounts; a session cookie.
+async fn login(
+    ctx: &Context,
+    stream: &mut TcpStream,
+    body: &serde_json::Map<String, serde_json::Value>,
+) -> Result<(), Refusal> {
+    let b = Body(body);
+    b.only(&["name", "password"])?;
+    let (name, password) = (b.text("name", true)?, b.text("password", true)?);
+    let Ok(_permit) = ctx.logins.clone().try_acquire_owned() else {
+        return Err(Refusal::new(
+            503,
+            format!("{MAX_LOGINS_AT_ONCE} logins are being checked; try again in a moment"),
+        ));
     };
+    let ops = ctx.operators.clone();
+    // An Argon2 check is CPU work: off the runtime's threads.
+    let (n, pw) = (name.clone(), password);
+    let outcome = tokio::task::spawn_blocking(move || ops.login(&n, &pw))
+        .await
+        .map_err(|e| Refusal::new(500, format!("login check failed: {e}")))?;
+    match outcome {
+        Login::Ok(token, who) => {
+            tracing::info!(operator = %who.name, role = who.role.name(), "operator logged in");
+            let body = json(&serde_json::json!({ "operator": who }));
+            let _ = http::respond_setting_cookie(
+                stream,
+                "application/json",
+                &body,
+                &crate::operators::set_cookie(&token),
+            )
+            .await;
+            Ok(())
+        }
+        Login::Refused => {
+            tracing::warn!(operator = %name, "login refused");
+            Err(Refusal::new(
+                401,
+                "login refused: no such operator, or a wrong password",
+            ))
+        }
+    }
+}
+
+/// Applies a write by `who` (the role already checked).
+fn write(
+    ctx: &Context,
+    req: &Request,
+    obj: &serde_json::Map<String, serde_json::Value>,
+    who: &Operator,
+) -> Result<serde_json::Value, Refusal> {
     let b = Body(obj);
     let now = time::OffsetDateTime::now_utc();
     let field = |e: crate::alertlog::FieldError| Refusal::new(400, e.to_string());
+    let by = who.name.clone();
     match req.path.as_str() {
+        "/api/health/clear" => {
+            b.only(&["building", "sensor", "reason"])?;
+            Err(Refusal::new(
+                501,
+                "clearing a field-health latch is not available yet: the gateways do not offer \
+                 it; a sensor's `calibration_suspect` ends when a new record is in force",
+            ))
+        }
         "/api/alerts/ack" => {
-            b.only(&["ids", "by", "note"])?;
+            b.only(&["ids", "note"])?;
             let ids = b.ids("ids")?;
-            let (by, note) = (b.text("by", true)?, b.text("note", false)?);
+            let note = b.text("note", false)?;
             let done = ctx
                 .fleet
                 .with_log(|l| l.acknowledge(&ids, &by, &note, now))
@@ -416,7 +702,7 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
             Ok(serde_json::json!({ "acknowledged": done, "already_acknowledged": already }))
         }
         "/api/alerts/silence" => {
-            b.only(&["building", "sensor", "kind", "duration_s", "by", "reason"])?;
+            b.only(&["building", "sensor", "kind", "duration_s", "reason"])?;
             let building = BuildingId::new(b.text("building", true)?)
                 .map_err(|e| Refusal::new(400, format!("field \"building\": {e}")))?;
             let sensor = match b.text("sensor", false)? {
@@ -447,26 +733,61 @@ fn write(ctx: &Context, req: &Request) -> Result<serde_json::Value, Refusal> {
                     format!("field \"duration_s\": {duration_s} is not a duration"),
                 )
             })?;
-            let (by, reason) = (b.text("by", true)?, b.text("reason", false)?);
+            let reason = b.text("reason", false)?;
             let s = ctx
                 .fleet
                 .with_log(|l| l.silence(building, sensor, kind, duration, &by, &reason, now))
                 .map_err(field)?;
             Ok(serde_json::to_value(s).unwrap_or_default())
         }
-        _ => {
-            b.only(&["id", "by"])?;
+        "/api/alerts/lift" => {
+            b.only(&["id"])?;
             let id = b.ids("id")?;
             let [id] = id[..] else {
                 return Err(Refusal::new(400, "field \"id\": one silence id"));
             };
-            let by = b.text("by", true)?;
             let s = ctx
                 .fleet
                 .with_log(|l| l.lift(id, &by, now))
                 .map_err(field)?;
             Ok(serde_json::to_value(s).unwrap_or_default())
         }
+        "/api/annotations" => {
+            b.only(&["building", "sensor", "from_ns", "to_ns", "text"])?;
+            let building = BuildingId::new(b.text("building", true)?)
+                .map_err(|e| Refusal::new(400, format!("field \"building\": {e}")))?;
+            let sensor = match b.text("sensor", false)? {
+                s if s.is_empty() => None,
+                s => Some(
+                    SensorId::new(s)
+                        .map_err(|e| Refusal::new(400, format!("field \"sensor\": {e}")))?,
+                ),
+            };
+            let (from_ns, to_ns) = (b.int("from_ns")?, b.int("to_ns")?);
+            let text = b.text("text", true)?;
+            let a = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .add(building, sensor, from_ns, to_ns, &text, &by, now)
+                .map_err(field)?;
+            Ok(serde_json::to_value(a).unwrap_or_default())
+        }
+        "/api/annotations/delete" => {
+            b.only(&["id"])?;
+            let id = b.ids("id")?;
+            let [id] = id[..] else {
+                return Err(Refusal::new(400, "field \"id\": one annotation id"));
+            };
+            let a = ctx
+                .annotations
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .delete(id, &by, who.role >= Role::Admin, now)
+                .map_err(field)?;
+            Ok(serde_json::json!({ "deleted": a }))
+        }
+        other => Err(Refusal::new(404, format!("no such page: {other:?}"))),
     }
 }
 
@@ -496,6 +817,16 @@ impl Body<'_> {
                 400,
                 format!("field {name:?}: {v} is not a string"),
             )),
+        }
+    }
+
+    /// A whole number (ns since the Unix epoch, for instance).
+    fn int(&self, name: &str) -> Result<i64, Refusal> {
+        match self.0.get(name) {
+            Some(v) => v.as_i64().ok_or_else(|| {
+                Refusal::new(400, format!("field {name:?}: {v} is not a whole number"))
+            }),
+            None => Err(Refusal::new(400, format!("field {name:?} is required"))),
         }
     }
 
@@ -817,6 +1148,119 @@ async fn trend(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refus
     }))
 }
 
+/// Up to 24 h of one axis in rows, from the per-second store ([`crate::helicorder`]).
+async fn helicorder(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    use crate::helicorder::{SecondsBuilder, MAX_SPAN_NS, SECOND_NS};
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_SPAN_NS)?;
+    let axis = match p.get("axis").unwrap_or("x") {
+        "x" => 0,
+        "y" => 1,
+        "z" => 2,
+        v => {
+            return Err(Refusal::new(
+                400,
+                format!("parameter \"axis\": {v:?} is not x, y or z"),
+            ))
+        }
+    };
+    let row_s = p.int("row_s", Some(900), 60..=3600)?;
+    let from_s = from_ns.div_euclid(SECOND_NS);
+    let span_s = (to_ns - from_ns + SECOND_NS - 1) / SECOND_NS;
+    let rows = ((span_s + row_s - 1) / row_s).max(1) as usize;
+    let to_s = from_s + rows as i64 * row_s;
+    let missing = ctx.helicorder.lock().await.missing(&b, &s, from_s, to_s);
+    let whole_before_s = crate::live::wall_clock_ns() / SECOND_NS - 60;
+    let mut read = 0;
+    let mut error = None;
+    for (a, z) in missing {
+        // An hour at a time: each read is one history view, and the store fills as it goes.
+        let mut at = a;
+        while at < z && error.is_none() {
+            let end = (at + 3600).min(z);
+            let mut builder = SecondsBuilder::new(at * SECOND_NS, end * SECOND_NS);
+            match read_history(ctx, &b, &s, at * SECOND_NS, end * SECOND_NS, &mut |batch| {
+                builder.push(batch)
+            })
+            .await?
+            {
+                Ok(n) => {
+                    read += n;
+                    ctx.helicorder.lock().await.store(
+                        &b,
+                        &s,
+                        at,
+                        end,
+                        whole_before_s,
+                        builder.finish(),
+                    );
+                }
+                Err(e) => error = Some(e),
+            }
+            at = end;
+        }
+    }
+    let cache = ctx.helicorder.lock().await;
+    let seconds = cache.get(&b, &s, from_s, to_s);
+    let drum = crate::helicorder::drum(&seconds, axis, from_s, rows, row_s);
+    Ok(serde_json::json!({
+        "batches_read": read,
+        "cached_seconds": cache.cached_seconds(),
+        "error": error,
+        "helicorder": drum,
+    }))
+}
+
+/// A filtered or integrated view of up to an hour ([`crate::process`]).
+async fn processed(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
+    use crate::process::{Band, Quantity};
+    let (b, s) = (p.building()?, p.sensor()?);
+    let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
+    let width = p.int("width", Some(1000), WIDTH_RANGE)?;
+    let v = p.get("quantity").unwrap_or("acceleration");
+    let q = Quantity::parse(v).ok_or_else(|| {
+        Refusal::new(
+            400,
+            format!("parameter \"quantity\": {v:?} is not acceleration, velocity or displacement"),
+        )
+    })?;
+    let band = match p.get("band") {
+        None => Band {
+            low_hz: None,
+            high_hz: None,
+        },
+        Some(v) => {
+            Band::parse(v).map_err(|e| Refusal::new(400, format!("parameter \"band\": {e}")))?
+        }
+    };
+    if q != Quantity::Acceleration && band.low_hz.is_none() {
+        return Err(Refusal::new(
+            400,
+            "parameter \"band\": velocity and displacement need a lower edge (e.g. band=0.1-20): \
+             an integral without one drifts without bound",
+        ));
+    }
+    let settle = band.settle_ns();
+    let mut c = crate::spectrum::Collector::new(from_ns - settle, to_ns + settle);
+    let read = read_history(
+        ctx,
+        &b,
+        &s,
+        from_ns - settle,
+        to_ns + settle,
+        &mut |batch| c.push(batch),
+    )
+    .await?;
+    let bucket_ns = (to_ns - from_ns + width - 1) / width;
+    let view = crate::process::view(&c, q, band, from_ns, to_ns, bucket_ns);
+    Ok(match read {
+        Ok(n) => {
+            serde_json::json!({ "batches_read": n, "settle_s": settle as f64 / 1e9, "view": view })
+        }
+        Err(e) => serde_json::json!({ "error": e, "settle_s": settle as f64 / 1e9, "view": view }),
+    })
+}
+
 async fn spectrum(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Refusal> {
     let (b, s) = (p.building()?, p.sensor()?);
     let (from_ns, to_ns) = range(p, MAX_HISTORY_SPAN_NS)?;
@@ -1016,12 +1460,12 @@ async fn export_csv(ctx: &Context, p: &Params<'_>) -> Result<(String, String), R
     Ok((format!("{b}_{s}_{from_ns}_{to_ns}.csv"), out))
 }
 
-/// The event stream of one page: the fleet every second and, for a sensor view, its live frames
+/// The event stream of one page: the fleet (its brief, then its deltas every second) and, for a sensor view, its live frames
 /// and tilt. Ends when the page goes, a write stalls, or the console stops.
 ///
 /// A light stream (`lite`, for slow links) sends a live frame once a second holding only the
 /// buckets that changed (from the bucket of the earliest batch that arrived since the last
-/// frame, a late one included), and the fleet every 5 s: the page draws the same buckets,
+/// frame, a late one included), and the fleet's deltas every 5 s: the page draws the same buckets,
 /// later.
 async fn events(
     ctx: &Context,
@@ -1034,13 +1478,9 @@ async fn events(
     if http::start_events(stream).await.is_err() {
         return;
     }
-    let mut fleet = ctx.fleet_json.clone();
     let mut stop = ctx.stop.clone();
-    // The shared serialisation runs only while pages are open, so it may be missing or a
-    // while old: a page's first view is made for it.
-    fleet.mark_unchanged();
-    let first = json(&ctx.fleet.snapshot());
-    let first = String::from_utf8_lossy(&first);
+    // The whole fleet first (its brief: states, not counters), then what changes.
+    let (mut fleet_seq, first, mut fleet) = ctx.fleet_events.start(&ctx.fleet);
     if http::send_event(stream, "fleet", &first).await.is_err() {
         return;
     }
@@ -1070,15 +1510,29 @@ async fn events(
                 if changed.is_err() {
                     return;
                 }
+                fleet.mark_unchanged();
                 if lite && fleet_sent.elapsed() < LITE_FLEET_PERIOD {
-                    // Left marked as changed? No: the next one after the period carries it.
-                    fleet.mark_unchanged();
+                    // The deltas wait; the first one after the period sends them all.
                     continue;
                 }
                 fleet_sent = tokio::time::Instant::now();
-                let text = fleet.borrow_and_update().clone();
-                if http::send_event(stream, "fleet", &text).await.is_err() {
-                    return;
+                match ctx.fleet_events.since(fleet_seq) {
+                    Some(deltas) => {
+                        for (seq, text) in deltas {
+                            if http::send_event(stream, "fleet_delta", &text).await.is_err() {
+                                return;
+                            }
+                            fleet_seq = seq;
+                        }
+                    }
+                    None => {
+                        // Too far behind: the whole fleet again.
+                        let (seq, text, _) = ctx.fleet_events.start(&ctx.fleet);
+                        if http::send_event(stream, "fleet", &text).await.is_err() {
+                            return;
+                        }
+                        fleet_seq = seq;
+                    }
                 }
             }
             _ = tick.tick() => {

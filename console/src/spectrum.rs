@@ -137,6 +137,12 @@ impl Collector {
         }
     }
 
+    /// The runs of contiguous samples gathered, in time order: each its sample rate, the time
+    /// of its first sample (ns) and its values per axis.
+    pub fn runs(&self) -> impl Iterator<Item = (f64, f64, &[Vec<f32>; 3])> {
+        self.runs.iter().map(|r| (r.rate_hz, r.start_ns, &r.values))
+    }
+
     /// Welch's estimate with segments of `segment` samples (None: the longest power of two
     /// that gives at least 8 segments over the longest run, within the limits), at the most
     /// common sample rate.

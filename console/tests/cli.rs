@@ -135,3 +135,80 @@ fn a_named_page_address_and_no_zenoh_listener() {
         "the console listens on its page's port only, not for Zenoh"
     );
 }
+
+/// `triax-console operator add|list|remove` keeps the accounts file: the password from standard
+/// input, hashed (Argon2id), the file readable by its owner only; a bad password or name is
+/// refused naming what is wrong, and a console refuses an accounts file that does not read,
+/// naming its line.
+#[test]
+fn operators_are_managed_from_the_command_line() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().to_str().unwrap();
+    let run = |args: &[&str], stdin: &str| {
+        let mut child = Command::new(BIN)
+            .args(["--state-dir", state])
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        child
+            .stdin
+            .take()
+            .unwrap()
+            .write_all(stdin.as_bytes())
+            .unwrap();
+        let out = child.wait_with_output().unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).into_owned()
+                + &String::from_utf8_lossy(&out.stderr),
+        )
+    };
+    let (ok, said) = run(
+        &["operator", "add", "alice", "--role", "operate"],
+        "correct horse battery\n",
+    );
+    assert!(ok, "{said}");
+    assert!(said.contains("operator alice (operate)"), "{said}");
+    let (ok, _) = run(
+        &["operator", "add", "bob", "--role", "admin", "--proxy-only"],
+        "",
+    );
+    assert!(ok);
+    let file = dir.path().join("operators");
+    let text = std::fs::read_to_string(&file).unwrap();
+    assert!(text.contains("alice operate $argon2id$v=19$"), "{text}");
+    assert!(!text.contains("correct horse"), "the password is not kept");
+    assert!(text.contains("bob admin -"), "{text}");
+    assert_eq!(
+        std::fs::metadata(&file).unwrap().permissions().mode() & 0o777,
+        0o600
+    );
+    let (ok, said) = run(&["operator", "list"], "");
+    assert!(ok);
+    assert_eq!(said, "alice operate\nbob admin (proxy only)\n");
+    let (ok, said) = run(&["operator", "add", "carol", "--role", "view"], "short\n");
+    assert!(!ok);
+    assert!(said.contains("at least 10 characters"), "{said}");
+    let (ok, said) = run(
+        &["operator", "add", "c/d", "--role", "view"],
+        "long enough pw\n",
+    );
+    assert!(!ok);
+    assert!(said.contains("not '/'"), "{said}");
+    let (ok, _) = run(&["operator", "remove", "bob"], "");
+    assert!(ok);
+    let (ok, said) = run(&["operator", "remove", "bob"], "");
+    assert!(!ok && said.contains("no operator \"bob\""), "{said}");
+    // A console will not start on an accounts file that does not read.
+    std::fs::write(&file, "alice boss -\n").unwrap();
+    let (ok, said) = run(&["--listen", "127.0.0.1:0", "--no-multicast-scouting"], "");
+    assert!(!ok);
+    assert!(
+        said.contains("line 1: role \"boss\" is not view, operate or admin"),
+        "{said}"
+    );
+}

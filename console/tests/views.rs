@@ -50,7 +50,51 @@ async fn until_alerts_arrive(site: &Site, console: &Console) {
 async fn alert_log_survives_a_restart() {
     let site = Site::start(60).await;
     let dir = tempfile::tempdir().unwrap();
-    let console = Console::start(&site, Some(dir.path().to_owned())).await;
+    let operators = dir.path().join("operators");
+    write_operators(
+        &operators,
+        &[
+            ("alice", "operate"),
+            ("bob", "operate"),
+            ("viewer", "view"),
+            ("root", "admin"),
+        ],
+    );
+    let with_accounts = |o: &mut triax_console::ConsoleOptions| {
+        o.operators_file = Some(operators.clone());
+    };
+    let console = Console::start_with(&site, Some(dir.path().to_owned()), with_accounts).await;
+    // With accounts, nothing but the page and who one is before a login.
+    let (status, body) = console.get("/api/alerts").await;
+    assert_eq!(status, 401, "{body}");
+    assert!(body.contains("logged-in operator"), "{body}");
+    assert_eq!(console.get("/events").await.0, 401);
+    assert_eq!(console.get("/app.js").await.0, 200);
+    let me = console.json("/api/me").await;
+    assert_eq!(me["operator"], Value::Null, "{me}");
+    assert_eq!(me["login_required"], true, "{me}");
+    let (status, body) = console
+        .post(
+            "/api/login",
+            &json!({"name": "alice", "password": "not the password"}),
+        )
+        .await;
+    assert_eq!(status, 401, "{body}");
+    let (status, _) = console
+        .post(
+            "/api/login",
+            &json!({"name": "mallory", "password": PASSWORD}),
+        )
+        .await;
+    assert_eq!(status, 401, "an unknown operator");
+    console.login("viewer").await;
+    assert_eq!(console.json("/api/me").await["operator"]["role"], "view");
+    let (_, page) = console.get("/").await;
+    assert!(
+        page.contains(r#"<meta name="triax-me" content="{&quot;accounts&quot;:true,"#)
+            && page.contains("&quot;name&quot;:&quot;viewer&quot;"),
+        "the page knows who it is for: {page}"
+    );
     until_alerts_arrive(&site, &console).await;
     site.alert(
         "acc-01",
@@ -121,18 +165,55 @@ async fn alert_log_survives_a_restart() {
         assert!(body.contains(names), "{p}: {body}");
     }
 
+    // A viewer sees, but does not acknowledge; an admin's health-latch clearing is not there yet.
+    let (status, body) = console
+        .post("/api/alerts/ack", &json!({"ids": [exceeded_id]}))
+        .await;
+    assert_eq!(status, 403, "{body}");
+    assert!(
+        body.contains("\"viewer\" has the role view") && body.contains("needs operate"),
+        "{body}"
+    );
+    console.login("root").await;
+    let (status, body) = console
+        .post(
+            "/api/health/clear",
+            &json!({"building": "hq", "sensor": "acc-01"}),
+        )
+        .await;
+    assert_eq!(status, 501, "{body}");
+    assert!(body.contains("not available yet"), "{body}");
+    console.login("alice").await;
+    let (status, body) = console
+        .post(
+            "/api/health/clear",
+            &json!({"building": "hq", "sensor": "acc-01"}),
+        )
+        .await;
+    assert_eq!(status, 403, "an operator is no admin: {body}");
+    // The free-text name is gone: who is the operator logged in.
+    let (status, body) = console
+        .post(
+            "/api/alerts/ack",
+            &json!({"ids": [exceeded_id], "by": "mallory"}),
+        )
+        .await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("unknown field \"by\""), "{body}");
+
     // Acknowledge, with who and when.
     let (status, body) = console
         .post(
             "/api/alerts/ack",
-            &json!({"ids": [exceeded_id], "by": "alice", "note": "checked on site"}),
+            &json!({"ids": [exceeded_id], "note": "checked on site"}),
         )
         .await;
     assert_eq!(status, 200, "{body}");
     let answer: Value = serde_json::from_str(&body).unwrap();
     assert_eq!(answer["acknowledged"], json!([exceeded_id]));
+    console.login("bob").await;
     let (_, again) = console
-        .post("/api/alerts/ack", &json!({"ids": exceeded_id, "by": "bob"}))
+        .post("/api/alerts/ack", &json!({"ids": exceeded_id}))
         .await;
     assert!(
         again.contains("\"already_acknowledged\":[") && again.contains(&exceeded_id.to_string()),
@@ -153,7 +234,7 @@ async fn alert_log_survives_a_restart() {
 
     // Silence acc-02's peak alerts: a new one arrives silenced.
     let (status, body) = console
-        .post("/api/alerts/silence", &json!({"building": "hq", "sensor": "acc-02", "kind": "peak_acceleration", "duration_s": 3600, "by": "bob", "reason": "works on floor 3"}))
+        .post("/api/alerts/silence", &json!({"building": "hq", "sensor": "acc-02", "kind": "peak_acceleration", "duration_s": 3600, "reason": "works on floor 3"}))
         .await;
     assert_eq!(status, 200, "{body}");
     let silence: Value = serde_json::from_str(&body).unwrap();
@@ -182,16 +263,13 @@ async fn alert_log_survives_a_restart() {
     let (status, _) = console.post("/api/fleet", &json!({})).await;
     assert_eq!(status, 405);
     for (body, field) in [
-        (json!({"ids": [exceeded_id]}), "\"by\""),
-        (json!({"ids": [999_999], "by": "alice"}), "\"ids\""),
-        (json!({"ids": "all", "by": "alice"}), "\"ids\""),
+        (json!({"note": "x"}), "\"ids\" is required"),
+        (json!({"ids": [999_999]}), "\"ids\""),
+        (json!({"ids": "all"}), "\"ids\""),
+        (json!({"ids": [exceeded_id], "colour": 1}), "\"colour\""),
         (
-            json!({"ids": [exceeded_id], "by": "alice", "colour": 1}),
-            "\"colour\"",
-        ),
-        (
-            json!({"ids": [exceeded_id], "by": "x".repeat(65)}),
-            "\"by\"",
+            json!({"ids": [exceeded_id], "note": "x".repeat(1001)}),
+            "\"note\"",
         ),
     ] {
         let (status, text) = console.post("/api/alerts/ack", &body).await;
@@ -199,28 +277,22 @@ async fn alert_log_survives_a_restart() {
         assert!(text.contains(field), "{body}: {text}");
     }
     for (body, field) in [
+        (json!({"building": "hq", "duration_s": 0}), "\"duration_s\""),
         (
-            json!({"building": "hq", "duration_s": 0, "by": "b"}),
+            json!({"building": "hq", "duration_s": 1e9}),
             "\"duration_s\"",
         ),
         (
-            json!({"building": "hq", "duration_s": 1e9, "by": "b"}),
-            "\"duration_s\"",
-        ),
-        (
-            json!({"building": "hq", "kind": "shake", "duration_s": 60, "by": "b"}),
+            json!({"building": "hq", "kind": "shake", "duration_s": 60}),
             "\"kind\"",
         ),
-        (
-            json!({"building": "h/q", "duration_s": 60, "by": "b"}),
-            "\"building\"",
-        ),
+        (json!({"building": "h/q", "duration_s": 60}), "\"building\""),
     ] {
         let (status, text) = console.post("/api/alerts/silence", &body).await;
         assert_eq!(status, 400, "{body}: {text}");
         assert!(text.contains(field), "{body}: {text}");
     }
-    let body = r#"{"ids":[1],"by":"eve"}"#;
+    let body = r#"{"ids":[1]}"#;
     let foreign = format!(
         "POST /api/alerts/ack HTTP/1.1\r\nHost: {a}\r\nOrigin: http://evil.example\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
         body.len()
@@ -253,7 +325,13 @@ async fn alert_log_survives_a_restart() {
         .unwrap()
         .write_all(b"{\"alert\":{\"id\":")
         .unwrap();
-    let console = Console::start(&site, Some(dir.path().to_owned())).await;
+    let console = Console::start_with(&site, Some(dir.path().to_owned()), with_accounts).await;
+    assert_eq!(
+        console.get("/api/alerts").await.0,
+        401,
+        "sessions end with the console"
+    );
+    console.login("bob").await;
     let after = console.json("/api/alerts").await;
     assert_eq!(ids(&after), ids(&kept));
     assert_eq!(after["kept"], kept["kept"]);
@@ -269,10 +347,17 @@ async fn alert_log_survives_a_restart() {
     );
     assert_eq!(console.json("/api/silences").await[0]["id"], silence_id);
     let (status, body) = console
-        .post("/api/alerts/lift", &json!({"id": silence_id, "by": "bob"}))
+        .post("/api/alerts/lift", &json!({"id": silence_id}))
         .await;
     assert_eq!(status, 200, "{body}");
-    assert_eq!(console.json("/api/silences").await[0]["active"], false);
+    let lifted = console.json("/api/silences").await;
+    assert_eq!(lifted[0]["active"], false);
+    assert_eq!(lifted[0]["lifted"]["by"], "bob", "{lifted}");
+    // Logged out: the cookie is cleared and the session ends.
+    let (status, _) = console.post("/api/logout", &json!({})).await;
+    assert_eq!(status, 200);
+    assert_eq!(console.get("/api/alerts").await.0, 401);
+    console.login("bob").await;
     // New alerts continue the numbering.
     until_alerts_arrive(&site, &console).await;
     let newest = console.json("/api/alerts?limit=1").await;
@@ -283,7 +368,15 @@ async fn alert_log_survives_a_restart() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn alert_table_in_a_browser() {
     let site = Site::start(60).await;
-    let console = Console::start(&site, None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let operators = dir.path().join("operators");
+    write_operators(&operators, &[("alice", "operate")]);
+    let console = Console::start_with(&site, None, |o| {
+        o.operators_file = Some(operators.clone());
+        o.time_zone = Some(triax_console::SiteTimeZone::get("Europe/Zurich").unwrap());
+    })
+    .await;
+    console.login("alice").await;
     until_alerts_arrive(&site, &console).await;
     site.alert(
         "acc-01",
@@ -299,7 +392,38 @@ async fn alert_table_in_a_browser() {
         })
         .await;
     let browser = Browser::start(false);
+    // Accounts exist: the page asks for a login before it shows anything.
     browser.go(&format!("{}#/alerts", console.url()));
+    browser
+        .wait(
+            "the login form",
+            "return location.hash === '#/login' && document.getElementById('login-name')",
+        )
+        .await;
+    browser.js("document.getElementById('login-name').value = 'alice'; document.getElementById('login-password').value = 'wrong password'; document.getElementById('login-go').click(); return 1");
+    browser
+        .wait(
+            "a refused login said so",
+            "return document.getElementById('login-status').textContent.includes('(401)')",
+        )
+        .await;
+    let errors = browser.errors();
+    assert!(
+        errors.len() == 1 && errors[0].contains("/api/login") && errors[0].contains("401"),
+        "only the refused login: {errors:?}"
+    );
+    browser.js(&format!("document.getElementById('login-name').value = 'alice'; document.getElementById('login-password').value = '{PASSWORD}'; document.getElementById('login-go').click(); return 1"));
+    browser
+        .wait(
+            "the alerts view after the login",
+            "return location.hash === '#/alerts' && document.getElementById('who-name') && document.getElementById('who-name').textContent === 'alice (operate)'",
+        )
+        .await;
+    assert_eq!(
+        browser.js("return document.cookie"),
+        "",
+        "the session cookie is HttpOnly: no script reads it"
+    );
     let n: u64 = browser
         .wait("the alert rows", "return document.querySelectorAll('#alert-rows tr').length >= 2 && document.querySelectorAll('#alert-rows tr').length")
         .await
@@ -342,15 +466,53 @@ async fn alert_table_in_a_browser() {
     browser
         .wait("the filtered table", "return document.querySelectorAll('#alert-rows tr').length === 1 && document.getElementById('f-level').value === 'exceeded'")
         .await;
-    // Acknowledge without a name: refused on the page; with one: recorded.
-    browser.js("document.querySelector('#alert-rows button.ack').click(); return 1");
+    // At 1 400 px the table fits: no sideways scroll to reach Acknowledge.
+    let fit = browser.js("const b = document.querySelector('#alert-rows button.ack').getBoundingClientRect(); return [window.innerWidth, document.documentElement.scrollWidth, Math.round(b.right)]");
+    let (inner, scroll, right) = (
+        fit[0].as_i64().unwrap(),
+        fit[1].as_i64().unwrap(),
+        fit[2].as_i64().unwrap(),
+    );
+    assert!(inner >= 1300, "{fit}");
+    assert!(
+        scroll <= inner && right <= inner,
+        "the page scrolls sideways: {fit}"
+    );
+    // Times in the site's local time, labelled; UTC again after.
+    let utc_at = browser
+        .js("return document.querySelector('#alert-rows tr td').textContent")
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert!(utc_at.ends_with('Z'), "{utc_at}");
+    browser.js("const s = document.getElementById('tz'); s.value = 'site'; s.dispatchEvent(new Event('change')); return 1");
+    let local_at = browser
+        .wait("the site's local time", "const t = document.querySelector('#alert-rows tr td'); return t && /(CET|CEST|GMT\\+[12])$/.test(t.textContent) && t.textContent")
+        .await;
+    let local_at = local_at.as_str().unwrap();
+    let hours = |t: &str| t[11..13].parse::<i64>().unwrap();
+    assert!(
+        [1, 2].contains(&(hours(local_at) - hours(&utc_at)).rem_euclid(24)),
+        "{utc_at} against {local_at}"
+    );
+    assert!(
+        browser
+            .js("return document.getElementById('tz-note').textContent")
+            .as_str()
+            .unwrap()
+            .contains("Europe/Zurich"),
+        "the footer says which zone"
+    );
+    browser.screenshot("alerts-log-local-time");
+    browser.js("const s = document.getElementById('tz'); s.value = 'utc'; s.dispatchEvent(new Event('change')); return 1");
     browser
         .wait(
-            "the name asked for",
-            "return document.getElementById('alerts-status').textContent.includes('operator')",
+            "UTC again",
+            "const t = document.querySelector('#alert-rows tr td'); return t && t.textContent.endsWith('Z')",
         )
         .await;
-    browser.js("const i = document.getElementById('operator'); i.value = 'alice'; i.dispatchEvent(new Event('change')); document.querySelector('#alert-rows button.ack').click(); return 1");
+    // Acknowledge: recorded as the operator logged in.
+    browser.js("document.querySelector('#alert-rows button.ack').click(); return 1");
     let handled = browser
         .wait("the acknowledgement", "const t = document.querySelector('#alert-rows td.handled').textContent; return t.includes('acknowledged') && t")
         .await;
@@ -890,7 +1052,7 @@ async fn carried(addr: std::net::SocketAddr, query: String, until_ns: i64) -> Ca
             continue;
         };
         match event.as_str() {
-            "fleet" if started => out.fleet_events += 1,
+            "fleet" | "fleet_delta" if started => out.fleet_events += 1,
             "live" => {
                 let v: Value = serde_json::from_str(data).unwrap();
                 let view = &v["view"];
@@ -958,6 +1120,9 @@ async fn a_light_live_stream_carries_the_same_buckets_for_fewer_bytes() {
         "light {light_bps:.0} B/s, full {full_bps:.0} B/s"
     );
     assert!(light.live_frames < full.live_frames);
+    // The figures count the fleet's events too: a delta a second on the full stream, the
+    // same deltas every 5 s on the light one.
+    assert!(full.fleet_events >= 10, "{}", full.fleet_events);
     // Every bucket both have whole (after the first frames, up to the end) is the same.
     assert_eq!(full.bucket_ns, light.bucket_ns);
     let (lo, hi) = (
@@ -995,5 +1160,422 @@ async fn a_light_live_stream_carries_the_same_buckets_for_fewer_bytes() {
         .await;
     assert_eq!(status, 400, "{body}");
     assert!(body.contains("\"lite\""), "{body}");
+    console.stop().await;
+}
+
+/// The fleet event sends the fleet's brief once, then what changed: nothing but the clock and
+/// the totals while the fleet is quiet, a sensor's new state when it changes. The page keeps
+/// its table from them, and reads the counters of the buildings it shows on demand.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_fleet_event_sends_what_changed() {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let site = Site::start(60).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let one = console.json("/api/fleet?building=hq&sensor=acc-02").await;
+    assert_eq!(one["sensors"].as_array().unwrap().len(), 1, "{one}");
+    assert!(one["sensors"][0]["samples"].as_u64().unwrap() > 0, "{one}");
+    assert_eq!(console.get("/api/fleet?building=nowhere").await.0, 404);
+    assert_eq!(console.get("/api/fleet?sensor=acc-01").await.0, 400);
+
+    // The stream: the whole brief first, then five quiet deltas, each a few hundred bytes.
+    let addr = console.addr;
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(format!("GET /events HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut lines = BufReader::new(s).lines();
+    let mut event = String::new();
+    let mut deltas: Vec<Value> = Vec::new();
+    let mut first: Option<Value> = None;
+    while deltas.len() < 5 {
+        let line = tokio::time::timeout(TIMEOUT, lines.next_line())
+            .await
+            .expect("the stream goes on")
+            .unwrap()
+            .expect("the stream stays open");
+        if let Some(e) = line.strip_prefix("event: ") {
+            event = e.to_owned();
+        } else if let Some(data) = line.strip_prefix("data: ") {
+            let v: Value = serde_json::from_str(data).unwrap();
+            match event.as_str() {
+                "fleet" => first = Some(v),
+                "fleet_delta" => {
+                    assert!(
+                        data.len() < 400,
+                        "a quiet delta of {} bytes: {data}",
+                        data.len()
+                    );
+                    deltas.push(v)
+                }
+                other => panic!("event {other:?}"),
+            }
+        }
+    }
+    let first = first.expect("the whole fleet first");
+    assert_eq!(first["buildings"][0]["sensors"][0]["states"], json!(["ok"]));
+    assert!(
+        first["buildings"][0]["sensors"][0].get("samples").is_none(),
+        "no counters in the event: {first}"
+    );
+    let seq = first["seq"].as_u64().unwrap();
+    for (i, d) in deltas.iter().enumerate() {
+        assert_eq!(d["seq"].as_u64().unwrap(), seq + 1 + i as u64, "{d}");
+        assert!(d.get("sensors").is_none(), "a quiet fleet: {d}");
+    }
+    // A state changes: the next delta carries that sensor, and the new alert whole.
+    site.alert("acc-02", "exceeded", "a verdict", (10, 20), true)
+        .await;
+    let changed = loop {
+        let line = tokio::time::timeout(TIMEOUT, lines.next_line())
+            .await
+            .expect("the stream goes on")
+            .unwrap()
+            .expect("the stream stays open");
+        let Some(data) = line.strip_prefix("data: ") else {
+            continue;
+        };
+        let v: Value = serde_json::from_str(data).unwrap();
+        if v.get("sensors").is_some() {
+            break v;
+        }
+    };
+    assert_eq!(changed["sensors"][0]["sensor_id"], "acc-02", "{changed}");
+    assert_eq!(changed["sensors"][0]["states"], json!(["exceeded"]));
+    assert_eq!(changed["alerts"][0]["statement"], "a verdict");
+    assert_eq!(
+        changed["sensors"][0]["latest_alert"],
+        changed["alerts"][0]["id"]
+    );
+
+    // The page: states from the events, counters from /api/fleet?building=.
+    let browser = Browser::start(false);
+    browser.go(&console.url());
+    browser
+        .wait("the three rows with their counters", "const r = [...document.querySelectorAll('tr.sensor')]; return r.length === 3 && r.every((x) => x.querySelector('.flagged-share').textContent.endsWith('%')) && r.every((x) => Number(x.children[4].textContent) > 0)")
+        .await;
+    site.alert("acc-03", "exceeded", "another", (10, 20), true)
+        .await;
+    let row = browser
+        .wait("acc-03's new state from a delta", "const r = document.querySelector('tr.sensor[data-sensor=\"acc-03\"]'); return r && r.dataset.states.includes('exceeded') && Number(document.getElementById('view').dataset.fleetDeltas) > 0 && r.children[10].textContent")
+        .await;
+    assert!(
+        row.as_str().unwrap().contains("exceeded peak acceleration"),
+        "{row}"
+    );
+    browser.screenshot("fleet-deltas");
+    browser.assert_no_errors("the fleet view");
+    drop(browser);
+    console.stop().await;
+}
+
+/// Comparing: velocity and displacement by integration within a stated band, a filter per
+/// plot, and every sensor's axes overlaid in one plot of the building view.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn comparing_in_a_browser() {
+    let site = Site::start(15 * 60).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let now = now_ns();
+    let (from, to) = (now - 300_000_000_000, now - 180_000_000_000);
+    let q = |extra: &str| {
+        format!(
+            "/api/processed?building=hq&sensor=acc-01&from_ns={from}&to_ns={to}&width=600{extra}"
+        )
+    };
+    // Velocity of the 2.5 Hz sway of 0.05 m/s² in 0.5-20 Hz: a/ω through the filters.
+    let v = console.json(&q("&quantity=velocity&band=0.5-20")).await;
+    assert_eq!(v["error"], Value::Null, "{v}");
+    let view = &v["view"];
+    assert_eq!(view["unit"], "m/s");
+    assert_eq!(view["band"], json!({"low_hz": 0.5, "high_hz": 20.0}));
+    let peak = view["buckets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| b[2].as_f64().unwrap().max(-b[1].as_f64().unwrap()))
+        .fold(0.0f64, f64::max);
+    let w = 2.0 * std::f64::consts::PI * SWAY_HZ;
+    let want = SWAY_MPS2 / w;
+    assert!((peak / want - 1.0).abs() < 0.03, "{peak} against {want}");
+    assert_eq!(v["settle_s"], 6.0, "three periods of 0.5 Hz each side");
+    for (extra, names) in [
+        ("&quantity=velocity", "\"band\""),
+        ("&quantity=jerk", "\"quantity\""),
+        ("&band=20-5", "\"band\""),
+    ] {
+        let (status, body) = console.get(&q(extra)).await;
+        assert_eq!(status, 400, "{extra}: {body}");
+        assert!(body.contains(names), "{extra}: {body}");
+    }
+
+    let browser = Browser::start(false);
+    let url = console.url();
+    browser.go(&format!(
+        "{url}#/sensor/hq/acc-01?from={from}&to={to}&q=displacement&band=0.5-20"
+    ));
+    browser
+        .wait("the displacement view", "const p = document.getElementById('plot'); return p && p.dataset.source === 'processed' && document.getElementById('canvas-x').dataset.quantity === 'displacement'")
+        .await;
+    let title = browser.js("return document.getElementById('title-x').textContent");
+    assert!(
+        title
+            .as_str()
+            .unwrap()
+            .contains("displacement x (m), band 0.5–20 Hz"),
+        "{title}"
+    );
+    let readout = browser.js("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); c.dispatchEvent(new MouseEvent('mousemove', { clientX: r.left + r.width / 2, clientY: r.top + 50, bubbles: true })); const b = document.getElementById('readout'); return b.hidden ? null : b.innerText");
+    assert!(
+        readout.as_str().unwrap().contains(" m\n") || readout.as_str().unwrap().contains(" m"),
+        "{readout}"
+    );
+    browser.screenshot("sensor-displacement");
+    // Zooming keeps the quantity and band.
+    let hash = browser.js("const c = document.getElementById('canvas-x'); const r = c.getBoundingClientRect(); const m = c._map; const x = (f) => r.left + m.left + f * m.pw; const ev = (t, f) => c.dispatchEvent(new MouseEvent(t, { clientX: x(f), clientY: r.top + 60, bubbles: true })); ev('mousedown', 0.3); ev('mousemove', 0.6); ev('mouseup', 0.6); return location.hash");
+    assert!(
+        hash.as_str()
+            .unwrap()
+            .contains("q=displacement&band=0.5-20"),
+        "{hash}"
+    );
+
+    // The building view: x and z of every sensor overlaid, and one plot filtered alone.
+    browser.go(&format!(
+        "{url}#/building/hq?from={from}&to={to}&overlay=xz"
+    ));
+    browser
+        .wait("the overlay of six series", "const c = document.getElementById('bcanvas-overlay'); return c && c.dataset.series === '6' && document.getElementById('building-plots').dataset.loaded === '3'")
+        .await;
+    let legend = browser.js("return document.getElementById('overlay-legend').textContent");
+    assert!(legend.as_str().unwrap().contains("acc-02 az"), "{legend}");
+    browser.js("const i = document.querySelector('input.plot-band[data-sensor=\"acc-02\"]'); i.value = '5-20'; i.dispatchEvent(new Event('change')); return 1");
+    let ranges = browser
+        .wait("acc-02 filtered alone", "const c = document.getElementById('bcanvas-acc-02'); const d = document.getElementById('bcanvas-acc-01'); return c.dataset.band === '5-20' && d.dataset.band === undefined && [c._map.hi - c._map.lo, d._map.hi - d._map.lo]")
+        .await;
+    let (filtered, plain) = (ranges[0].as_f64().unwrap(), ranges[1].as_f64().unwrap());
+    assert!(
+        filtered < 0.4 * plain,
+        "the sway is outside 5-20 Hz: {filtered} against {plain}"
+    );
+    browser.screenshot("building-overlay-and-filter");
+    browser.assert_no_errors("comparing");
+    drop(browser);
+    console.stop().await;
+}
+
+/// Logs the browser in as `name` through the page's form.
+async fn browser_login(browser: &Browser, url: &str, name: &str) {
+    browser.go(&format!("{url}#/login"));
+    browser
+        .wait(
+            "the login form",
+            "return document.getElementById('login-name')",
+        )
+        .await;
+    browser.js(&format!("document.getElementById('login-name').value = '{name}'; document.getElementById('login-password').value = '{PASSWORD}'; document.getElementById('login-go').click(); return 1"));
+    browser
+        .wait("logged in", &format!("const w = document.getElementById('who-name'); return w && w.textContent.startsWith('{name} ')"))
+        .await;
+}
+
+/// Marking: annotations of one's own, kept, shown on every plot of their building (a sensor's
+/// only on its own), removed by their author or an admin, exported as CSV; and a day at a
+/// glance: the helicorder of two hours from the per-second store, with gaps, flags and the
+/// annotations, the second look read from the store.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn marking_and_a_day_at_a_glance() {
+    let site = Site::start(2 * 3600).await;
+    let dir = tempfile::tempdir().unwrap();
+    let operators = dir.path().join("operators");
+    write_operators(
+        &operators,
+        &[("alice", "operate"), ("bob", "operate"), ("root", "admin")],
+    );
+    let state = dir.path().join("state");
+    let console = Console::start_with(&site, Some(state.clone()), |o| {
+        o.operators_file = Some(operators.clone());
+    })
+    .await;
+    console.login("alice").await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let now = now_ns();
+    let min = 60_000_000_000i64;
+    let (status, crane) = console
+        .post(
+            "/api/annotations",
+            &json!({"building": "hq", "from_ns": now - 30 * min, "to_ns": now - 20 * min, "text": "crane lift"}),
+        )
+        .await;
+    assert_eq!(status, 200, "{crane}");
+    let crane: Value = serde_json::from_str(&crane).unwrap();
+    assert_eq!(
+        (crane["by"].as_str(), crane["source"].as_str()),
+        (Some("alice"), Some("operator"))
+    );
+    for (body, names) in [
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now + min, "text": ""}),
+            "\"text\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now - min, "text": "x"}),
+            "\"to_ns\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": "soon", "to_ns": now, "text": "x"}),
+            "\"from_ns\"",
+        ),
+        (
+            json!({"building": "hq", "from_ns": now, "to_ns": now, "text": "x", "by": "eve"}),
+            "\"by\"",
+        ),
+    ] {
+        let (status, text) = console.post("/api/annotations", &body).await;
+        assert_eq!(status, 400, "{body}: {text}");
+        assert!(text.contains(names), "{body}: {text}");
+    }
+    console.login("bob").await;
+    let (status, moved) = console
+        .post(
+            "/api/annotations",
+            &json!({"building": "hq", "sensor": "acc-02", "from_ns": now - 25 * min, "to_ns": now - 25 * min, "text": "=sensor moved \"2 m\""}),
+        )
+        .await;
+    assert_eq!(status, 200, "{moved}");
+    let (status, text) = console
+        .post("/api/annotations/delete", &json!({"id": crane["id"]}))
+        .await;
+    assert_eq!(status, 400, "not bob's: {text}");
+    assert!(text.contains("only its author or an admin"), "{text}");
+    let (status, csv) = console.get("/api/annotations?building=hq&format=csv").await;
+    assert_eq!(status, 200);
+    let lines: Vec<&str> = csv.lines().collect();
+    assert_eq!(
+        lines[0],
+        "id,building,sensor,from_utc,to_utc,from_ns,to_ns,text,by,at,source"
+    );
+    assert_eq!(lines.len(), 3, "{csv}");
+    assert!(
+        lines[2].contains(",acc-02,") && lines[2].contains("\"'=sensor moved \"\"2 m\"\"\""),
+        "{csv}"
+    );
+
+    let browser = Browser::start(false);
+    let url = console.url();
+    browser_login(&browser, &url, "alice").await;
+    // On every plot of the building: the building's note everywhere, acc-02's on acc-02 only.
+    browser.go(&format!("{url}#/sensor/hq/acc-01?last=3600"));
+    browser
+        .wait("acc-01's plots with the crane lift", "const c = document.getElementById('canvas-x'); return c && document.getElementById('plot').dataset.source === 'history' && c.dataset.notes === '1' && document.querySelectorAll('#notes-list tr.note').length === 2")
+        .await;
+    browser.go(&format!("{url}#/building/hq?last=3600"));
+    browser
+        .wait("the building's plots with their notes", "const n = (s) => { const c = document.getElementById('bcanvas-' + s); return c && c.dataset.drawn && c.dataset.notes; }; return document.getElementById('building-plots').dataset.loaded === '3' && n('acc-01') === '1' && n('acc-02') === '2' && n('acc-03') === '1'")
+        .await;
+    // One of one's own, from the page: the span shown.
+    browser.js("document.getElementById('note-text').value = 'floor 3 works'; document.getElementById('note-add').click(); return 1");
+    browser
+        .wait("the new note listed and drawn", "return document.querySelectorAll('#notes-list tr.note').length === 3 && document.getElementById('bcanvas-acc-01').dataset.notes === '2'")
+        .await;
+    browser.screenshot("building-annotations");
+    let listed = console.json("/api/annotations?building=hq").await;
+    assert_eq!(listed["matched"], 3, "{listed}");
+    assert_eq!(listed["annotations"][2]["by"], "alice");
+
+    // The helicorder of two hours: 8 rows of 15 min, one column a second.
+    let t0 = std::time::Instant::now();
+    browser.go(&format!("{url}#/helicorder/hq/acc-01?hours=2&row=900"));
+    let drawn = browser
+        .wait("the helicorder", "const c = document.getElementById('heli-canvas'); return c && c.dataset.drawn && [c.dataset.rows, c.dataset.gaps, c.dataset.flagged, c.dataset.notes, c.dataset.drawMs, c.dataset.fetchMs]")
+        .await;
+    let first_s = t0.elapsed().as_secs_f64();
+    let n = |i: usize| drawn[i].as_str().unwrap().parse::<f64>().unwrap();
+    assert!(
+        [8.0, 9.0].contains(&n(0)),
+        "2 h from a whole quarter: {drawn}"
+    );
+    assert!(
+        n(1) >= 1.0,
+        "the seconds before the history began and after now are gaps: {drawn}"
+    );
+    assert!(n(2) > 100.0, "every 7th batch is flagged: {drawn}");
+    assert!(n(3) >= 2.0, "the crane lift and the works: {drawn}");
+    browser.screenshot("helicorder");
+    // Again: from the per-second store, reading only the last minute.
+    let h = console
+        .json(&format!(
+            "/api/helicorder?building=hq&sensor=acc-01&from_ns={}&to_ns={}&row_s=900",
+            now - 7_200_000_000_000,
+            now
+        ))
+        .await;
+    assert!(
+        h["batches_read"].as_u64().unwrap() < 300,
+        "{}",
+        h["batches_read"]
+    );
+    let d = &h["helicorder"];
+    assert_eq!(
+        (d["rows"].as_u64(), d["columns"].as_u64()),
+        (Some(8), Some(900))
+    );
+    // The sway of ±0.05 m/s² about the mean, in µm/s².
+    let row = d["data"][4].as_array().unwrap();
+    let top = row.iter().filter_map(Value::as_i64).max().unwrap();
+    assert!((45_000..=56_000).contains(&top), "{top}");
+    browser.assert_no_errors("annotations and helicorder");
+    eprintln!(
+        "helicorder of 2 h: first look {first_s:.1} s in all, {} ms the page's read, drawn in {} ms",
+        n(5),
+        n(4)
+    );
+    drop(browser);
+    console.stop().await;
+}
+
+/// The helicorder of 24 h at 100 Hz: read once into the per-second store, then drawn from it.
+/// Run by hand, in release (BENCHMARKS.md):
+/// `cargo test --release -p triax-console --test views -- --ignored helicorder_of_a_day --nocapture`
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore]
+async fn helicorder_of_a_day() {
+    let site = Site::start(24 * 3600).await;
+    let console = Console::start(&site, None).await;
+    console
+        .wait_json("the site's status", "/api/fleet", |v| {
+            v["buildings"][0]["sensors"].as_array().map(Vec::len) == Some(3)
+        })
+        .await;
+    let browser = Browser::start(false);
+    let url = console.url();
+    let mut looks = Vec::new();
+    for look in 0..4 {
+        let t0 = std::time::Instant::now();
+        browser.go(&format!(
+            "{url}#/helicorder/hq/acc-01?hours=24&row=900&look={look}"
+        ));
+        let d = browser
+            .wait("the helicorder of a day", "const c = document.getElementById('heli-canvas'); return c && c.dataset.drawn && [c.dataset.rows, c.dataset.drawMs, c.dataset.fetchMs]")
+            .await;
+        looks.push((t0.elapsed().as_secs_f64(), d));
+    }
+    for (i, (s, d)) in looks.iter().enumerate() {
+        eprintln!("look {i}: {s:.2} s in all; rows, draw ms, read ms: {d}");
+    }
+    browser.screenshot("helicorder-day");
+    drop(browser);
     console.stop().await;
 }

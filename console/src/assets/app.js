@@ -37,7 +37,40 @@
     return e;
   }
   const $ = (id) => document.getElementById(id);
-  const fmtTime = (ms) => Number.isFinite(ms) ? new Date(ms).toISOString().replace('T', ' ').slice(0, 19) + 'Z' : '—';
+  // ---- Times: UTC, the site's local time or this browser's, always labelled ----------------
+  let tzMode = localStorage.getItem('triax.tz') || 'utc';   // 'utc' | 'site' | 'browser'
+  let siteZone = null;                                        // the console's --time-zone
+  const browserZone = () => Intl.DateTimeFormat().resolvedOptions().timeZone || 'UTC';
+  const zoneName = () => tzMode === 'site' && siteZone ? siteZone : tzMode === 'browser' ? browserZone() : 'UTC';
+  const zoneFormats = new Map();
+  const pad2 = (n) => String(n).padStart(2, '0');
+  // The wall clock at `ms` in the zone shown, and the zone's abbreviation there.
+  function wall(ms) {
+    const z = zoneName();
+    if (z === 'UTC') { const d = new Date(ms); return { y: d.getUTCFullYear(), mo: d.getUTCMonth() + 1, d: d.getUTCDate(), h: d.getUTCHours(), mi: d.getUTCMinutes(), s: d.getUTCSeconds(), ms: d.getUTCMilliseconds(), abbr: 'UTC' }; }
+    let f = zoneFormats.get(z);
+    if (!f) { f = new Intl.DateTimeFormat('en-GB', { timeZone: z, hourCycle: 'h23', year: 'numeric', month: '2-digit', day: '2-digit', hour: '2-digit', minute: '2-digit', second: '2-digit', timeZoneName: 'short' }); zoneFormats.set(z, f); }
+    const o = {};
+    for (const p of f.formatToParts(new Date(ms))) o[p.type] = p.value;
+    return { y: +o.year, mo: +o.month, d: +o.day, h: +o.hour % 24, mi: +o.minute, s: +o.second, ms: ((Math.floor(ms) % 1000) + 1000) % 1000, abbr: o.timeZoneName || z };
+  }
+  const wallDate = (w) => `${w.y}-${pad2(w.mo)}-${pad2(w.d)}`;
+  const wallClock = (w) => `${pad2(w.h)}:${pad2(w.mi)}:${pad2(w.s)}`;
+  // UTC keeps its ISO form (…Z); a local time says its zone (2027-01-15 09:00:00 CET).
+  const fmtTime = (ms) => { if (!Number.isFinite(ms)) return '—'; const w = wall(ms); return `${wallDate(w)} ${wallClock(w)}` + (w.abbr === 'UTC' ? 'Z' : ` ${w.abbr}`); };
+  // An axis label: the clock, with milliseconds when the ticks are finer than a second.
+  const fmtTick = (ms, fine) => { const w = wall(ms); return fine ? `${pad2(w.mi)}:${pad2(w.s)}.${String(w.ms).padStart(3, '0')}` : wallClock(w); };
+  const zoneLabel = () => zoneName() === 'UTC' ? 'UTC' : wall(Date.now()).abbr;
+  // Wall-clock fields in the zone shown to an instant; null if that wall time does not exist
+  // there (a spring-forward gap) or the fields do not make a date.
+  function wallToMs(y, mo, d, h, mi, se) {
+    const asUtc = Date.UTC(y, mo - 1, d, h, mi, se);
+    if (zoneName() === 'UTC') return asUtc;
+    const offset = (t) => { const w = wall(t); return Date.UTC(w.y, w.mo - 1, w.d, w.h, w.mi, w.s) - Math.floor(t / 1000) * 1000; };
+    let t = asUtc - offset(asUtc);
+    t = asUtc - offset(t);
+    return t;
+  }
   const fmtAge = (s) => s === null || s === undefined ? '—' : s < 1 ? 'now' : s < 120 ? `${s.toFixed(0)} s ago` : s < 7200 ? `${(s / 60).toFixed(0)} min ago` : `${(s / 3600).toFixed(1)} h ago`;
   const fmtNum = (x, d = 4) => x === null || x === undefined || !Number.isFinite(x) ? '—' : Number(x).toPrecision(d);
   // A coverage factor to three significant digits, without trailing zeros (2, 1.97).
@@ -46,13 +79,13 @@
   const fmtUnit = (u) => String(u ?? '').replace(/\^2/g, '²').replace(/\^3/g, '³');
   const fmtSpan = (s) => s >= 120 && s % 60 === 0 ? `${s / 60} min` : `${s} s`;
   const fmtShare = (f) => !f ? '—' : `${(100 * f.share).toFixed(f.share > 0 && f.share < 0.01 ? 1 : 0)} %`;
-  // The time input reads and writes ISO 8601 in UTC, as every other time on the page.
-  const fmtInput = (ms) => new Date(ms).toISOString().slice(0, 19).replace('T', ' ');
+  // The time input reads and writes ISO 8601 in the zone shown, as every other time on the page.
+  const fmtInput = (ms) => { const w = wall(ms); return `${wallDate(w)} ${wallClock(w)}`; };
   const parseInput = (text) => {
     const m = /^\s*(\d{4})-(\d{2})-(\d{2})[ T](\d{2}):(\d{2})(?::(\d{2}))?Z?\s*$/.exec(text);
     if (!m) return null;
     const [y, mo, d, h, mi, se] = m.slice(1).map((x) => Number(x || 0));
-    const ms = Date.UTC(y, mo - 1, d, h, mi, se);
+    const ms = wallToMs(y, mo, d, h, mi, se);
     // Date.UTC rolls 2027-02-30 over to March: refuse what does not read back the same.
     return fmtInput(ms) === `${m[1]}-${m[2]}-${m[3]} ${m[4]}:${m[5]}:${m[6] || '00'}` ? ms : null;
   };
@@ -96,8 +129,19 @@
     const parts = path.split('/').filter(Boolean);
     if (parts[0] === 'alerts') return { view: 'alerts', params };
     if (parts[0] === 'modes' && parts.length === 2) return { view: 'modes', building: parts[1] };
+    if (parts[0] === 'helicorder' && (parts.length === 2 || parts.length === 3)) {
+      const num = (k, d, ok) => { const v = Number(params.get(k)); return params.get(k) !== null && ok(v) ? v : d; };
+      const r = { view: 'helicorder', building: parts[1], sensor: parts[2] || null, axis: AXES.includes(params.get('axis')) ? params.get('axis') : 'x',
+        hours: num('hours', 24, (v) => [1, 2, 6, 12, 24].includes(v)), row: num('row', 900, (v) => [300, 600, 900, 1800, 3600].includes(v)),
+        end: num('end', null, (v) => Number.isFinite(v) && v > 0) };
+      const endMs = r.end === null ? Date.now() : r.end / 1e6;
+      r.window = [endMs - r.hours * 3600e3, endMs];
+      return r;
+    }
     if (parts[0] === 'building' && parts.length === 2) {
-      const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null };
+      const r = { view: 'building', building: parts[1], error: null, axis: ['x', 'y', 'z'].includes(params.get('axis')) ? params.get('axis') : 'x', alert: /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null,
+        overlay: (params.get('overlay') || '').split('').filter((a, i, all) => AXES.includes(a) && all.indexOf(a) === i).join('') };
+      processingParams(params, r);
       const at = params.get('at');
       if (at !== null && /^\d{1,19}$/.test(at)) { r.at = Number(at); r.span = Math.min(HISTORY_MAX_SPAN_S, Math.max(1, Number(params.get('span')) || 60)); }
       const w = windowParams(params, r);
@@ -120,12 +164,27 @@
         else r.at = Number(at);
       }
       r.alert = /^\d+$/.test(params.get('alert') || '') ? Number(params.get('alert')) : null;
+      processingParams(params, r);
       r.window = r.error ? null : windowParams(params, r);
       if (r.window && r.at === null) r.at = msToNs(r.window[1] - 0.25 * (r.window[1] - r.window[0]));
       return r;
     }
     return { view: 'fleet' };
   }
+
+  // What a plot shows: acceleration as corrected, or band-passed, or integrated to velocity or
+  // displacement within a band (`q`, `band` in the link; /api/processed).
+  const QUANTITIES = { acceleration: 'm/s²', velocity: 'm/s', displacement: 'm' };
+  function processingParams(params, r) {
+    const q = params.get('q');
+    r.quantity = QUANTITIES[q] ? q : 'acceleration';
+    const band = params.get('band') || '';
+    r.band = /^[0-9.]*-[0-9.]*$/.test(band) && band !== '-' ? band : '';
+    if (r.quantity !== 'acceleration' && !r.band) r.band = '0.1-';
+  }
+  const processing = (r) => r.quantity !== 'acceleration' || !!r.band;
+  // The link's processing, to keep across zoom, pan and steps.
+  const processingExtra = (r = route) => (r.quantity && r.quantity !== 'acceleration' ? `&q=${r.quantity}` : '') + (r.band ? `&band=${encodeURIComponent(r.band)}` : '') + (r.overlay ? `&overlay=${r.overlay}` : '');
 
   // The window a link names: `from`/`to` (ns), `last` (seconds up to now), or `at`/`span`;
   // null for live. Up to 7 days; beyond an hour the view is a trend of per-minute aggregates.
@@ -166,7 +225,8 @@
       if (me.readyState === EventSource.CLOSED) explainRefusal(me, url, query);
       else setConn('reconnecting', 'console unreachable, retrying…');
     };
-    me.addEventListener('fleet', (e) => { const f = JSON.parse(e.data); if (f) { fleet = f; onFleet(); } });
+    me.addEventListener('fleet', (e) => { const f = JSON.parse(e.data); if (f) onFleetWhole(f); });
+    me.addEventListener('fleet_delta', (e) => onFleetDelta(JSON.parse(e.data), query));
     source.addEventListener('live', (e) => onLive(JSON.parse(e.data)));
     source.addEventListener('tilt', (e) => onTilt(JSON.parse(e.data)));
     source.addEventListener('problem', (e) => { const p = $('status-line'); if (p) p.textContent = JSON.parse(e.data).error; });
@@ -201,12 +261,98 @@
     return resp.json();
   }
 
-  function onFleet() {
+  // ---- The fleet: its brief from the event stream, the counters on demand -------------------
+  // The `fleet` event carries per building and sensor what changes seldom (states, calibration,
+  // the latest alert's id); `fleet_delta` what changed since, once a second. The counters that
+  // move with every status answer (samples, last seen, flagged share) are read for the
+  // buildings shown, from /api/fleet?building=, every 2 s.
+  let fleetSeq = null;
+  const alertById = new Map();
+  const rows = new Map();    // building → its /api/fleet?building= answer
+  const expanded = new Set();
+  const remember = (list) => { for (const a of list || []) alertById.set(a.id, a); while (alertById.size > 2000) alertById.delete(alertById.keys().next().value); };
+
+  function onFleetWhole(f) {
+    fleet = f; fleetSeq = f.seq;
+    remember(f.alerts);
+    onFleet(true);
+  }
+
+  function onFleetDelta(d, query) {
+    if (!fleet) return;
+    if (d.seq !== fleetSeq + 1) { connect(query); return; }   // one missed: start again whole
+    fleetSeq = d.seq;
+    for (const k of ['now', 'alerts_total', 'alerts_open', 'malformed_messages', 'ignored_buildings']) fleet[k] = d[k];
+    const building = (id) => fleet.buildings.find((b) => b.building === id);
+    for (const b of d.buildings || []) {
+      const x = building(b.building);
+      if (x) Object.assign(x, b); else fleet.buildings.push({ ...b, sensors: [] });
+    }
+    if (d.removed_buildings) fleet.buildings = fleet.buildings.filter((b) => !d.removed_buildings.includes(b.building));
+    fleet.buildings.sort((a, b) => a.building < b.building ? -1 : 1);
+    const touched = new Set();
+    for (const s of d.sensors || []) {
+      const b = building(s.building);
+      if (!b) continue;
+      const { building: _, ...brief } = s;
+      const i = b.sensors.findIndex((x) => x.sensor_id === s.sensor_id);
+      if (i >= 0) b.sensors[i] = brief; else b.sensors.push(brief);
+      touched.add(b);
+    }
+    for (const [bid, sid] of d.removed_sensors || []) { const b = building(bid); if (b) { b.sensors = b.sensors.filter((x) => x.sensor_id !== sid); touched.add(b); } }
+    for (const b of touched) b.sensors.sort((a, c) => a.sensor_id < c.sensor_id ? -1 : 1);
+    if (d.alerts) {
+      remember(d.alerts);
+      const ids = new Set(d.alerts.map((a) => a.id));
+      fleet.alerts = [...d.alerts, ...fleet.alerts.filter((a) => !ids.has(a.id))].slice(0, 100);
+    }
+    const changed = !!(d.buildings || d.sensors || d.removed_sensors || d.removed_buildings || d.alerts);
+    $('view').dataset.fleetDeltas = String(Number($('view').dataset.fleetDeltas || 0) + 1);
+    onFleet(changed);
+  }
+
+  // A sensor's row: its brief, and its building's counters where they have been read.
+  function sensorOf(b, s) {
+    const r = rows.get(b.building);
+    const c = r && r.sensors.find((x) => x.sensor_id === s.sensor_id);
+    const latest = s.latest_alert === null || s.latest_alert === undefined ? null
+      : (c && c.latest_alert && c.latest_alert.id === s.latest_alert ? c.latest_alert : alertById.get(s.latest_alert) || { id: s.latest_alert, missing: true });
+    const expires = s.valid_until ? (Date.parse(s.valid_until) - Date.parse(fleet.now)) / 86400000 : null;
+    return { flagged_share: null, last_seen: null, last_seen_age_s: null, samples: '…', gaps: 0, missing_batches: 0, rejects: '…', ...(c || {}), ...s, latest_alert: latest, expires_in_days: expires };
+  }
+  const buildingOf = (b) => ({ last_heard_s: null, malformed: null, dropped: null, history: null, ...(rows.get(b.building) || {}), ...b });
+
+  // Buildings whose sensors are listed: all of a small fleet, else those opened.
+  const isExpanded = (b) => fleet.buildings.length <= 3 || expanded.has(b.building);
+
+  let rowsFetching = false;
+  async function refreshRows() {
+    if (!fleet || !route || rowsFetching) return;
+    let wanted = [];
+    if (route.view === 'fleet') wanted = fleet.buildings.filter(isExpanded).map((b) => [b.building, null]);
+    else if (route.view === 'sensor') wanted = [[route.building, route.sensor]];
+    if (!wanted.length) return;
+    rowsFetching = true;
+    const myRoute = route;
+    for (const [b, sensor] of wanted) {
+      const q = new URLSearchParams({ building: b });
+      if (sensor) q.set('sensor', sensor);
+      const body = await getJson('/api/fleet?' + q);
+      if (!body.error) rows.set(b, body);
+    }
+    rowsFetching = false;
+    if (route !== myRoute) return;
+    if (route.view === 'fleet') renderFleet(); else if (route.view === 'sensor') renderSensorHeader();
+  }
+  setInterval(refreshRows, 2000);
+
+  function onFleet(changed) {
     $('clock').textContent = fmtTime(Date.parse(fleet.now));
     $('alert-count').textContent = fleet.alerts_open ? `(${fleet.alerts_open} open)` : '';
-    if (route.view === 'fleet') renderFleet();
+    if (route.view === 'fleet') { if (changed) renderFleet(); if (changed && !rows.size) refreshRows(); }
     else if (route.view === 'alerts') refreshAlerts();
-    else if (route.view === 'sensor') renderSensorHeader();
+    else if (route.view === 'sensor' && changed) renderSensorHeader();
+    else if (route.view === 'helicorder' && !$('helicorder')) renderHelicorder();
   }
 
   // ---- Fleet view -------------------------------------------------------------------------
@@ -220,7 +366,9 @@
     view.replaceChildren(el('div', { id: 'fleet', 'data-buildings': fleet.buildings.length }, sections, extra));
   }
 
-  function renderBuilding(b) {
+  function renderBuilding(brief) {
+    if (!isExpanded(brief)) return renderBuildingSummary(brief);
+    const b = buildingOf(brief);
     const heard = b.last_heard_s === null ? 'never heard' : `last heard ${fmtAge(b.last_heard_s)}`;
     const h = b.history;
     const meta = el('div', { class: 'meta' },
@@ -232,10 +380,10 @@
       b.dropped !== null && el('span', {}, `${b.dropped} dropped`),
       h && el('span', {}, `history ${fmtBytes(h.bytes)} of ${fmtBytes(h.max_bytes)}` + (h.oldest_ns ? ` since ${fmtTime(nsToMs(h.oldest_ns))}` : '')),
       b.status_error && el('span', { class: 'notice' }, b.status_error));
-    const rows = b.sensors.map((s) => renderSensorRow(b, s));
+    const sensorRows = b.sensors.map((s) => renderSensorRow(b, sensorOf(b, s)));
     const table = el('table', {},
       el('thead', {}, el('tr', {}, ['Sensor', 'State', 'Flagged', 'Last seen', 'Samples', 'Gaps (lost)', 'Rejects', 'Mode', 'Calibration', 'Valid until', 'Latest alert'].map((t) => el('th', { title: t === 'Flagged' ? FLAGGED_TITLE : null }, t)))),
-      el('tbody', {}, rows));
+      el('tbody', {}, sensorRows));
     const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
     const listed = b.sensors.filter((s) => s.in_status).length;
     const more = b.total_sensors && b.total_sensors > listed ? el('p', { class: 'meta' }, `Showing ${listed} of ${b.total_sensors} sensors (the first status page).`) : null;
@@ -243,8 +391,26 @@
     return el('section', { class: 'card building', 'data-building': b.building, 'data-state': state, 'data-worst': worst ?? 'none' },
       el('h2', {}, `Building ${b.building} `, worst ? badge(worst, worst.replace(/_/g, ' '), 'the worst state of its sensors') : null,
         badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer'),
-        ' ', el('a', { class: 'to-modes', href: `#/modes/${encodeURIComponent(b.building)}`, title: 'its modal frequencies, damping and shapes (triax-modes)' }, 'modes')),
+        ' ', el('a', { class: 'to-modes', href: `#/modes/${encodeURIComponent(b.building)}`, title: 'its modal frequencies, damping and shapes (triax-modes)' }, 'modes'),
+        ' ', el('a', { class: 'to-helicorder', href: `#/helicorder/${encodeURIComponent(b.building)}`, title: '24 h of a channel in rows' }, 'day'),
+        fleet.buildings.length > 3 ? [' ', el('button', { class: 'collapse', onclick: () => { expanded.delete(b.building); renderFleet(); } }, 'hide sensors')] : null),
       meta, table, more);
+  }
+
+  // A building of a large fleet, folded: its state and the sensors that are not ok.
+  function renderBuildingSummary(b) {
+    const state = b.state === 'up' ? 'up' : b.state === 'down' ? 'down' : 'unknown';
+    const counts = new Map();
+    for (const s of b.sensors) counts.set(s.states[0], (counts.get(s.states[0]) || 0) + 1);
+    const notOk = b.sensors.filter((s) => s.states[0] !== 'ok');
+    return el('section', { class: 'card building folded', 'data-building': b.building, 'data-state': state, 'data-worst': b.worst_state ?? 'none' },
+      el('h2', {}, `Building ${b.building} `, b.worst_state ? badge(b.worst_state, b.worst_state.replace(/_/g, ' '), 'the worst state of its sensors') : null,
+        badge(state, state === 'up' ? 'gateway up' : state === 'down' ? 'gateway DOWN' : 'no answer'), ' ',
+        el('button', { class: 'expand', onclick: () => { expanded.add(b.building); renderFleet(); refreshRows(); } }, 'show sensors')),
+      el('div', { class: 'meta' }, el('span', { class: 'sensor-count' }, sensorCount(b)),
+        el('span', {}, [...counts].sort().map(([k, n]) => `${n} ${k.replace(/_/g, ' ')}`).join(', '))),
+      notOk.length ? el('div', { class: 'not-ok' }, notOk.slice(0, 50).map((s) => el('span', { class: 'sensor-chip' }, el('a', { href: sensorHref(b.building, s.sensor_id) }, s.sensor_id), ' ', s.states.map((st) => badge(st)))),
+        notOk.length > 50 ? ` and ${notOk.length - 50} more` : null) : null);
   }
 
   const FLAGGED_TITLE = 'Share of the samples of the last minute that carry a quality flag (flagged above 20 %)';
@@ -279,7 +445,8 @@
       el('td', {}, s.mode),
       el('td', {}, s.calibration_version ? `v${s.calibration_version}` : 'none'),
       el('td', {}, validity),
-      el('td', {}, a ? [verdict(a), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
+      el('td', {}, a && a.missing ? el('a', { href: `#/alerts?sensor=${encodeURIComponent(s.sensor_id)}` }, `alert #${a.id}`)
+        : a ? [verdict(a), ' ', a.kind.replace(/_/g, ' '), ' ', el('a', { href: sensorHref(b.building, s.sensor_id, alertAtNs(a), windowSpan(a)) }, fmtTime(Date.parse(a.at)))] : '—'));
   }
 
   // The middle of the window the alert judged (its own times, by the sensor's clock); the
@@ -300,7 +467,6 @@
   const SINCE = [['', 'any time'], ['3600', 'last 1 h'], ['86400', 'last 24 h'], ['604800', 'last 7 d'], ['2592000', 'last 30 d']];
   let alertsSeen = null;     // fleet counters the alert table was last fetched at
   let alertsFetching = false;
-  const operator = () => { const i = $('operator'); return i ? i.value.trim() : ''; };
 
   function alertFilter() {
     const f = {};
@@ -316,8 +482,6 @@
     if (f.building && !buildings.includes(f.building)) buildings.push(f.building);
     const sensorInput = el('input', { id: 'f-sensor', type: 'text', size: 10, value: f.sensor || '', placeholder: 'any' });
     sensorInput.addEventListener('change', changeFilter);
-    const who = el('input', { id: 'operator', type: 'text', size: 12, placeholder: 'your name', value: localStorage.getItem('triax.operator') || '' });
-    who.addEventListener('change', () => localStorage.setItem('triax.operator', who.value.trim()));
     const silenceFor = el('select', { id: 'silence-for' }, [[3600, '1 h'], [14400, '4 h'], [86400, '24 h'], [604800, '7 d']].map(([v, t]) => el('option', { value: v }, t)));
     $('view').replaceChildren(el('section', { class: 'card', id: 'alerts' },
       el('h2', {}, 'Alerts'),
@@ -330,10 +494,11 @@
         sel('f-state', STATES.map((k) => [k === 'all' ? '' : k, k]), f.state, 'state'),
         sel('f-since', SINCE, f.since_s, 'time')),
       el('div', { class: 'controls' },
-        el('label', {}, 'operator ', who),
+        el('span', { class: 'meta', id: 'acting-as' }, me && me.operator ? `acting as ${me.operator.name} (${me.operator.role})` : 'log in to acknowledge or silence'),
         el('button', { id: 'ack-selected', onclick: () => acknowledge(checkedIds()) }, 'Acknowledge selected'),
         el('span', { class: 'meta' }, 'silence for ', silenceFor)),
       el('div', { id: 'alerts-status', class: 'meta' }, 'reading the alert log…'),
+      el('div', { id: 'notify-status', class: 'meta' }),
       el('table', { id: 'alert-table' },
         el('thead', {}, el('tr', {}, ['At', 'Sensor', 'Verdict', 'Kind', 'Value ± k·u', 'Threshold', 'Interval', 'Window', 'Flagged', 'Statement', 'Handled', 'Select'].map((t) => el('th', {}, t)))),
         el('tbody', { id: 'alert-rows' }))),
@@ -363,7 +528,7 @@
     for (const k of ['building', 'sensor', 'kind', 'level', 'state']) if (f[k]) q.set(k, f[k]);
     if (f.since_s && /^\d+$/.test(f.since_s)) q.set('from_ns', msToNs(Date.now() - Number(f.since_s) * 1000));
     const myRoute = route;
-    const [body, silences] = await Promise.all([getJson('/api/alerts?' + q), getJson('/api/silences')]);
+    const [body, silences, notes] = await Promise.all([getJson('/api/alerts?' + q), getJson('/api/silences'), getJson('/api/notifications')]);
     alertsFetching = false;
     if (route !== myRoute) return;
     alertsSeen = seen;
@@ -374,6 +539,7 @@
       `; the log keeps ${body.kept} (at most ${body.max_alerts}, ${body.retention_days} days)` + (body.file ? ` in ${body.file}` : ', in memory only') + `; ${body.open} open.`;
     updateAlertRows(body.alerts);
     if (!silences.error) renderSilences(silences);
+    if (!notes.error) renderNotifyStatus(notes);
   }
 
   function statementCell(text) {
@@ -430,6 +596,18 @@
     if (!alerts.length && !body.children.length) $('alerts-status').textContent += ' None to show.';
   }
 
+  // What notifications left the console (--notify-config), and the last one.
+  function renderNotifyStatus(n) {
+    const box = $('notify-status');
+    if (!box) return;
+    if (!n.configured) { box.textContent = 'Notifications: none configured (--notify-config).'; return; }
+    const last = n.recent && n.recent[0];
+    box.replaceChildren(`Notifications on ${n.channels.join(', ')}: ${n.sent} sent, `, el('span', { class: n.failed ? 'warning' : null }, `${n.failed} failed`),
+      `, ${n.held} held for quiet hours, ${n.unrouted} not routed` + (n.dropped ? `, ${n.dropped} dropped (queue full)` : ''),
+      last ? `; last: ${last.kind} on ${last.channel} at ${fmtTime(nsToMs(last.at_ns))}` + (last.error ? ` (failed: ${last.error})` : '') : '');
+    box.dataset.sent = String(n.sent);
+  }
+
   function renderSilences(list) {
     const box = $('silence-list');
     if (!box) return;
@@ -439,13 +617,13 @@
       el('td', {}, `${s.building} / ${s.sensor ?? 'every sensor'}, ${s.kind ? s.kind.replace(/_/g, ' ') : 'every kind'}`),
       el('td', {}, `${fmtTime(Date.parse(s.from))} – ${fmtTime(Date.parse(s.until))}`),
       el('td', {}, `by ${s.by}`, s.reason ? ` (${s.reason})` : ''),
-      el('td', {}, s.lifted ? `lifted by ${s.lifted.by}, ${fmtTime(Date.parse(s.lifted.at))}` : s.active ? el('button', { class: 'lift', onclick: () => post('/api/alerts/lift', { id: s.id, by: operator() }) }, 'Lift') : 'ended'))))));
+      el('td', {}, s.lifted ? `lifted by ${s.lifted.by}, ${fmtTime(Date.parse(s.lifted.at))}` : s.active ? el('button', { class: 'lift', onclick: () => post('/api/alerts/lift', { id: s.id }) }, 'Lift') : 'ended'))))));
   }
 
   // A write to the alert log; what the console answered is shown, a refusal included.
   async function post(path, body) {
     const status = $('alerts-status');
-    if (!operator()) { status.textContent = 'Type your name under "operator" first: acknowledgements and silences record who.'; status.className = 'warning'; $('operator').focus(); return null; }
+    if (!me || !me.operator) { status.textContent = 'Log in first (top right): acknowledgements and silences record who and when.'; status.className = 'warning'; return null; }
     let resp, text;
     try {
       resp = await fetch(path, { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) });
@@ -459,11 +637,11 @@
 
   function acknowledge(ids) {
     if (!ids.length) { $('alerts-status').textContent = 'No alert selected.'; return; }
-    post('/api/alerts/ack', { ids, by: operator() });
+    post('/api/alerts/ack', { ids });
   }
 
   function silence(a) {
-    post('/api/alerts/silence', { building: a.building, sensor: a.sensor_id, kind: a.kind, duration_s: Number($('silence-for').value), by: operator() });
+    post('/api/alerts/silence', { building: a.building, sensor: a.sensor_id, kind: a.kind, duration_s: Number($('silence-for').value) });
   }
 
   // ---- Sensor view ------------------------------------------------------------------------
@@ -483,7 +661,7 @@
   function renderSensor() {
     const r = route;
     live = null; tilt = []; historyView = null; detail = null;
-    trendView = null; spectrumView = null; spectrogramView = null; alertInfo = null;
+    trendView = null; spectrumView = null; spectrogramView = null; alertInfo = null; processedView = null;
     const isLive = !r.window;
     const spanS = isLive ? Math.min(r.span, LIVE_MAX_SPAN_S) : r.span;
     // The span asked for is listed even if it is not one of the usual ones.
@@ -496,26 +674,31 @@
       const ms = parseInput(atInput.value);
       if (ms === null) {
         atInput.setAttribute('aria-invalid', 'true');
-        $('status-line').textContent = `"${atInput.value}" is not a time like ${fmtInput(Date.now())} (UTC)`;
+        $('status-line').textContent = `"${atInput.value}" is not a time like ${fmtInput(Date.now())} (${zoneLabel()})`;
       } else navigate({ at: msToNs(ms) });
     };
     atInput.addEventListener('keydown', (e) => { if (e.key === 'Enter') lookBack(); });
     const controls = el('div', { class: 'controls' },
       el('button', { id: 'btn-live', class: isLive ? 'active' : '', onclick: () => navigate({ at: null }) }, 'Live'),
       el('button', { id: 'btn-back', onclick: () => step(-1), title: 'one span back' }, '◀'),
-      el('label', {}, 'at (UTC) ', atInput),
+      el('label', {}, `at (${zoneLabel()}) `, atInput),
       el('button', { id: 'btn-go', onclick: lookBack }, 'Look back'),
       el('button', { id: 'btn-fwd', onclick: () => step(1), title: 'one span forward, up to now', disabled: isLive || atMs >= latestAtMs(spanS) - 1000 ? 'disabled' : null }, '▶'),
       el('label', {}, 'span ', spanSel),
       el('span', { class: 'meta' }, 'last'),
-      [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : ''); } }, t)),
-      isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
+      [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra(r); } }, t)),
+      isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet's deltas every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
+      el('label', { title: 'acceleration as corrected, or band-passed, or integrated to velocity or displacement within the band (history views)' }, 'show ',
+        el('select', { id: 'quantity' }, Object.keys(QUANTITIES).map((q) => el('option', { value: q, selected: q === r.quantity ? 'selected' : null }, q)))),
+      el('label', { title: 'the band in Hz, LOW-HIGH; either may be left out (velocity and displacement need LOW)' }, 'band ', el('input', { id: 'band', type: 'text', size: 8, spellcheck: 'false', placeholder: '0.1-20', value: r.band })), ' Hz ',
+      el('button', { id: 'btn-process', onclick: applyProcessing }, 'Apply'),
       el('button', { id: 'btn-spectrum', onclick: loadSpectrum, title: 'power spectral density per axis of the span shown' }, 'Spectrum'),
       el('button', { id: 'btn-spectrogram', onclick: loadSpectrogram, title: 'spectrogram of one axis over the span shown: its PSD per column of time' }, 'Spectrogram'),
       el('button', { id: 'btn-csv', onclick: exportCsv, title: 'every sample of the span shown (up to 1 h), as CSV' }, 'CSV'),
       el('button', { id: 'btn-mseed', onclick: exportMseed, title: 'every calibrated sample of the span shown (up to 1 h), as miniSEED 2: acceleration (location 00), standard uncertainty (U0) and flags (Q0) per axis' }, 'miniSEED'),
       el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
       el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG'),
+      el('a', { id: 'btn-day', href: `#/helicorder/${encodeURIComponent(r.building)}/${encodeURIComponent(r.sensor)}`, title: '24 h of a channel in rows (helicorder)' }, 'day'),
       el('a', { id: 'btn-building', href: `#/building/${encodeURIComponent(r.building)}` + (r.window ? `?from=${msToNs(r.window[0])}&to=${msToNs(r.window[1])}` : '') + (r.alert ? `${r.window ? '&' : '?'}alert=${r.alert}` : '') }, 'building view'));
     const plots = el('div', { id: 'plot', 'data-source': r.error ? 'none' : isLive ? 'live' : 'history', 'data-frames': 0, 'data-buckets': 0, 'data-gaps': 0, 'data-tilt-points': 0 },
       AXES.map((ax) => el('div', { class: 'plot' }, el('canvas', { id: `canvas-${ax}`, width: 1000, height: 170 }), el('span', { class: 'title', id: `title-${ax}` }, `a${ax}`))),
@@ -538,8 +721,10 @@
       el('div', { id: 'spectrogram-line', class: 'meta' }),
       el('div', { class: 'plot' }, el('canvas', { id: 'canvas-spectrogram', width: 1000, height: 260 }), el('span', { class: 'title', id: 'spectrogram-title' }, 'PSD per column of time, dB re 1 (m/s²)²/Hz'))),
     el('section', { class: 'card', id: 'calibration' }, el('h3', {}, 'Calibration in force'), el('div', { id: 'record' }, 'asking the gateway…')),
+    notesPanel(r.building, r.sensor),
     el('section', { class: 'card' }, el('h3', {}, 'Alerts of this sensor'), el('div', { id: 'sensor-alerts' })));
     renderSensorHeader();
+    refreshRows();
     loadDetail();
     if (r.error) { connect(''); return; }
     const q = new URLSearchParams({ building: r.building, sensor: r.sensor, span_s: String(spanS), width: String(plotWidth()) });
@@ -547,11 +732,20 @@
     $('plot').dataset.stream = liteStream() ? 'light' : 'full';
     for (const c of document.querySelectorAll('#plot canvas')) attachPointer(c, () => scheduleDraw());
     if (r.alert) loadAlert(r.alert);
+    loadNotes(r.building, ...(r.window || [Date.now() - LIVE_MAX_SPAN_S * 1000, Date.now() + 3600e3]));
     if (isLive) connect(q.toString());
     else { connect(''); loadWindow(r.window); }
   }
 
   const sensorBase = () => `#/sensor/${encodeURIComponent(route.building)}/${encodeURIComponent(route.sensor)}`;
+
+  // The quantity and band chosen: the window shown (a live one as history) read again so.
+  function applyProcessing() {
+    const r = { ...route, quantity: $('quantity').value, band: $('band').value.trim().replace(/\s+/g, '') };
+    if (r.quantity !== 'acceleration' && !/^[0-9.]+-/.test(r.band)) r.band = '0.1-' + (r.band.split('-')[1] || '');
+    const [fromMs, toMs] = currentWindow();
+    location.hash = sensorBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + processingExtra(r);
+  }
 
   // The alert a link came from: its window is shaded and its threshold drawn.
   async function loadAlert(id) {
@@ -565,8 +759,43 @@
   // A window of up to an hour is read from the history and decimated per pixel column; a
   // longer one is a trend of per-minute aggregates.
   function loadWindow(win) {
-    if ((win[1] - win[0]) / 1000 <= HISTORY_MAX_SPAN_S) loadHistoryWindow(win[0], win[1]);
-    else loadTrend(win[0], win[1]);
+    if ((win[1] - win[0]) / 1000 > HISTORY_MAX_SPAN_S) loadTrend(win[0], win[1]);
+    else if (processing(route)) loadProcessed(win[0], win[1]);
+    else loadHistoryWindow(win[0], win[1]);
+  }
+
+  let processedView = null;  // /api/processed answer of the sensor view
+  const processedQuery = (building, sensor, fromMs, toMs, quantity, band) => {
+    const q = new URLSearchParams({ building, sensor, from_ns: msToNs(fromMs), to_ns: msToNs(toMs), width: String(plotWidth()), quantity });
+    if (band) q.set('band', band);
+    return '/api/processed?' + q;
+  };
+  async function loadProcessed(fromMs, toMs) {
+    const myRoute = route;
+    $('status-line').textContent = `computing ${route.quantity} in ${route.band} Hz…`;
+    const body = await getJson(processedQuery(route.building, route.sensor, fromMs, toMs, route.quantity, route.band));
+    if (route !== myRoute) return;
+    if (!body.view) { $('status-line').textContent = `${route.quantity}: ${body.error}`; return; }
+    processedView = { ...body, fromMs, toMs };
+    const v = body.view;
+    $('plot').dataset.source = 'processed';
+    $('plot').dataset.buckets = v.buckets.length;
+    $('status-line').textContent = `${v.quantity} (${v.unit}), band ${bandText(v.band)}: ${v.samples_used} samples in ${v.runs.length} runs` + (v.runs_too_short ? `, ${v.runs_too_short} runs under 1 s left out` : '') +
+      `; ${v.filter}; ${body.settle_s} s read on either side for the filters to settle; no ±k·u band (not stated for filtered or integrated values)` + (body.error ? `; ${body.error}` : '');
+    scheduleDraw();
+  }
+  const bandText = (b) => `${b.low_hz ?? '0'}–${b.high_hz ?? 'Nyquist'} Hz`;
+
+  // A processed view as plot series: per bucket min and max, broken between runs.
+  function processedSeries(v, axes, name, colors) {
+    const bucketMs = v.bucket_ns / 1e6;
+    const starts = new Set(v.runs.map((r) => Math.floor(r[0] / v.bucket_ns)));
+    const gaps = [];
+    for (let i = 1; i < v.runs.length; i++) gaps.push({ start_ns: v.runs[i - 1][1], end_ns: v.runs[i][0] });
+    return {
+      bucketMs, gaps,
+      series: axes.map((i, k) => ({ name: name(i), color: colors[k], points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[1 + 2 * i], max: b[2 + 2 * i], lo: null, hi: null, flags: 0, gap: starts.has(b[0]) })) })),
+    };
   }
 
   async function loadTrend(fromMs, toMs) {
@@ -593,7 +822,7 @@
   function navigateWindow(fromMs, toMs) {
     const now = Date.now();
     if (toMs > now) { fromMs -= toMs - now; toMs = now; }
-    location.hash = sensorOrBuildingBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + (route.view === 'building' && route.axis !== 'x' ? `&axis=${route.axis}` : '');
+    location.hash = sensorOrBuildingBase() + `?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (route.alert ? `&alert=${route.alert}` : '') + (route.view === 'building' && route.axis !== 'x' ? `&axis=${route.axis}` : '') + processingExtra();
   }
   const sensorOrBuildingBase = () => route.view === 'building' ? `#/building/${encodeURIComponent(route.building)}` : sensorBase();
 
@@ -814,7 +1043,7 @@
   const exportName = (ext) => { const [f, t] = currentWindow(); return `${route.building}_${route.sensor || 'building'}_${fmtInput(f).replace(/[: ]/g, '-')}_${Math.round((t - f) / 1000)}s.${ext}`; };
 
   function exportImage(kind) {
-    const canvases = [...document.querySelectorAll('#plot canvas, #building-plots canvas')].filter((c) => c.offsetParent !== null && c.dataset.plotTop !== undefined);
+    const canvases = [...document.querySelectorAll('#plot canvas, #bcanvas-overlay, #building-plots canvas, #heli-canvas')].filter((c) => c.offsetParent !== null && c.dataset.plotTop !== undefined);
     if (!canvases.length) { $('status-line').textContent = 'Nothing drawn yet to export.'; return; }
     if (kind === 'png') {
       const out = document.createElement('canvas');
@@ -851,7 +1080,7 @@
 
   function navigate(change) {
     const r = { ...route, ...change };
-    location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span);
+    location.hash = sensorHref(r.building, r.sensor, r.at === null ? undefined : r.at, r.span) + (r.at === null ? '' : processingExtra(r));
   }
 
   // The latest `at` worth reading: its window (three quarters before, one after) ends now.
@@ -920,7 +1149,9 @@
   function sensorRow() {
     if (!fleet || !route || route.view !== 'sensor') return null;
     const b = fleet.buildings.find((x) => x.building === route.building);
-    return b ? { b, s: b.sensors.find((x) => x.sensor_id === route.sensor) } : null;
+    if (!b) return null;
+    const s = b.sensors.find((x) => x.sensor_id === route.sensor);
+    return { b, s: s && sensorOf(b, s) };
   }
 
   function renderSensorHeader() {
@@ -991,6 +1222,7 @@
     if (!route || route.view !== 'sensor') return;
     let buckets, gaps, x0, x1, correction, marker = null;
     if (route.window && (route.window[1] - route.window[0]) / 1000 > HISTORY_MAX_SPAN_S) { drawTrend(); return; }
+    if (route.window && processing(route)) { drawProcessed(); return; }
     if (!route.window) {
       if (!live) return;
       buckets = [...live.buckets.values()].sort((a, b) => a[0] - b[0]);
@@ -1094,12 +1326,28 @@
     const tStep = [100, 200, 500, 1000, 2000, 5000, 10000, 15000, 30000, 60000, 120000, 300000, 600000, 900000, 1800000].find((s) => spanMs / s <= 8) || 3600000;
     for (let t = Math.ceil(o.x0 / tStep) * tStep; t <= o.x1; t += tStep) {
       const x = X(t); g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
-      const d = new Date(t).toISOString();
-      const label = tStep < 1000 ? d.slice(14, 23) : d.slice(11, 19);
+      const label = fmtTick(t, tStep < 1000);
       // Centred under its line, but kept inside the canvas at either end.
       const lw = g.measureText(label).width;
       g.fillText(label, Math.max(2, Math.min(x - lw / 2, w - lw - 2)), h - 4 - lanes * 4);
     }
+    // The operators' annotations of this building: a band each, its note written at its top.
+    const notes = o.notes !== undefined ? o.notes : notesFor(route && route.sensor);
+    let drawnNotes = 0;
+    for (const a of notes) {
+      const na = nsToMs(a.from_ns), nb = nsToMs(a.to_ns);
+      if (nb < o.x0 || na > o.x1) continue;
+      const xa = Math.max(left, X(na)), xb = Math.min(left + pw, Math.max(X(nb), xa + 2));
+      const event = a.source !== 'operator';
+      g.fillStyle = event ? 'rgba(217,119,6,.16)' : 'rgba(105,65,198,.13)';
+      g.fillRect(xa, top, xb - xa, ph);
+      g.fillStyle = event ? '#b54708' : '#6941c6';
+      g.fillRect(xa, top, 2, ph);
+      const label = a.text.length > 40 ? a.text.slice(0, 39) + '…' : a.text;
+      g.fillText(label, Math.min(xa + 4, left + pw - g.measureText(label).width - 2), top + 12 + 12 * (drawnNotes % 3));
+      drawnNotes++;
+    }
+    canvas.dataset.notes = String(drawnNotes);
     if (o.shade) {
       const a = Math.max(left, X(o.shade[0])), b = Math.min(left + pw, Math.max(X(o.shade[1]), a + 2));
       if (b > a) { g.fillStyle = c.shade; g.fillRect(a, top, b - a, ph); }
@@ -1162,6 +1410,20 @@
     g.strokeStyle = c.frame; g.strokeRect(left, top, pw, ph);
   }
 
+  function drawProcessed() {
+    if (!processedView) return;
+    const v = processedView.view;
+    const overlay = alertOverlay();
+    AXES.forEach((ax, i) => {
+      const p = processedSeries(v, [i], () => `${v.quantity} ${ax}`, [AXIS_COLORS[i]]);
+      $(`title-${ax}`).textContent = `${v.quantity} ${ax} (${v.unit}), band ${bandText(v.band)}`;
+      drawSeries($(`canvas-${ax}`), { x0: processedView.fromMs, x1: processedView.toMs, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: v.unit, shade: overlay.shade, series: p.series });
+      $(`canvas-${ax}`).dataset.quantity = v.quantity;
+    });
+    $('tilt-plot').hidden = true; $('freq-plot').hidden = true;
+    $('legend').replaceChildren(el('span', {}, `${v.quantity} in ${bandText(v.band)}; min … max per pixel column; no ±k·u band`));
+  }
+
   // Canvas colours from the page's (light or dark) scheme.
   function colors() {
     const cs = getComputedStyle(document.documentElement);
@@ -1210,6 +1472,185 @@
     void present;
   }
 
+  // ---- A day at a glance: the helicorder -----------------------------------------------------
+  // Up to 24 h of one axis in rows (15 min each by default), from the console's per-second
+  // minima and maxima (/api/helicorder); gaps shaded grey, flagged seconds ticked in the flag's
+  // colour above the trace, annotations shaded.
+  let heliView = null;
+  let heliGain = 1;
+  function renderHelicorder() {
+    const r = route;
+    heliView = null; currentNotes = [];
+    if (!source || source.url.includes('sensor=')) connect('');
+    const sensors = buildingSensors();
+    const sensor = r.sensor || sensors[0];
+    if (!sensor) { $('view').replaceChildren(el('section', { class: 'card' }, el('h2', {}, `Building ${r.building}: day`), el('p', { class: 'notice' }, 'No sensor of this building is known yet.'))); return; }
+    const link = (change) => { const x = { ...r, sensor, ...change }; return `#/helicorder/${encodeURIComponent(r.building)}/${encodeURIComponent(x.sensor)}?axis=${x.axis}&hours=${x.hours}&row=${x.row}` + (x.end === null ? '' : `&end=${x.end}`); };
+    const sel = (id, values, current, f) => el('select', { id, onchange: (e) => { location.hash = link(f(e.target.value)); } }, values.map(([v, t]) => el('option', { value: v, selected: String(v) === String(current) ? 'selected' : null }, t)));
+    const endNs = Number(msToNs(r.window[1]));
+    $('view').replaceChildren(el('section', { class: 'card', id: 'helicorder', 'data-building': r.building, 'data-sensor': sensor },
+      el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / ', el('a', { href: `#/building/${encodeURIComponent(r.building)}` }, r.building), ' / ', el('a', { href: sensorHref(r.building, sensor) }, sensor), ' / day'),
+      el('div', { class: 'controls' },
+        el('label', {}, 'sensor ', sel('heli-sensor', (sensors.includes(sensor) ? sensors : [sensor, ...sensors]).map((x) => [x, x]), sensor, (v) => ({ sensor: v }))),
+        el('label', {}, 'axis ', sel('heli-axis', AXES.map((a) => [a, `a${a}`]), r.axis, (v) => ({ axis: v }))),
+        el('label', {}, 'hours ', sel('heli-hours', [1, 2, 6, 12, 24].map((h) => [h, `${h} h`]), r.hours, (v) => ({ hours: Number(v) }))),
+        el('label', {}, 'row ', sel('heli-row', [[300, '5 min'], [600, '10 min'], [900, '15 min'], [1800, '30 min'], [3600, '1 h']], r.row, (v) => ({ row: Number(v) }))),
+        el('button', { id: 'heli-back', onclick: () => { location.hash = link({ end: endNs - r.hours * 3600e9 }); } }, '◀'),
+        el('button', { id: 'heli-now', class: r.end === null ? 'active' : '', onclick: () => { location.hash = link({ end: null }); } }, 'now'),
+        el('button', { id: 'heli-fwd', disabled: r.end === null ? 'disabled' : null, onclick: () => { const e = endNs + r.hours * 3600e9; location.hash = link({ end: e >= Date.now() * 1e6 ? null : e }); } }, '▶'),
+        el('button', { id: 'heli-gain-down', onclick: () => { heliGain /= 2; drawHelicorder(); } }, 'gain −'),
+        el('button', { id: 'heli-gain-up', onclick: () => { heliGain *= 2; drawHelicorder(); } }, 'gain +'),
+        el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG')),
+      el('div', { id: 'status-line', class: 'meta' }, `reading ${r.hours} h of a${r.axis}…`),
+      el('div', { class: 'plot', id: 'heli-plot' }, el('canvas', { id: 'heli-canvas', width: 1000, height: 700 })),
+      el('div', { class: 'legend', id: 'heli-legend' })),
+    notesPanel(r.building, sensor));
+    loadNotes(r.building, r.window[0], r.window[1]);
+    loadHelicorder(r, sensor);
+  }
+
+  async function loadHelicorder(r, sensor) {
+    const t0 = performance.now();
+    // Rows start on whole multiples of their length (15 min: :00, :15, …), as a drum's do.
+    const fromMs = Math.floor(r.window[0] / (r.row * 1000)) * r.row * 1000;
+    const q = new URLSearchParams({ building: r.building, sensor, axis: r.axis, from_ns: msToNs(fromMs), to_ns: msToNs(r.window[1]), row_s: String(r.row) });
+    const body = await getJson('/api/helicorder?' + q);
+    if (route !== r) return;
+    const fetched = performance.now() - t0;
+    if (!body.helicorder) { $('status-line').textContent = `helicorder: ${body.error}`; return; }
+    heliView = body;
+    const d = drawHelicorder();
+    const h = body.helicorder;
+    const c = $('heli-canvas');
+    c.dataset.fetchMs = fetched.toFixed(0);
+    $('status-line').textContent = `a${h.axis} − ${fmtNum(h.mean_mps2, 6)} m/s², ${h.rows} rows of ${fmtSpan(h.row_ns / 1e9)}, one column a second (min … max); ` +
+      `${h.gap_seconds} seconds without a sample; read in ${fetched.toFixed(0)} ms (${body.batches_read} batches from the history, the rest from the console's store), drawn in ${d.toFixed(0)} ms` + (body.error ? `; ${body.error}` : '');
+  }
+
+  function drawHelicorder() {
+    const canvas = $('heli-canvas');
+    if (!heliView || !canvas) return 0;
+    const t0 = performance.now();
+    const h = heliView.helicorder;
+    const rowPx = Math.max(8, Math.min(40, Math.floor(760 / h.rows)));
+    const top = 8, bottom = 18, left = 70, right = 8;
+    canvas.style.height = `${top + bottom + rowPx * h.rows}px`;
+    const { g, w, c } = canvasContext(canvas, top + bottom + rowPx * h.rows);
+    const pw = w - left - right;
+    const sample = [];
+    for (const row of h.data) for (let i = 0; i < row.length; i += 17) if (row[i] !== null) sample.push(Math.abs(row[i]));
+    sample.sort((a, b) => a - b);
+    const amp = Math.max(1, sample[Math.floor(0.99 * (sample.length - 1))] || 1);
+    // The 99th percentile of |a − mean| reaches half a row either way: rows do not overlap.
+    const k = heliGain * 0.45 * rowPx / amp;
+    const colW = pw / h.columns;
+    const colors = ['#175cd3', '#b42318', '#1d7a3a', c.muted];
+    let gaps = 0, flagged = 0, notes = 0;
+    g.textBaseline = 'middle';
+    for (let r = 0; r < h.rows; r++) {
+      const y0 = top + (r + 0.5) * rowPx;
+      const row = h.data[r];
+      // Gaps: runs of seconds without a sample.
+      g.fillStyle = 'rgba(127,127,127,.18)';
+      for (let i = 0; i < h.columns; i++) {
+        if (row[2 * i] !== null) continue;
+        let j = i; while (j < h.columns && row[2 * j] === null) j++;
+        g.fillRect(left + i * colW, y0 - rowPx / 2, (j - i) * colW, rowPx); gaps += j - i; i = j;
+      }
+      g.strokeStyle = colors[r % colors.length]; g.lineWidth = 1; g.beginPath();
+      const clip = (v) => Math.max(y0 - 1.5 * rowPx, Math.min(y0 + 1.5 * rowPx, y0 - v * k));
+      for (let i = 0; i < h.columns; i++) {
+        const lo = row[2 * i], hi = row[2 * i + 1];
+        if (lo === null) continue;
+        const x = left + (i + 0.5) * colW;
+        g.moveTo(x, clip(hi)); g.lineTo(x, clip(lo) + 0.5);
+      }
+      g.stroke();
+      for (const [col, bits] of h.flags[r]) {
+        const bit = FLAGS.findIndex((_, b) => bits & (1 << b));
+        g.fillStyle = bit >= 0 ? FLAGS[bit][1] : c.muted;
+        g.fillRect(left + col * colW, y0 - rowPx / 2, Math.max(1, colW), 2); flagged++;
+      }
+      const rowStart = nsToMs(h.from_ns) + r * h.row_ns / 1e6;
+      for (const a of notesFor($('helicorder').dataset.sensor)) {
+        const a0 = Math.max(nsToMs(a.from_ns), rowStart), a1 = Math.min(nsToMs(a.to_ns), rowStart + h.row_ns / 1e6);
+        if (a1 < a0) continue;
+        g.fillStyle = a.source === 'operator' ? 'rgba(105,65,198,.2)' : 'rgba(217,119,6,.2)';
+        const xa = left + (a0 - rowStart) / (h.row_ns / 1e6) * pw;
+        g.fillRect(xa, y0 - rowPx / 2, Math.max(2, (a1 - a0) / (h.row_ns / 1e6) * pw), rowPx); notes++;
+      }
+      if (rowPx >= 10 || r % Math.ceil(10 / rowPx) === 0) { g.fillStyle = c.muted; g.fillText(fmtTick(rowStart, false).slice(0, 5), 4, y0); }
+    }
+    g.fillStyle = c.muted; g.textBaseline = 'alphabetic';
+    for (let m = 0; m <= 4; m++) { const x = left + pw * m / 4; g.fillText(`+${fmtSpan(Math.round(h.row_ns / 1e9 * m / 4))}`, Math.min(x, w - 50), top + rowPx * h.rows + 14); }
+    const ms = performance.now() - t0;
+    Object.assign(canvas.dataset, { drawn: '1', rows: String(h.rows), gaps: String(gaps), flagged: String(flagged), notes: String(notes), drawMs: ms.toFixed(1), plotTop: String(top) });
+    $('heli-legend').replaceChildren(`${fmtNum(amp * h.scale_mps2 / heliGain / 0.45, 3)} m/s² per ${rowPx} px row height; grey: no sample; ticks above a trace: flagged seconds (`,
+      ...FLAGS.filter((_, b) => h.flags.some((f) => f.some(([, bits]) => bits & (1 << b)))).map(([n, col]) => { const i = el('i', {}); i.style.background = col; return [i, n.replace(/_/g, ' ')]; }).flat(), '); purple: annotations.');
+    return ms;
+  }
+
+  // ---- Annotations: the operators' own marks, on every plot of their building ---------------
+  // (PROTOCOL-free: the console's own, /api/annotations). `source` other than `operator` is
+  // kept for the event reports' marks, drawn in another colour; the console makes none.
+  let currentNotes = [];
+  let notesKey = '';
+  const notesFor = (sensor) => currentNotes.filter((a) => !a.sensor || !sensor || a.sensor === sensor);
+  async function loadNotes(building, fromMs, toMs) {
+    const myRoute = route;
+    notesKey = `${building}:${fromMs}:${toMs}`;
+    const q = new URLSearchParams({ building, from_ns: msToNs(Math.max(0, fromMs)), to_ns: msToNs(toMs) });
+    const body = await getJson('/api/annotations?' + q);
+    if (route !== myRoute) return;
+    currentNotes = body.annotations || [];
+    const csv = $('notes-csv');
+    if (csv) csv.href = '/api/annotations?' + q + '&format=csv';
+    renderNotesList(body.error);
+    if (route.view === 'building') drawBuilding(); else if (route.view === 'helicorder') drawHelicorder(); else scheduleDraw();
+  }
+
+  function notesPanel(building, sensor) {
+    const text = el('input', { id: 'note-text', type: 'text', size: 40, maxlength: 500, placeholder: 'crane lift, sensor moved, …' });
+    const from = el('input', { id: 'note-from', type: 'text', size: 19, spellcheck: 'false', placeholder: 'YYYY-MM-DD HH:MM:SS' });
+    const to = el('input', { id: 'note-to', type: 'text', size: 19, spellcheck: 'false', placeholder: 'YYYY-MM-DD HH:MM:SS' });
+    const only = sensor ? el('input', { id: 'note-sensor-only', type: 'checkbox' }) : null;
+    const fill = () => { const [a, b] = route.view === 'sensor' ? currentWindow() : route.window; from.value = fmtInput(a); to.value = fmtInput(b); };
+    const add = async () => {
+      const status = $('notes-status');
+      const a = parseInput(from.value), b = parseInput(to.value);
+      if (a === null || b === null) { status.textContent = `from and to are times like ${fmtInput(Date.now())} (${zoneLabel()})`; status.className = 'warning'; return; }
+      const body = { building, from_ns: Number(msToNs(a)), to_ns: Number(msToNs(b)), text: text.value };
+      if (only && only.checked) body.sensor = sensor;
+      let resp, answer;
+      try { resp = await fetch('/api/annotations', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) }); answer = await resp.text(); } catch (e) { status.textContent = `console unreachable (${e.message || e})`; return; }
+      if (!resp.ok) { status.textContent = `console refused (${resp.status}): ${answer.trim()}`; status.className = 'warning'; return; }
+      status.className = 'meta'; status.textContent = 'kept'; text.value = '';
+      const [wa, wb] = route.view === 'sensor' ? currentWindow() : route.window;
+      loadNotes(building, wa, wb);
+    };
+    setTimeout(fill, 0);
+    return el('section', { class: 'card', id: 'notes' }, el('h3', {}, 'Annotations'),
+      el('div', { class: 'controls' }, el('label', {}, `from (${zoneLabel()}) `, from), el('label', {}, 'to ', to), el('button', { onclick: fill, title: 'the span shown' }, 'span shown'),
+        el('label', {}, 'note ', text), only ? el('label', {}, only, ` ${sensor} only`) : null, el('button', { id: 'note-add', onclick: add }, 'Add'),
+        el('a', { id: 'notes-csv', href: '#', download: `${building}_annotations.csv` }, 'CSV')),
+      el('div', { id: 'notes-status', class: 'meta' }, me && me.operator ? `shown on every plot of building ${building}` : 'log in to annotate'),
+      el('div', { id: 'notes-list' }));
+  }
+
+  function renderNotesList(error) {
+    const box = $('notes-list');
+    if (!box) return;
+    if (error) { box.replaceChildren(el('p', { class: 'warning' }, error)); return; }
+    box.replaceChildren(currentNotes.length ? el('table', {}, el('tbody', {}, currentNotes.map((a) => el('tr', { class: 'note', 'data-id': a.id, 'data-source': a.source },
+      el('td', {}, `${fmtTime(nsToMs(a.from_ns))} – ${fmtTime(nsToMs(a.to_ns))}`), el('td', {}, a.sensor || 'whole building'), el('td', { class: 'statement' }, a.text),
+      el('td', {}, a.source === 'operator' ? `by ${a.by}, ${fmtTime(Date.parse(a.at))}` : `from ${a.source}`),
+      el('td', {}, me && me.operator && (me.operator.name === a.by || me.operator.role === 'admin') ? el('button', { class: 'note-delete', onclick: async () => {
+        const resp = await fetch('/api/annotations/delete', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ id: a.id }) });
+        if (!resp.ok) { $('notes-status').textContent = `console refused (${resp.status}): ${(await resp.text()).trim()}`; return; }
+        const [wa, wb] = route.view === 'sensor' ? currentWindow() : route.window; loadNotes(a.building, wa, wb);
+      } }, 'Remove') : null))))) : el('p', { class: 'meta' }, 'None in this span.'));
+  }
+
   // ---- Building view: several sensors, time-aligned ----------------------------------------
   let buildingData = null;   // per sensor, its /api/history or /api/trend answer
   function renderBuildingView() {
@@ -1219,23 +1660,34 @@
     const [fromMs, toMs] = r.window;
     const spanS = (toMs - fromMs) / 1000;
     const sensors = buildingSensors();
-    const axisSel = el('select', { id: 'b-axis', onchange: (e) => { location.hash = `#/building/${encodeURIComponent(r.building)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}&axis=${e.target.value}` + (r.alert ? `&alert=${r.alert}` : ''); } },
+    const base = (change) => { const x = { ...r, ...change }; return `#/building/${encodeURIComponent(r.building)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}&axis=${x.axis}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra(x); };
+    plotBands = new Map();
+    const axisSel = el('select', { id: 'b-axis', onchange: (e) => { location.hash = base({ axis: e.target.value }); } },
       AXES.map((a) => el('option', { value: a, selected: a === r.axis ? 'selected' : null }, `a${a}`)));
     $('view').replaceChildren(el('section', { class: 'card', id: 'building-view', 'data-building': r.building },
       el('h2', {}, el('a', { href: '#/' }, 'Fleet'), ' / building ', r.building),
       el('div', { class: 'controls' },
         el('label', {}, 'axis ', axisSel),
         [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: 'last', 'data-last': n, onclick: () => { location.hash = `#/building/${encodeURIComponent(r.building)}?last=${n}&axis=${r.axis}` + (r.alert ? `&alert=${r.alert}` : ''); } }, `last ${t}`)),
+        el('label', { title: 'every sensor of these axes in one plot, above the others' }, 'overlay ', AXES.map((a) => [el('input', { type: 'checkbox', class: 'overlay-axis', value: a, checked: r.overlay.includes(a) ? 'checked' : null,
+          onchange: () => { location.hash = base({ overlay: [...document.querySelectorAll('input.overlay-axis:checked')].map((c) => c.value).join('') }); } }), a, ' '])),
+        el('label', {}, 'show ', el('select', { id: 'b-quantity', onchange: (e) => { location.hash = base({ quantity: e.target.value, band: e.target.value === 'acceleration' ? r.band : (r.band || '0.1-') }); } },
+          Object.keys(QUANTITIES).map((q) => el('option', { value: q, selected: q === r.quantity ? 'selected' : null }, q)))),
         el('button', { id: 'btn-png', onclick: () => exportImage('png') }, 'PNG'),
         el('button', { id: 'btn-svg', onclick: () => exportImage('svg') }, 'SVG')),
       r.error ? el('div', { id: 'status-line', class: 'warning' }, `This link cannot be shown: ${r.error}.`) :
-        el('div', { id: 'status-line', class: 'meta' }, `${fmtTime(fromMs)} – ${fmtTime(toMs)} (${fmtSpan(Math.round(spanS))}), ${sensors.length} sensors, the same time axis; drag to zoom, Shift-drag to pan.`),
+        el('div', { id: 'status-line', class: 'meta' }, `${fmtTime(fromMs)} – ${fmtTime(toMs)} (${fmtSpan(Math.round(spanS))}), ${sensors.length} sensors, the same time axis; drag to zoom, Shift-drag to pan.` + (processing(r) ? ` Every plot: ${r.quantity}, band ${r.band} Hz.` : '')),
+      r.overlay ? el('div', { class: 'plot', id: 'overlay-plot' }, el('canvas', { id: 'bcanvas-overlay', width: 1000, height: 220 }), el('span', { class: 'title', id: 'overlay-title' }, `overlay: ${sensors.length} sensors, axes ${r.overlay.split('').join(', ')}`), el('div', { class: 'legend', id: 'overlay-legend' })) : null,
       el('div', { id: 'building-plots', 'data-loaded': 0 }, sensors.map((s) => el('div', { class: 'plot', 'data-sensor': s },
+        el('div', { class: 'plot-controls' }, el('label', { title: 'this plot only: its band in Hz, LOW-HIGH (Enter); empty: the view\'s' }, 'filter ',
+          el('input', { class: 'plot-band', 'data-sensor': s, type: 'text', size: 8, spellcheck: 'false', placeholder: r.band || 'none', onchange: (e) => setPlotBand(r, s, e.target.value.trim(), fromMs, toMs) })), ' Hz'),
         el('canvas', { id: `bcanvas-${s}`, width: 1000, height: 130 }),
-        el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') }, s), ` a${r.axis}`)))),
-      el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })));
+        el('span', { class: 'title' }, el('a', { href: `#/sensor/${encodeURIComponent(r.building)}/${encodeURIComponent(s)}?from=${msToNs(fromMs)}&to=${msToNs(toMs)}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra({ ...r, overlay: '' }) }, s), ` ${r.quantity === 'acceleration' ? 'a' : r.quantity + ' '}${r.axis}`, el('span', { class: 'plot-band-note', 'data-sensor': s }))))),
+      el('div', { id: 'readout', hidden: 'hidden' }), el('div', { id: 'selection', hidden: 'hidden' })),
+      notesPanel(r.building, null));
     if (r.error) return;
-    for (const c of document.querySelectorAll('#building-plots canvas')) attachPointer(c, drawBuilding);
+    loadNotes(r.building, fromMs, toMs);
+    for (const c of document.querySelectorAll('#building-plots canvas, #bcanvas-overlay')) attachPointer(c, drawBuilding);
     if (r.alert) getJson(`/api/alerts?id=${r.alert}`).then((b) => { if (route === r && b.alerts && b.alerts.length) { alertInfo = b.alerts[0]; drawBuilding(); } });
     loadBuilding(r, sensors, fromMs, toMs);
   }
@@ -1247,17 +1699,38 @@
   }
 
   // One sensor after the other: the console reads two history views at once at most.
+  let plotBands = new Map(); // per sensor of the building view, its own band
   async function loadBuilding(r, sensors, fromMs, toMs) {
     const trend = (toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S;
     for (const s of sensors) {
-      const q = new URLSearchParams({ building: r.building, sensor: s, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
-      if (!trend) q.set('width', String(plotWidth()));
-      const body = await getJson((trend ? '/api/trend?' : '/api/history?') + q);
+      const body = await loadBuildingPlot(r, s, fromMs, toMs, trend);
       if (route !== r) return;
       buildingData.set(s, body);
       $('building-plots').dataset.loaded = buildingData.size;
       drawBuilding();
     }
+  }
+
+  async function loadBuildingPlot(r, s, fromMs, toMs, trend) {
+    const band = plotBands.get(s) || r.band;
+    if (!trend && (band || r.quantity !== 'acceleration')) {
+      const body = await getJson(processedQuery(r.building, s, fromMs, toMs, r.quantity, band));
+      return { ...body, processed: true };
+    }
+    const q = new URLSearchParams({ building: r.building, sensor: s, from_ns: msToNs(fromMs), to_ns: msToNs(toMs) });
+    if (!trend) q.set('width', String(plotWidth()));
+    return getJson((trend ? '/api/trend?' : '/api/history?') + q);
+  }
+
+  // One plot's own filter: that plot read again with it.
+  async function setPlotBand(r, s, band, fromMs, toMs) {
+    if (band && !/^[0-9.]*-[0-9.]*$/.test(band)) { $('status-line').textContent = `"${band}" is not a band LOW-HIGH in Hz`; return; }
+    if (band) plotBands.set(s, band); else plotBands.delete(s);
+    const body = await loadBuildingPlot(r, s, fromMs, toMs, (toMs - fromMs) / 1000 > HISTORY_MAX_SPAN_S);
+    if (route !== r) return;
+    if (body.error && !body.view) $('status-line').textContent = `${s}: ${body.error}`;
+    buildingData.set(s, body);
+    drawBuilding();
   }
 
   function drawBuilding() {
@@ -1270,18 +1743,59 @@
       if (!canvas) continue;
       // The alert's threshold belongs to its own sensor; its window is shaded on every one.
       const mine = alertInfo && alertInfo.sensor_id === s ? overlay : { shade: overlay.shade };
-      if (body.minutes) {
-        drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined,
+      const note = document.querySelector(`.plot-band-note[data-sensor="${CSS.escape(s)}"]`);
+      if (note) note.textContent = body.processed && body.view ? ` (${body.view.quantity}, ${bandText(body.view.band)}, ${body.view.unit})` : '';
+      if (body.processed && body.view) {
+        const p = processedSeries(body.view, [i], () => `${body.view.quantity} ${route.axis}`, [AXIS_COLORS[i]]);
+        drawSeries(canvas, { x0, x1, marker: null, gaps: p.gaps, present: 0, bucketMs: p.bucketMs, unit: body.view.unit, shade: mine.shade, series: p.series, notes: notesFor(s) });
+        canvas.dataset.band = plotBands.get(s) || route.band || '';
+      } else if (body.minutes) {
+        drawSeries(canvas, { x0, x1, marker: null, gaps: [], present: 0, bucketMs: 60000, unit: 'm/s²', ...mine, threshold: undefined, notes: notesFor(s),
           series: [{ name: `peak a${route.axis}`, color: AXIS_COLORS[i], points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) }] });
       } else if (body.view) {
         const v = body.view, bucketMs = v.bucket_ns / 1e6;
         let present = 0;
         for (const b of v.buckets) present |= b[2];
-        drawSeries(canvas, { x0, x1, marker: null, gaps: v.gaps, present, correction: v.correction, bucketMs, unit: 'm/s²', ...mine,
+        drawSeries(canvas, { x0, x1, marker: null, gaps: v.gaps, present, correction: v.correction, bucketMs, unit: 'm/s²', ...mine, notes: notesFor(s),
           series: [{ name: `a${route.axis}`, color: AXIS_COLORS[i], points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) }] });
       }
       canvas.dataset.drawn = '1';
     }
+    drawOverlay();
+  }
+
+  const OVERLAY_COLORS = ['#175cd3', '#1d7a3a', '#9a3412', '#6941c6', '#c11574', '#0e7090', '#b54708', '#475467', '#d92d20', '#079455'];
+  // Every sensor's chosen axes in one plot, on the same time axis.
+  function drawOverlay() {
+    const canvas = $('bcanvas-overlay');
+    if (!canvas || !route.overlay) return;
+    const [x0, x1] = route.window;
+    const series = [];
+    const units = new Set();
+    let gaps = [], bucketMs = null;
+    for (const [s, body] of buildingData) {
+      for (const ax of route.overlay) {
+        const i = AXES.indexOf(ax);
+        const color = OVERLAY_COLORS[series.length % OVERLAY_COLORS.length];
+        if (body.processed && body.view) {
+          const p = processedSeries(body.view, [i], () => `${s} ${body.view.quantity === 'acceleration' ? 'a' : body.view.quantity + ' '}${ax} (${bandText(body.view.band)})`, [color]);
+          series.push(p.series[0]); units.add(body.view.unit); bucketMs = p.bucketMs;
+        } else if (body.view) {
+          const v = body.view; bucketMs = v.bucket_ns / 1e6; units.add('m/s²');
+          series.push({ name: `${s} a${ax}`, color, points: v.buckets.map((b) => ({ t: (b[0] + 0.5) * bucketMs, min: b[4 + 2 * i], max: b[5 + 2 * i], lo: b[10 + 2 * i], hi: b[11 + 2 * i], flags: b[2], gap: b[3] === 1 })) });
+        } else if (body.minutes) {
+          units.add('m/s²'); bucketMs = 60000;
+          series.push({ name: `${s} peak a${ax}`, color, points: body.minutes.map((m) => ({ t: nsToMs(m.start_ns) + 30000, min: m.peak_mps2[i], max: m.peak_mps2[i], lo: null, hi: null, flags: 0, gap: false })) });
+        }
+      }
+    }
+    const unit = [...units].join(' / ');
+    drawSeries(canvas, { x0, x1, marker: null, gaps, present: 0, bucketMs, unit, shade: alertOverlay().shade, series, notes: notesFor(null) });
+    canvas.dataset.series = String(series.length);
+    canvas.dataset.drawn = '1';
+    const legend = $('overlay-legend');
+    legend.replaceChildren(...series.map((x) => [el('i', { 'data-color': x.color }), x.name]).flat(), ...(units.size > 1 ? [el('span', { class: 'warning' }, ' (mixed units: one plot per quantity reads better)')] : []));
+    for (const i of legend.querySelectorAll('i[data-color]')) i.style.background = i.dataset.color;
   }
 
   // ---- Modes view: a building's modal frequencies, damping and shapes (triax-modes) --------
@@ -1439,14 +1953,84 @@
     canvas.dataset.components = comps.length; canvas.dataset.drawn = '1';
   }
 
+  // ---- Operators: who is logged in, the login form, the time zone choice --------------------
+  let me = null;             // /api/me: { operator, login_required, accounts, time_zone }
+  async function loadMe() {
+    const body = await getJson('/api/me');
+    applyMe(body.error ? { operator: null, login_required: false, error: body.error } : body);
+  }
+
+  function applyMe(m) {
+    me = m;
+    siteZone = me.time_zone || null;
+    if (tzMode === 'site' && !siteZone) tzMode = 'utc';
+    renderWho();
+    renderZoneChoice();
+  }
+
+  function renderWho() {
+    const box = $('who');
+    if (!me) { box.replaceChildren(); return; }
+    if (me.operator) {
+      box.replaceChildren(el('span', { id: 'who-name', 'data-role': me.operator.role }, `${me.operator.name} (${me.operator.role})`), ' ',
+        me.operator.via === 'password' ? el('button', { id: 'logout', onclick: logout }, 'Log out') : null);
+    } else if (me.login_required || me.accounts) {
+      box.replaceChildren(el('a', { id: 'login-link', href: '#/login' }, 'Log in'));
+    } else box.replaceChildren(el('span', { class: 'meta', title: 'no operator accounts: triax-console operator add NAME --role operate' }, 'read-only'));
+  }
+
+  function renderZoneChoice() {
+    const sel = $('tz');
+    const opts = [['utc', 'UTC']];
+    if (siteZone) opts.push(['site', `site (${siteZone})`]);
+    opts.push(['browser', `this browser (${browserZone()})`]);
+    sel.replaceChildren(...opts.map(([v, t]) => el('option', { value: v, selected: v === tzMode ? 'selected' : null }, t)));
+    sel.onchange = () => { tzMode = sel.value; localStorage.setItem('triax.tz', tzMode); renderZoneChoice(); render(); };
+    $('tz-note').textContent = zoneName() === 'UTC' ? 'Times in UTC.' : `Times in ${zoneName()} (${tzMode === 'site' ? "the site's local time" : "this browser's local time"}), labelled with the zone.`;
+    document.documentElement.dataset.zone = zoneName();
+  }
+
+  let afterLogin = '#/';
+  function renderLogin() {
+    if (source) { source.close(); source = null; }
+    const name = el('input', { id: 'login-name', type: 'text', size: 20, autocomplete: 'username', spellcheck: 'false' });
+    const pw = el('input', { id: 'login-password', type: 'password', size: 20, autocomplete: 'current-password' });
+    const status = el('div', { id: 'login-status', class: 'meta' }, me && me.login_required ? 'This console shows its fleet to logged-in operators only.' : 'Log in to acknowledge, silence and annotate.');
+    const go = async () => {
+      let resp, text;
+      try {
+        resp = await fetch('/api/login', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ name: name.value.trim(), password: pw.value }) });
+        text = await resp.text();
+      } catch (e) { status.textContent = `console unreachable (${e.message || e})`; status.className = 'warning'; return; }
+      pw.value = '';
+      if (!resp.ok) { status.textContent = `console refused (${resp.status}): ${text.trim()}`; status.className = 'warning'; return; }
+      await loadMe();
+      location.hash = afterLogin === '#/login' ? '#/' : afterLogin;
+    };
+    for (const i of [name, pw]) i.addEventListener('keydown', (e) => { if (e.key === 'Enter') go(); });
+    $('view').replaceChildren(el('section', { class: 'card', id: 'login' }, el('h2', {}, 'Log in'),
+      el('div', { class: 'controls' }, el('label', {}, 'operator ', name), el('label', {}, 'password ', pw), el('button', { id: 'login-go', onclick: go }, 'Log in')),
+      status));
+    name.focus();
+  }
+
+  async function logout() {
+    try { await fetch('/api/logout', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: '{}' }); } catch (e) { /* the cookie ends with the console anyway */ }
+    await loadMe();
+    render();
+  }
+
   // ---- Routing ----------------------------------------------------------------------------
   function render() {
+    if (location.hash.startsWith('#/login')) { renderLogin(); return; }
+    if (me && me.login_required && !me.operator) { afterLogin = location.hash || '#/'; location.hash = '#/login'; return; }
     route = parseRoute();
     if (route.view === 'sensor') { renderSensor(); return; }
     if (route.view === 'building') { renderBuildingView(); return; }
     if (route.view === 'modes') { renderModes(); return; }
+    if (route.view === 'helicorder') { renderHelicorder(); return; }
     if (!source || source.url.includes('sensor=')) connect('');
-    if (route.view === 'alerts') renderAlerts(); else renderFleet();
+    if (route.view === 'alerts') renderAlerts(); else { renderFleet(); refreshRows(); }
   }
 
   // A script error must not pass unseen, leaving a view that looks current.
@@ -1454,9 +2038,18 @@
   window.addEventListener('error', (e) => pageError(e.message));
   window.addEventListener('unhandledrejection', (e) => pageError(String(e.reason)));
   window.addEventListener('hashchange', render);
-  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); drawModes(); });
+  window.addEventListener('resize', () => { scheduleDraw(); drawBuilding(); drawSpectrum(); drawSpectrogram(); drawModes(); if (route && route.view === 'helicorder') drawHelicorder(); });
   setInterval(() => { if (route && route.view === 'sensor' && !route.window) scheduleDraw(); }, 1000);
   // A window of modes comes every half hour or so: a look every 10 s is plenty.
   setInterval(() => { if (route && route.view === 'modes') loadModes(route); }, 10000);
+  // The view at once (a console without accounts needs no answer first); once /api/me has
+  // answered, the login form if one is needed, or the view again in the site's zone if chosen.
+  // Who the page is for comes with it (the server writes it into a meta tag), so that the
+  // first view is the right one: the login form when one is needed.
+  try {
+    const m = document.querySelector('meta[name="triax-me"]');
+    if (m && m.content) applyMe(JSON.parse(m.content));
+  } catch (e) { /* /api/me below says it again */ }
   render();
+  loadMe();
 })();

@@ -110,7 +110,14 @@ pub struct Site {
     pub session: zenoh::Session,
     pub t0_ns: i64,
     _history: zenoh::query::Queryable<()>,
+    _status: zenoh::query::Queryable<()>,
+    /// What the status says of a sensor besides `ok`: `"silent"` (its last batch a minute
+    /// old) or `"suspect"` (the field health checks' verdict).
+    pub conditions: Conditions,
 }
+
+pub type Conditions =
+    std::sync::Arc<std::sync::Mutex<std::collections::HashMap<String, &'static str>>>;
 
 pub const SENSORS: [&str; 3] = ["acc-01", "acc-02", "acc-03"];
 
@@ -168,11 +175,56 @@ impl Site {
             })
             .await
             .unwrap();
+        // The gateway's status, as a gateway answers it: counters that grow with time.
+        let started = time::OffsetDateTime::now_utc();
+        let conditions: Conditions = Default::default();
+        let cond = conditions.clone();
+        let status = session
+            .declare_queryable("triax/hq/status")
+            .callback(move |q| {
+                let rfc = |t: time::OffsetDateTime| {
+                    t.format(&time::format_description::well_known::Rfc3339)
+                        .unwrap()
+                };
+                let now = time::OffsetDateTime::now_utc();
+                let batches = ((now_ns() - t0_ns) / period_ns) as u64;
+                let sensors: Vec<Value> = SENSORS
+                    .iter()
+                    .map(|s| {
+                        let c = cond.lock().unwrap().get(*s).copied();
+                        let seen = if c == Some("silent") {
+                            now - time::Duration::MINUTE
+                        } else {
+                            now
+                        };
+                        json!({
+                            "sensor_id": s, "last_seen": rfc(seen), "batches": batches,
+                            "health": if c == Some("suspect") { json!("suspect") } else { Value::Null },
+                            "samples": batches * BATCH as u64, "gaps": 0, "missing_batches": 0,
+                            "late_batches": 0, "duplicates": 0, "rejects": 0,
+                            "flagged_samples": batches / 7 * 10, "keys_declared": true,
+                            "calibration_version": 4, "mode": "dynamic",
+                            "valid_from": rfc(now - time::Duration::DAY), "valid_until": null,
+                        })
+                    })
+                    .collect();
+                let body = json!({
+                    "format_version": 1, "building": "hq", "gateway": "gw-hq",
+                    "started_at": rfc(started), "reported_at": rfc(now), "malformed": 0,
+                    "dropped": 0, "pushes_accepted": 0, "pushes_refused": 0,
+                    "total_sensors": SENSORS.len(), "sensors": sensors,
+                });
+                let _ = q.reply("triax/hq/status", body.to_string()).wait();
+            })
+            .await
+            .unwrap();
         Site {
             endpoint,
             session,
             t0_ns,
             _history: history,
+            _status: status,
+            conditions,
         }
     }
 
@@ -186,9 +238,23 @@ impl Site {
         window: (i64, i64),
         signed: bool,
     ) {
+        self.alert_in("hq", sensor, level, statement, window, signed)
+            .await
+    }
+
+    /// [`Site::alert`] in another building.
+    pub async fn alert_in(
+        &self,
+        building: &str,
+        sensor: &str,
+        level: &str,
+        statement: &str,
+        window: (i64, i64),
+        signed: bool,
+    ) {
         let a: Alert = from_json(
             &serde_json::to_vec(&json!({
-                "format_version": 1, "building": "hq", "sensor_id": sensor,
+                "format_version": 1, "building": building, "sensor_id": sensor,
                 "kind": "peak_acceleration", "level": level, "value": 0.052,
                 "standard_uncertainty": 0.002, "coverage_factor": 2.0, "threshold": 0.045,
                 "unit": "m/s^2", "window_s": (window.1 - window.0) as f64 / 1e9,
@@ -207,7 +273,7 @@ impl Site {
             to_json(&a)
         };
         self.session
-            .put(format!("triax/hq/alert/{sensor}"), payload)
+            .put(format!("triax/{building}/alert/{sensor}"), payload)
             .congestion_control(zenoh::qos::CongestionControl::Block)
             .await
             .unwrap();
@@ -219,10 +285,39 @@ pub struct Console {
     pub addr: std::net::SocketAddr,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: Option<tokio::task::JoinHandle<()>>,
+    /// The session cookie its requests send (`name=value`), once logged in.
+    cookie: std::sync::Mutex<Option<String>>,
+}
+
+/// The password of every operator the tests make.
+pub const PASSWORD: &str = "correct horse battery";
+
+/// Writes an operators file with `accounts` (name, role), each with [`PASSWORD`]; an account
+/// whose role ends in `!` has no password (named by a proxy only).
+pub fn write_operators(path: &std::path::Path, accounts: &[(&str, &str)]) {
+    use triax_console::operators::{hash_password, write_accounts, Account, Role};
+    let accounts: Vec<Account> = accounts
+        .iter()
+        .map(|(name, role)| Account {
+            name: (*name).into(),
+            role: Role::parse(role.trim_end_matches('!')).unwrap(),
+            hash: (!role.ends_with('!')).then(|| hash_password(PASSWORD).unwrap()),
+        })
+        .collect();
+    write_accounts(path, &accounts).unwrap();
 }
 
 impl Console {
     pub async fn start(site: &Site, state_dir: Option<PathBuf>) -> Console {
+        Console::start_with(site, state_dir, |_| {}).await
+    }
+
+    /// [`Console::start`] with options changed by `change`.
+    pub async fn start_with(
+        site: &Site,
+        state_dir: Option<PathBuf>,
+        change: impl FnOnce(&mut ConsoleOptions),
+    ) -> Console {
         let config = ZenohSettings::loopback(ZenohMode::Peer, vec![], vec![site.endpoint.clone()])
             .to_config()
             .unwrap();
@@ -238,6 +333,8 @@ impl Console {
             history_timeout: TIMEOUT,
             ..ConsoleOptions::default()
         };
+        let mut options = options;
+        change(&mut options);
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {
             triax_console::serve(session.clone(), listener, options, rx)
@@ -249,6 +346,39 @@ impl Console {
             addr,
             stop: Some(tx),
             task: Some(task),
+            cookie: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// Logs in as `name` with [`PASSWORD`]: later requests send the session's cookie.
+    pub async fn login(&self, name: &str) {
+        let body = json!({"name": name, "password": PASSWORD}).to_string();
+        let raw = self
+            .request_raw(&format!(
+                "POST /api/login HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len(),
+                a = self.addr
+            ))
+            .await;
+        assert!(raw.starts_with("HTTP/1.1 200"), "login as {name}: {raw}");
+        let cookie = raw
+            .lines()
+            .find_map(|l| l.strip_prefix("Set-Cookie: "))
+            .and_then(|c| c.split(';').next())
+            .unwrap_or_else(|| panic!("no session cookie: {raw}"))
+            .to_owned();
+        *self.cookie.lock().unwrap() = Some(cookie);
+    }
+
+    /// Forgets the session cookie (the session stays open on the console).
+    pub fn forget_login(&self) {
+        *self.cookie.lock().unwrap() = None;
+    }
+
+    fn cookie_header(&self) -> String {
+        match &*self.cookie.lock().unwrap() {
+            Some(c) => format!("Cookie: {c}\r\n"),
+            None => String::new(),
         }
     }
 
@@ -269,8 +399,9 @@ impl Console {
     /// GET `path`: the status and the body.
     pub async fn get(&self, path: &str) -> (u16, String) {
         self.request(&format!(
-            "GET {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\n\r\n",
-            self.addr
+            "GET {path} HTTP/1.1\r\nHost: {}\r\n{}Connection: close\r\n\r\n",
+            self.addr,
+            self.cookie_header()
         ))
         .await
     }
@@ -286,15 +417,16 @@ impl Console {
     pub async fn post(&self, path: &str, body: &Value) -> (u16, String) {
         let body = body.to_string();
         self.request(&format!(
-            "POST {path} HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            "POST {path} HTTP/1.1\r\nHost: {a}\r\nOrigin: http://{a}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n{}Connection: close\r\n\r\n{body}",
             body.len(),
+            self.cookie_header(),
             a = self.addr
         ))
         .await
     }
 
-    /// Sends `raw` as the whole request: the status and the body of the answer.
-    pub async fn request(&self, raw: &str) -> (u16, String) {
+    /// Sends `raw` as the whole request: the whole answer, head and body.
+    pub async fn request_raw(&self, raw: &str) -> String {
         use tokio::io::{AsyncReadExt, AsyncWriteExt};
         let mut s = tokio::net::TcpStream::connect(self.addr).await.unwrap();
         s.write_all(raw.as_bytes()).await.unwrap();
@@ -303,7 +435,12 @@ impl Console {
             .await
             .expect("the console answers")
             .unwrap();
-        let text = String::from_utf8_lossy(&out).into_owned();
+        String::from_utf8_lossy(&out).into_owned()
+    }
+
+    /// Sends `raw` as the whole request: the status and the body of the answer.
+    pub async fn request(&self, raw: &str) -> (u16, String) {
+        let text = self.request_raw(raw).await;
         let status = text
             .get(9..12)
             .and_then(|s| s.parse().ok())
@@ -525,15 +662,19 @@ impl Browser {
 
     /// Errors the page logged since the last call: uncaught exceptions and failed loads.
     pub fn assert_no_errors(&self, when: &str) {
+        let errors = self.errors();
+        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
+    }
+
+    /// The errors the page logged since the last look.
+    pub fn errors(&self) -> Vec<String> {
         let v = self.cmd("POST", "se/log", Some(json!({ "type": "browser" })));
-        let errors: Vec<String> = v
-            .as_array()
+        v.as_array()
             .expect("a browser log")
             .iter()
             .filter(|e| e["level"] == "SEVERE")
             .map(|e| e["message"].as_str().unwrap_or_default().to_owned())
-            .collect();
-        assert!(errors.is_empty(), "{when}: the page logged {errors:#?}");
+            .collect()
     }
 
     pub fn screenshot(&self, name: &str) {
