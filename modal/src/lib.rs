@@ -47,7 +47,10 @@ pub mod uncertainty;
 pub mod window;
 
 pub use error::ModalError;
-pub use identify::{identify, Identification, Mode, ShapeComponent, SsiConfig, UnquantifiedMode};
+pub use identify::{
+    identify, Identification, IdentificationWarning, Mode, ShapeComponent, SsiConfig,
+    UnquantifiedMode,
+};
 pub use model::{BuildingModel, Direction, ModelError, SensorPlacement};
 pub use pool::{PooledComponent, PooledShape, ShapePool};
 pub use track::{ModeObservation, ModeTracker, ShiftVerdict, TrackUpdate, TrackerConfig};

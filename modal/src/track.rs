@@ -54,7 +54,7 @@ use crate::uncertainty::Estimate;
 
 /// Settings of the tracker.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct TrackerConfig {
     pub frequency_tolerance: f64,
     pub mac_min: f64,

@@ -177,6 +177,15 @@ impl FileConfig {
                     ));
                 }
             }
+            if let Err(e) = b.ssi.validate() {
+                let (field, reason) = match e {
+                    triax_modal::ModalError::InvalidOption { field, reason } => {
+                        (format!("ssi.{field}"), reason)
+                    }
+                    other => ("ssi".to_string(), other.to_string()),
+                };
+                return Err(ConfigError::invalid(at(&field), reason));
+            }
             if !(b.tracker.false_alarms_per_year.is_finite()
                 && b.tracker.false_alarms_per_year > 0.0)
             {
@@ -301,6 +310,28 @@ mod tests {
         assert!(e.contains("window_s"), "{e}");
         let e = Config::from_toml("").unwrap_err().to_string();
         assert!(e.contains("no building"), "{e}");
+        for (field, value) in [
+            ("max_order", "1"),
+            ("blocks", "5"),
+            ("selection.mac_min", "1.5"),
+            ("channels.min_valid_fraction", "0.0"),
+            ("lag_span_s", "-1.0"),
+        ] {
+            let (table, key) = match field.rsplit_once('.') {
+                Some((t, k)) => (format!("ssi.{t}"), k),
+                None => ("ssi".to_string(), field),
+            };
+            let text = format!("[buildings.hq]\n{SENSOR}[buildings.hq.{table}]\n{key} = {value}\n");
+            let e = Config::from_toml(&text).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("buildings.hq.ssi.{field}")),
+                "{field}: {e}"
+            );
+        }
+        // A misspelt key is refused, not ignored.
+        let text = format!("[buildings.hq]\n{SENSOR}[buildings.hq.ssi]\nmax_ordr = 80\n");
+        let e = Config::from_toml(&text).unwrap_err().to_string();
+        assert!(e.contains("max_ordr"), "{e}");
         for (field, value) in [
             ("frequency_tolerance", "0.0"),
             ("mac_min", "1.5"),

@@ -34,6 +34,7 @@ fn mode(track: Option<u64>, frequency_hz: f64, roof_real: f64, lower_real: f64) 
         direction: ModalDirection::X,
         real: estimate(real, 0.01, 30.0),
         imag: estimate(0.002, 0.004, f64::INFINITY),
+        calibration_suspect: false,
     };
     ModeReport {
         track,
@@ -69,6 +70,7 @@ fn window(start_ns: i64, modes: Vec<ModeReport>, refused: Option<&str>) -> Build
         modes,
         unquantified: Vec::new(),
         refused: refused.map(str::to_owned),
+        warnings: Vec::new(),
         late: false,
         identified_at: OffsetDateTime::UNIX_EPOCH,
     }

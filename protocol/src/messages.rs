@@ -594,6 +594,10 @@ pub struct ModeShapeComponent {
     pub real: ModalEstimate,
     /// Quadrature part.
     pub imag: ModalEstimate,
+    /// Some of the sensor's samples in the window were flagged `calibration_suspect` (§2.3):
+    /// its gain may be off, which moves this component but no frequency or damping.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub calibration_suspect: bool,
 }
 
 /// A track's mode shape pooled over windows: each in-phase component relative to the
@@ -614,6 +618,9 @@ pub struct PooledShapeComponent {
     pub sensor_id: SensorId,
     pub direction: ModalDirection,
     pub real: ModalEstimate,
+    /// The sensor's samples were flagged `calibration_suspect` in this window.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub calibration_suspect: bool,
 }
 
 /// One identified mode, with its track's judgement.
@@ -676,6 +683,15 @@ pub struct ModalSensorCoverage {
     pub misaligned: u64,
     /// Calibration versions of the batches used.
     pub calibration_versions: Vec<u64>,
+    /// Points whose sample was flagged `calibration_suspect` (§2.3) and nothing else: used
+    /// for identification (a gain error moves no frequency or damping), counted here and not
+    /// in `flagged`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub calibration_suspect: u64,
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
 }
 
 /// The modes of a building over one window, published on `triax/<building>/modes` by the modal
@@ -705,6 +721,11 @@ pub struct BuildingModes {
     pub unquantified: Vec<UnquantifiedModeReport>,
     /// Why the window gave no identification; absent when it did.
     pub refused: Option<String>,
+    /// What degraded an identified (or refused) window, each in words naming the sensor or
+    /// the setting: samples used despite a flag, sensors left out, a diagram that had not
+    /// settled, a window not tracked. Absent when empty.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Some of the window's batches were read back from the gateway's history.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub late: bool,
@@ -788,6 +809,7 @@ mod tests {
                 missing: 2,
                 misaligned: 3,
                 calibration_versions: vec![4],
+                calibration_suspect: 0,
             }],
             temperature_c: Some(12.5),
             regressors: vec![12.5],
@@ -802,6 +824,7 @@ mod tests {
                     direction: ModalDirection::X,
                     real: estimate(1.0, f64::INFINITY),
                     imag: estimate(0.0, f64::INFINITY),
+                    calibration_suspect: false,
                 }],
                 reference_component: 0,
                 pooled_shape: None,
@@ -816,6 +839,7 @@ mod tests {
             }],
             unquantified: Vec::new(),
             refused: None,
+            warnings: Vec::new(),
             late: false,
             identified_at: t(),
         };
@@ -823,6 +847,19 @@ mod tests {
         let text = String::from_utf8(to_json(&modes)).unwrap();
         assert!(text.contains(r#""dof":null"#), "{text}");
         assert!(!text.contains("late"), "absent when false: {text}");
+        // The optional fields added since are absent when empty, and a message without them
+        // (as an older service wrote it) reads as one with them empty.
+        for field in ["warnings", "calibration_suspect"] {
+            assert!(!text.contains(field), "{field} absent when empty: {text}");
+        }
+        let mut with = modes.clone();
+        with.warnings = vec!["sensor roof: used despite calibration_suspect".into()];
+        with.sensors[0].calibration_suspect = 7;
+        with.modes[0].shape[0].calibration_suspect = true;
+        round_trip(&with);
+        let text = String::from_utf8(to_json(&with)).unwrap();
+        assert!(text.contains(r#""calibration_suspect":7"#), "{text}");
+        assert!(text.contains(r#""calibration_suspect":true"#), "{text}");
     }
 
     #[test]

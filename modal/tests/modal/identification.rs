@@ -19,7 +19,7 @@ pub(crate) fn light_config() -> SsiConfig {
             reference("s3", Direction::X),
             reference("s3", Direction::Y),
         ],
-        max_order: 36,
+        max_order: Some(36),
         ..SsiConfig::default()
     }
 }
@@ -102,4 +102,54 @@ fn gaps_are_left_out_and_too_many_refuse_the_window() {
         }
         other => panic!("expected a refusal, got {:?}", other.map(|i| i.modes.len())),
     }
+}
+
+#[test]
+fn a_tall_building_is_identified_with_every_setting_at_its_default() {
+    // The ten-storey building's 13 modes below 8 Hz, its fundamentals far weaker in
+    // acceleration than its higher modes: a diagram to order 40 finds the upper ones only.
+    let building = SimBuilding::ten_storey(7);
+    let window = building.simulate(20.0, 1800.0, 0, 8);
+    let identification = identify(&building.model, &window, &SsiConfig::default()).unwrap();
+    assert!(
+        identification.warnings.is_empty(),
+        "{:?}",
+        identification.warnings
+    );
+    // 25 modes below the decimated Nyquist frequency (12.5 Hz), two singular values each.
+    assert!(
+        (46..=54).contains(&identification.signal_rank),
+        "signal rank {}",
+        identification.signal_rank
+    );
+    assert!(identification.max_order >= 2 * identification.signal_rank);
+    let truths: Vec<_> = building
+        .plan_modes(20.0)
+        .into_iter()
+        .filter(|m| m.frequency_hz < 8.0)
+        .collect();
+    assert_eq!(truths.len(), 13);
+    for truth in &truths {
+        let (mode, mac) = crate::buildings::find_plan(&building, &identification, truth)
+            .unwrap_or_else(|| panic!("{:?}{} not found", truth.kind, truth.number));
+        let error = (mode.frequency_hz.value - truth.frequency_hz).abs() / truth.frequency_hz;
+        assert!(error < 0.005, "{:?}{}: {error}", truth.kind, truth.number);
+        assert!(mac > 0.98, "{:?}{}: MAC {mac}", truth.kind, truth.number);
+    }
+    // At order 40 the fundamentals are missing, and the window says its diagram had not
+    // settled: they appear only in its upper orders, or not at all.
+    let forty = SsiConfig {
+        max_order: Some(40),
+        ..SsiConfig::default()
+    };
+    let short = identify(&building.model, &window, &forty).unwrap();
+    assert!(crate::buildings::find_plan(&building, &short, &truths[0]).is_none());
+    assert!(
+        matches!(
+            short.warnings.as_slice(),
+            [triax_modal::IdentificationWarning::NotStabilised { max_order: 40, .. }]
+        ),
+        "{:?}",
+        short.warnings
+    );
 }
