@@ -62,6 +62,8 @@ fn mode(
         verdict: Some(verdict),
         block_mean_relative: None,
         block_verdict: None,
+        normal_coverage_factor: None,
+        cusum: None,
     }
 }
 

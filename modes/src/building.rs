@@ -13,7 +13,7 @@ use triax_modal::{
     ModeTracker, ShapePool, ShiftVerdict, TrackUpdate,
 };
 use triax_protocol::messages::{
-    Alert, AlertKind, AlertLevel, BuildingModes, ModalDirection, ModalEstimate,
+    Alert, AlertKind, AlertLevel, BuildingModes, ModalCusum, ModalDirection, ModalEstimate,
     ModalSensorCoverage, ModalVerdict, ModeReport, ModeShapeComponent, PooledShapeComponent,
     PooledShapeReport, UnquantifiedModeReport,
 };
@@ -60,6 +60,11 @@ pub struct TrackState {
     pub training_regressors: Vec<Vec<f64>>,
     pub observations: usize,
     pub block: Vec<(f64, f64, Vec<f64>)>,
+    /// The sequential test's statistics (a drop, a rise).
+    #[serde(default)]
+    pub cusum_down: f64,
+    #[serde(default)]
+    pub cusum_up: f64,
 }
 
 impl TrackState {
@@ -76,6 +81,8 @@ impl TrackState {
             training_regressors: t.training_regressors.clone(),
             observations: t.observations,
             block: t.block.clone(),
+            cusum_down: t.cusum_down,
+            cusum_up: t.cusum_up,
         }
     }
 
@@ -104,6 +111,8 @@ impl TrackState {
             baseline,
             observations: self.observations,
             block: self.block.clone(),
+            cusum_down: self.cusum_down,
+            cusum_up: self.cusum_up,
         }
     }
 }
@@ -454,6 +463,14 @@ impl Building {
                     .as_ref()
                     .and_then(|u| u.block_mean_relative.as_ref().map(estimate)),
                 block_verdict: update.as_ref().and_then(|u| u.block_verdict.map(verdict)),
+                normal_coverage_factor: update.as_ref().and_then(|u| u.normal_factor),
+                cusum: update.as_ref().and_then(|u| {
+                    Some(ModalCusum {
+                        statistic: u.cusum?,
+                        threshold: u.cusum_threshold?,
+                        verdict: verdict(u.cusum_verdict?),
+                    })
+                }),
                 shape,
             };
             if let Some(u) = update {
@@ -524,7 +541,7 @@ impl Building {
         };
         let mut alerts = Vec::new();
         let window_ns = (self.config.window_s * 1e9) as i64;
-        let mut raise = |residual: &Estimate, windows: usize, test: &str, alpha: f64| {
+        let mut raise = |residual: &Estimate, windows: usize, test: &str, rate: String| {
             let span_ns = window_ns.saturating_mul(windows as i64);
             alerts.push(Alert {
                 format_version: JSON_FORMAT_VERSION,
@@ -541,11 +558,9 @@ impl Building {
                 flagged_fraction,
                 statement: format!(
                     "Track {} ({:?}, {:.4} Hz): frequency {:.3} % below its environmental \
-                     baseline{} (k = {:.2}, ν = {:.0}), by the {test}; drop beyond {:.3} % even \
-                     at the interval's near end. False-alarm probability of this test {alpha:.2e} \
-                     per {}, the building's budget {} false modal_shift a year shared by its \
-                     {} alerting tracks. The reference sensor of the mode's shape names the \
-                     alert.",
+                     baseline{} (k = {:.2}, ν = {:.0}), by the {test}{}. {rate}, the \
+                     building's budget {} false modal_shift a year shared by its {} alerting \
+                     tracks. The reference sensor of the mode's shape names the alert.",
                     update.track,
                     update.direction,
                     report.frequency_hz.value,
@@ -557,8 +572,14 @@ impl Building {
                     },
                     residual.coverage_factor,
                     residual.dof,
-                    100.0 * tracker.threshold_relative,
-                    if windows == 1 { "window" } else { "block" },
+                    if test.starts_with("sequential") {
+                        String::new()
+                    } else {
+                        format!(
+                            "; drop beyond {:.3} % even at the interval's near end",
+                            100.0 * tracker.threshold_relative
+                        )
+                    },
                     self.config.tracker.false_alarms_per_year,
                     self.config.alert_modes_per_direction
                         * self.config.ssi.channels.directions.len(),
@@ -577,7 +598,10 @@ impl Building {
                     r,
                     1,
                     "single-window test",
-                    tracker.window_false_alarm_probability(),
+                    format!(
+                        "False-alarm probability of this test {:.2e} per window",
+                        tracker.window_false_alarm_probability()
+                    ),
                 );
             }
         }
@@ -587,7 +611,26 @@ impl Building {
                     r,
                     tracker.average_windows.max(1),
                     "block-mean test",
-                    tracker.block_false_alarm_probability(),
+                    format!(
+                        "False-alarm probability of this test {:.2e} per block",
+                        tracker.block_false_alarm_probability()
+                    ),
+                );
+            }
+        }
+        if update.cusum_verdict == Some(ShiftVerdict::Shift) {
+            if let (Some(r), Some(h)) = (&update.residual_relative, update.cusum_threshold) {
+                raise(
+                    r,
+                    1,
+                    "sequential (CUSUM) test",
+                    format!(
+                        "Its CUSUM of the residuals, tuned to a drop of {} standard \
+                         uncertainties, reached h = {h:.2}: mean run length to a false alarm at \
+                         least {:.0} windows (Lorden's bound e^h)",
+                        tracker.cusum_shift,
+                        h.exp()
+                    ),
                 );
             }
         }

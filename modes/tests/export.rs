@@ -52,6 +52,8 @@ fn mode(track: Option<u64>, frequency_hz: f64, roof_real: f64, lower_real: f64) 
         verdict: track.map(|_| ModalVerdict::Normal),
         block_mean_relative: None,
         block_verdict: None,
+        normal_coverage_factor: None,
+        cusum: None,
     }
 }
 

@@ -657,6 +657,23 @@ pub struct ModeReport {
     /// verdict; absent except on a block's last window.
     pub block_mean_relative: Option<ModalEstimate>,
     pub block_verdict: Option<ModalVerdict>,
+    /// The coverage factor of the prediction interval that bounds `normal`; absent while
+    /// training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_coverage_factor: Option<f64>,
+    /// The sequential (CUSUM) test after this window; absent while training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cusum: Option<ModalCusum>,
+}
+
+/// The sequential test of a track: its statistic, the threshold at which it says `shift`,
+/// and its verdict (`normal` or `shift`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalCusum {
+    pub statistic: f64,
+    pub threshold: f64,
+    pub verdict: ModalVerdict,
 }
 
 /// A mode selected in the stabilisation diagram but found in too few jackknife replicates to
@@ -836,6 +853,12 @@ mod tests {
                 verdict: Some(ModalVerdict::Normal),
                 block_mean_relative: None,
                 block_verdict: None,
+                normal_coverage_factor: Some(1.97),
+                cusum: Some(ModalCusum {
+                    statistic: 0.5,
+                    threshold: 11.6,
+                    verdict: ModalVerdict::Normal,
+                }),
             }],
             unquantified: Vec::new(),
             refused: None,
