@@ -3,6 +3,7 @@
 use nalgebra::Complex;
 use serde::{Deserialize, Serialize};
 
+use crate::checks::{check_model, CheckOptions, SensorCheck};
 use crate::error::ModalError;
 use crate::model::{BuildingModel, Direction};
 use crate::ssi::{
@@ -47,6 +48,8 @@ pub struct SsiConfig {
     /// and its frequency within `jackknife_frequency_tolerance`.
     pub jackknife_mac_min: f64,
     pub jackknife_frequency_tolerance: f64,
+    /// The building model's checks against the data ([`crate::checks`]).
+    pub checks: CheckOptions,
 }
 
 impl Default for SsiConfig {
@@ -66,6 +69,7 @@ impl Default for SsiConfig {
             coverage_probability: 0.95,
             jackknife_mac_min: 0.8,
             jackknife_frequency_tolerance: 0.05,
+            checks: CheckOptions::default(),
         }
     }
 }
@@ -162,6 +166,8 @@ pub struct Identification {
     pub diagram: Vec<DiagramPole>,
     /// What the caller should know about how far to trust the window's modes.
     pub warnings: Vec<IdentificationWarning>,
+    /// The building model checked against the window, per sensor ([`crate::checks`]).
+    pub checks: Vec<SensorCheck>,
 }
 
 /// Something about an identification that its modes alone do not say.
@@ -476,6 +482,14 @@ pub fn identify(
         });
     }
 
+    let checks = check_model(
+        model,
+        window,
+        &channels,
+        &modes,
+        config.blocks,
+        &config.checks,
+    );
     Ok(Identification {
         start_timestamp_ns: window.start_timestamp_ns,
         duration_s: window.duration_s(),
@@ -492,6 +506,7 @@ pub fn identify(
         unquantified,
         diagram,
         warnings,
+        checks,
     })
 }
 
@@ -600,6 +615,13 @@ impl SsiConfig {
         }
         if !unit(s.min_cluster_share) {
             return bad("selection.min_cluster_share", "must be in (0, 1]");
+        }
+        let m = self.checks.mounting_tolerance_deg;
+        if !(m.is_finite() && (0.0..=90.0).contains(&m)) {
+            return bad(
+                "checks.mounting_tolerance_deg",
+                "must be in [0, 90] degrees",
+            );
         }
         Ok(())
     }

@@ -35,6 +35,7 @@
 //!
 //! Architecture invariant: pure. No I/O, no async, no clock: a window carries its own times.
 
+pub mod checks;
 pub mod error;
 pub mod identify;
 pub mod model;

@@ -14,8 +14,8 @@ use triax_modal::{
 };
 use triax_protocol::messages::{
     Alert, AlertKind, AlertLevel, BuildingModes, ModalCusum, ModalDirection, ModalEstimate,
-    ModalSensorCoverage, ModalVerdict, ModeReport, ModeShapeComponent, PooledShapeComponent,
-    PooledShapeReport, UnquantifiedModeReport,
+    ModalSensorCheck, ModalSensorCoverage, ModalVerdict, ModeReport, ModeShapeComponent,
+    PooledShapeComponent, PooledShapeReport, UnquantifiedModeReport,
 };
 use triax_protocol::{BuildingId, CorrectedBatch, SensorId, JSON_FORMAT_VERSION};
 
@@ -363,6 +363,26 @@ impl Building {
         modes
             .warnings
             .extend(identification.warnings.iter().map(ToString::to_string));
+        for check in &identification.checks {
+            for finding in &check.findings {
+                // A pair's finding names both of its sensors: said once.
+                if !modes.warnings.contains(finding) {
+                    modes.warnings.push(finding.clone());
+                }
+            }
+            if let Some(c) = modes
+                .sensors
+                .iter_mut()
+                .find(|c| c.sensor_id.as_str() == check.sensor_id)
+            {
+                c.check = Some(ModalSensorCheck {
+                    tilt_deg: check.tilt_deg.as_ref().map(estimate),
+                    plan_rotation_deg: check.plan_rotation_deg.as_ref().map(estimate),
+                    time_offset_s: check.time_offset_s.as_ref().map(estimate),
+                    findings: check.findings.clone(),
+                });
+            }
+        }
         let suspect: Vec<&str> = closed
             .coverage
             .iter()

@@ -364,6 +364,7 @@ impl Gatherer {
                 misaligned: count(Point::Misaligned),
                 calibration_versions: buffer.calibration_versions.into_iter().collect(),
                 calibration_suspect: count(Point::Suspect),
+                check: None,
             });
             series.push(SensorSeries {
                 sensor_id: id.to_string(),

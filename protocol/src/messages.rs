@@ -705,6 +705,31 @@ pub struct ModalSensorCoverage {
     /// in `flagged`.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub calibration_suspect: u64,
+    /// The building model checked against this window's data for the sensor; absent when the
+    /// window was refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub check: Option<ModalSensorCheck>,
+}
+
+/// What a window's data say of one sensor's declared mounting and its node's clock.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalSensorCheck {
+    /// Angle between the building's vertical and the sensor's gravity through its declared
+    /// mounting, degrees; absent when the streams carry no gravity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_deg: Option<ModalEstimate>,
+    /// Turn in plan beyond the declared mounting, degrees, counter-clockwise seen from above,
+    /// from the floor's rigid motion; absent for a sensor alone on its floor.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_rotation_deg: Option<ModalEstimate>,
+    /// The node's clock offset against the building's median node, s (its sample stamped `t`
+    /// is the motion at `t + offset`), from the modes' phases; absent without modes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_offset_s: Option<ModalEstimate>,
+    /// Findings that name the sensor, in words; absent when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub findings: Vec<String>,
 }
 
 fn is_zero(v: &u64) -> bool {
@@ -827,6 +852,7 @@ mod tests {
                 misaligned: 3,
                 calibration_versions: vec![4],
                 calibration_suspect: 0,
+                check: None,
             }],
             temperature_c: Some(12.5),
             regressors: vec![12.5],
@@ -878,6 +904,12 @@ mod tests {
         let mut with = modes.clone();
         with.warnings = vec!["sensor roof: used despite calibration_suspect".into()];
         with.sensors[0].calibration_suspect = 7;
+        with.sensors[0].check = Some(ModalSensorCheck {
+            tilt_deg: Some(estimate(0.2, 11.0)),
+            plan_rotation_deg: None,
+            time_offset_s: Some(estimate(-0.02, 11.0)),
+            findings: vec!["sensor roof: its node's clock is -20 ms off".into()],
+        });
         with.modes[0].shape[0].calibration_suspect = true;
         round_trip(&with);
         let text = String::from_utf8(to_json(&with)).unwrap();

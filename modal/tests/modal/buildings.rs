@@ -6,7 +6,7 @@ use std::time::Instant;
 use nalgebra::Complex;
 use triax_modal::sim::{PlanMode, SimBuilding, Structure};
 use triax_modal::ssi::mac;
-use triax_modal::{identify, Identification, Mode, SsiConfig};
+use triax_modal::{identify, Identification, Mode, ShapePool, SsiConfig};
 
 fn var(name: &str, default: u64) -> u64 {
     std::env::var(name)
@@ -114,6 +114,11 @@ struct Tally {
     z_z: f64,
     shape_in: usize,
     shape_total: usize,
+    pooled_in: usize,
+    pooled_total: usize,
+    /// Per component of the pooled shapes: the mean standardised error (a bias shows).
+    pooled_z: Vec<(f64, usize)>,
+    pooled_mac_min: f64,
 }
 
 fn tally<S: Structure>(building: &SimBuilding<S>, windows: u64, seed0: u64, config: &SsiConfig) {
@@ -122,7 +127,17 @@ fn tally<S: Structure>(building: &SimBuilding<S>, windows: u64, seed0: u64, conf
         .into_iter()
         .filter(|m| m.frequency_hz < config.channels.max_frequency_hz)
         .collect();
-    let mut t = vec![Tally::default(); truths.len()];
+    let mut t = vec![
+        Tally {
+            pooled_mac_min: 1.0,
+            ..Tally::default()
+        };
+        truths.len()
+    ];
+    let pool_windows = var("POOL", 24) as usize;
+    let mut pools: Vec<ShapePool> = (0..truths.len())
+        .map(|_| ShapePool::new(pool_windows))
+        .collect();
     let mut warned = 0;
     let started = Instant::now();
     for w in 0..windows {
@@ -154,18 +169,48 @@ fn tally<S: Structure>(building: &SimBuilding<S>, windows: u64, seed0: u64, conf
                     t[j].shape_in += usize::from(component.real.covers(shape[c].re));
                 }
             }
+            pools[j].push(mode);
+            if pools[j].len() == pool_windows {
+                let pooled = pools[j].pooled(mode, 0.95).unwrap();
+                let truth_shape = triax_modal::ssi::normalise(
+                    &building
+                        .plan_shape(truth, &id.channels)
+                        .into_iter()
+                        .map(|v| Complex::new(v, 0.0))
+                        .collect::<Vec<_>>(),
+                    pooled.reference_component,
+                );
+                let values: Vec<Complex<f64>> = pooled
+                    .shape
+                    .iter()
+                    .map(|c| Complex::new(c.real.value, 0.0))
+                    .collect();
+                t[j].pooled_mac_min = t[j].pooled_mac_min.min(mac(&values, &truth_shape));
+                t[j].pooled_z.resize(pooled.shape.len(), (0.0, 0));
+                for (c, component) in pooled.shape.iter().enumerate() {
+                    if c != pooled.reference_component && truth_shape[c].re.abs() > 0.05 {
+                        t[j].pooled_total += 1;
+                        t[j].pooled_in += usize::from(component.real.covers(truth_shape[c].re));
+                        let z = (component.real.value - truth_shape[c].re)
+                            / component.real.standard_uncertainty;
+                        t[j].pooled_z[c].0 += z;
+                        t[j].pooled_z[c].1 += 1;
+                    }
+                }
+                pools[j] = ShapePool::new(pool_windows);
+            }
         }
     }
     println!(
         "{windows} windows in {:.0} s, {warned} with a warning",
         started.elapsed().as_secs_f64()
     );
-    println!("| mode | Hz | found | frequency covered | mean z | damping covered | mean z | shape components covered |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("| mode | Hz | found | frequency covered | mean z | damping covered | mean z | shape components covered | pooled ({pool_windows}) covered, worst MAC, largest mean z |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for (truth, t) in truths.iter().zip(&t) {
         let n = t.found.max(1) as f64;
         println!(
-            "| {:?}{} | {:.4} | {}/{windows} | {:.1} % | {:+.2} | {:.1} % | {:+.2} | {:.1} % of {} |",
+            "| {:?}{} | {:.4} | {}/{windows} | {:.1} % | {:+.2} | {:.1} % | {:+.2} | {:.1} % of {} | {:.1} % of {}, {:.5}, {:+.2} |",
             truth.kind,
             truth.number,
             truth.frequency_hz,
@@ -175,7 +220,16 @@ fn tally<S: Structure>(building: &SimBuilding<S>, windows: u64, seed0: u64, conf
             100.0 * t.z_in as f64 / n,
             t.z_z / n,
             100.0 * t.shape_in as f64 / t.shape_total.max(1) as f64,
-            t.shape_total
+            t.shape_total,
+            100.0 * t.pooled_in as f64 / t.pooled_total.max(1) as f64,
+            t.pooled_total,
+            t.pooled_mac_min,
+            t.pooled_z
+                .iter()
+                .filter(|(_, n)| *n > 0)
+                .map(|(z, n)| z / *n as f64)
+                .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+                .unwrap_or(0.0)
         );
     }
 }
@@ -201,5 +255,54 @@ fn default_coverage() {
         5 => tally(&SimBuilding::five_storey(5), windows, 1000, &config),
         7 => tally(&SimBuilding::seven_storey(5), windows, 1000, &config),
         _ => tally(&SimBuilding::ten_storey(5), windows, 1000, &config),
+    }
+}
+
+/// The ten-storey building with `s07` turned `TURN` (30)° in plan beyond its declared
+/// mounting and `s03`'s node `LATE` (1) sample late: each sensor's checks, printed.
+///
+/// `cargo test --release -p triax-modal --test modal checks_one_window -- --ignored --nocapture`
+#[test]
+#[ignore]
+fn checks_one_window() {
+    let seed = var("SEED", 1);
+    let mut building = SimBuilding::ten_storey(seed);
+    let turn = (var("TURN", 30) as f64).to_radians();
+    let r = nalgebra::Matrix3::from_row_slice(&triax_modal::model::rotation_about_z(turn).concat());
+    building.true_mounting[6] = r * building.true_mounting[6];
+    building.errors[2].time_offset_s = -(var("LATE", 1) as f64) / building.config.sample_rate_hz;
+    let window = building.simulate(20.0, 1800.0, 0, 100 + seed);
+    let started = Instant::now();
+    let id = identify(&building.model, &window, &SsiConfig::default()).unwrap();
+    println!(
+        "{:.2} s, {} modes",
+        started.elapsed().as_secs_f64(),
+        id.modes.len()
+    );
+    let mut offsets: Vec<f64> = building.errors.iter().map(|e| e.time_offset_s).collect();
+    offsets.sort_by(f64::total_cmp);
+    let median = offsets[offsets.len() / 2];
+    for (i, c) in id.checks.iter().enumerate() {
+        print!(
+            "true clock {:+.3} ms; ",
+            1e3 * (building.errors[i].time_offset_s - median)
+        );
+        let show = |e: &Option<triax_modal::Estimate>, scale: f64| {
+            e.map_or("-".to_string(), |e| {
+                format!(
+                    "{:+.3} ± {:.3}",
+                    scale * e.value,
+                    scale * e.standard_uncertainty
+                )
+            })
+        };
+        println!(
+            "{}: tilt {} °, plan {} °, clock {} ms; {:?}",
+            c.sensor_id,
+            show(&c.tilt_deg, 1.0),
+            show(&c.plan_rotation_deg, 1.0),
+            show(&c.time_offset_s, 1e3),
+            c.findings
+        );
     }
 }

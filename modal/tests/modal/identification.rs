@@ -153,3 +153,56 @@ fn a_tall_building_is_identified_with_every_setting_at_its_default() {
         short.warnings
     );
 }
+
+#[test]
+fn a_misdeclared_mounting_and_a_late_node_are_named() {
+    // The ten-storey building: s07 (floor 6, with s06) turned 10° in plan beyond its declared
+    // mounting, s05 tilted 10° (its declared vertical is not the building's), and s03's node
+    // one sample late; every other clock exact.
+    let mut building = SimBuilding::ten_storey(3);
+    let turn = |axis: nalgebra::Vector3<f64>| {
+        nalgebra::Rotation3::from_axis_angle(
+            &nalgebra::Unit::new_normalize(axis),
+            10f64.to_radians(),
+        )
+        .into_inner()
+    };
+    building.true_mounting[6] = turn(nalgebra::Vector3::z()) * building.true_mounting[6];
+    building.true_mounting[4] = turn(nalgebra::Vector3::x()) * building.true_mounting[4];
+    for e in &mut building.errors {
+        e.time_offset_s = 0.0;
+    }
+    building.errors[2].time_offset_s = -1.0 / building.config.sample_rate_hz;
+    let window = building.simulate(20.0, 1800.0, 0, 9);
+    let id = identify(&building.model, &window, &SsiConfig::default()).unwrap();
+    let named: Vec<(&str, &str)> = id
+        .checks
+        .iter()
+        .flat_map(|c| {
+            c.findings
+                .iter()
+                .map(move |f| (c.sensor_id.as_str(), f.as_str()))
+        })
+        .collect();
+    let check = |id_: &str| id.checks.iter().find(|c| c.sensor_id == id_).unwrap();
+    let s07 = check("s07").plan_rotation_deg.unwrap();
+    assert!(
+        s07.covers(10.0) || (s07.value - 10.0).abs() < 0.5,
+        "{s07:?}"
+    );
+    let s05 = check("s05").tilt_deg.unwrap();
+    assert!((s05.value - 10.0).abs() < 0.5, "{s05:?}");
+    let s03 = check("s03").time_offset_s.unwrap();
+    assert!((s03.value + 0.02).abs() < 0.002, "{s03:?}");
+    for (sensor, what) in [("s07", "in plan"), ("s05", "tilted"), ("s03", "clock")] {
+        assert!(
+            named.iter().any(|(s, f)| *s == sensor && f.contains(what)),
+            "{sensor} not named for {what}: {named:?}"
+        );
+    }
+    assert_eq!(named.len(), 3, "nothing else named: {named:?}");
+    // The healthy sensors' checks are there, and say nothing.
+    let s12 = check("s12");
+    assert!(s12.plan_rotation_deg.unwrap().value.abs() < 1.0);
+    assert!(s12.tilt_deg.unwrap().value < 1.0);
+}
