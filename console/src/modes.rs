@@ -230,6 +230,7 @@ mod tests {
             modes: Vec::new(),
             unquantified: Vec::new(),
             refused: Some("test".into()),
+            warnings: Vec::new(),
             late: false,
             identified_at: OffsetDateTime::UNIX_EPOCH,
         })

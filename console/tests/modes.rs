@@ -39,6 +39,7 @@ fn mode(
         direction: d,
         real: estimate(v, 0.02),
         imag: estimate(0.0, 0.01),
+        calibration_suspect: false,
     };
     ModeReport {
         track: Some(track),
@@ -61,6 +62,8 @@ fn mode(
         verdict: Some(verdict),
         block_mean_relative: None,
         block_verdict: None,
+        normal_coverage_factor: None,
+        cusum: None,
     }
 }
 
@@ -94,6 +97,7 @@ fn window(building: &str, index: i64, t0_ns: i64, refused: bool) -> BuildingMode
         unquantified: Vec::new(),
         refused: refused
             .then(|| "sensor acc-02, direction x: only 41.0 % of the window is usable".into()),
+        warnings: Vec::new(),
         late: false,
         identified_at: OffsetDateTime::UNIX_EPOCH,
     }

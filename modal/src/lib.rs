@@ -35,6 +35,7 @@
 //!
 //! Architecture invariant: pure. No I/O, no async, no clock: a window carries its own times.
 
+pub mod checks;
 pub mod error;
 pub mod identify;
 pub mod model;
@@ -47,7 +48,10 @@ pub mod uncertainty;
 pub mod window;
 
 pub use error::ModalError;
-pub use identify::{identify, Identification, Mode, ShapeComponent, SsiConfig, UnquantifiedMode};
+pub use identify::{
+    identify, Identification, IdentificationWarning, Mode, ShapeComponent, SsiConfig,
+    UnquantifiedMode,
+};
 pub use model::{BuildingModel, Direction, ModelError, SensorPlacement};
 pub use pool::{PooledComponent, PooledShape, ShapePool};
 pub use track::{ModeObservation, ModeTracker, ShiftVerdict, TrackUpdate, TrackerConfig};

@@ -122,6 +122,16 @@ impl Correlations {
     /// The correlation matrices `R_k` (channels × references) for `k = 0..=max_lag` (`R_0`
     /// unused, zero), from every block or from every block but `left_out`.
     pub fn matrices(&self, left_out: Option<usize>) -> Result<Vec<DMatrix<f64>>, ModalError> {
+        self.matrices_of(|b| Some(b) != left_out, left_out.unwrap_or(usize::MAX))
+    }
+
+    /// The correlation matrices from the blocks `keep` takes; `label` names the set in an
+    /// error.
+    pub fn matrices_of(
+        &self,
+        keep: impl Fn(usize) -> bool,
+        label: usize,
+    ) -> Result<Vec<DMatrix<f64>>, ModalError> {
         let l = self.channels;
         let r = self.references.len();
         let mut out = vec![DMatrix::zeros(l, r); self.max_lag + 1];
@@ -130,14 +140,14 @@ impl Correlations {
                 for j in 0..r {
                     let mut sum = 0.0;
                     let mut count = 0.0;
-                    for block in (0..self.blocks).filter(|&b| Some(b) != left_out) {
+                    for block in (0..self.blocks).filter(|&b| keep(b)) {
                         let at = ((block * (self.max_lag + 1) + k) * l + a) * r + j;
                         sum += self.sums[at];
                         count += self.counts[at];
                     }
                     if count < 1.0 {
                         return Err(ModalError::EmptyCorrelation {
-                            block: left_out.unwrap_or(usize::MAX),
+                            block: label,
                             channel: a,
                             lag: k,
                         });
@@ -152,17 +162,71 @@ impl Correlations {
 
 /// The block Toeplitz matrix `T_1|i` of the module's documentation, from `R_1 … R_(2i−1)`.
 pub fn toeplitz(correlations: &[DMatrix<f64>], block_rows: usize) -> DMatrix<f64> {
+    toeplitz_of(correlations, block_rows, block_rows)
+}
+
+/// The block Toeplitz matrix of `rows` block rows and `columns` block columns, from
+/// `R_1 … R_(rows+columns−1)`: block `(p, q)` is `R_(columns+p−q)`. It factors as
+/// `O_rows · C_columns^ref` whatever the split; the rows give the observability matrix, and
+/// the columns only need to span the model order.
+pub fn toeplitz_of(correlations: &[DMatrix<f64>], rows: usize, columns: usize) -> DMatrix<f64> {
     let l = correlations[1].nrows();
     let r = correlations[1].ncols();
-    let i = block_rows;
-    let mut t = DMatrix::zeros(l * i, r * i);
-    for p in 0..i {
-        for q in 0..i {
+    let mut t = DMatrix::zeros(l * rows, r * columns);
+    for p in 0..rows {
+        for q in 0..columns {
             t.view_mut((p * l, q * r), (l, r))
-                .copy_from(&correlations[i + p - q]);
+                .copy_from(&correlations[columns + p - q]);
         }
     }
     t
+}
+
+/// The size of a Toeplitz matrix's estimation error: the largest singular value of half the
+/// difference of the matrices of two halves of the window's blocks (the first half against
+/// the second, and the odd blocks against the even: the larger of the two, so that a window
+/// whose excitation changed halfway counts its change as noise). `(T_A − T_B)/2` has the
+/// error variance of `(T_A + T_B)/2 = T̂`, and by Weyl's inequality every singular value of
+/// `T̂` above `‖T̂ − T‖` is one of a non-zero singular value of `T`: the count of those is a
+/// lower bound of the system's order that the data resolve.
+pub fn noise_floor(
+    correlations: &Correlations,
+    rows: usize,
+    columns: usize,
+) -> Result<f64, ModalError> {
+    let nb = correlations.blocks;
+    let mut floor: f64 = 0.0;
+    let splits: [&dyn Fn(usize) -> bool; 2] = [&|b| b < nb / 2, &|b| b % 2 == 0];
+    for first in splits {
+        let a = toeplitz_of(&correlations.matrices_of(first, usize::MAX)?, rows, columns);
+        let b = toeplitz_of(
+            &correlations.matrices_of(|k| !first(k), usize::MAX)?,
+            rows,
+            columns,
+        );
+        floor = floor.max(spectral_norm(&((a - b) * 0.5)));
+    }
+    Ok(floor)
+}
+
+/// The largest singular value of `d`, by power iteration on `DᵀD` from a fixed start (to a
+/// few per cent: it only sets a floor).
+pub fn spectral_norm(d: &DMatrix<f64>) -> f64 {
+    let mut v = DVector::from_fn(d.ncols(), |i, _| {
+        1.0 + 0.37 * ((i * 7919) % 101) as f64 / 101.0
+    });
+    let mut sigma = 0.0;
+    for _ in 0..40 {
+        let norm = v.norm();
+        if !(norm > 0.0 && norm.is_finite()) {
+            return 0.0;
+        }
+        v /= norm;
+        let u = d * &v;
+        sigma = u.norm();
+        v = d.transpose() * u;
+    }
+    sigma
 }
 
 /// A pole of the identified system at one model order.
@@ -249,9 +313,12 @@ impl Subspace {
     /// frequency), sorted by frequency.
     pub fn poles(&self, order: usize) -> Result<Vec<Pole>, ModalError> {
         let (a, c) = self.system(order)?;
-        let eigenvalues = nalgebra::linalg::Schur::try_new(a.clone(), 1e-12, 10_000)
-            .ok_or(ModalError::Numerical("Schur decomposition of A"))?
-            .complex_eigenvalues();
+        let schur = nalgebra::linalg::Schur::try_new(a, 1e-12, 10_000)
+            .ok_or(ModalError::Numerical("Schur decomposition of A"))?;
+        let eigenvalues = schur.complex_eigenvalues();
+        // A = Q·T·Qᵀ with T quasi-triangular (so Hessenberg): an eigenvector of A is Q times
+        // one of T, found in O(n²) each.
+        let (q, t) = schur.unpack();
         let mut poles = Vec::new();
         for mu in eigenvalues.iter() {
             if mu.im <= 1e-12 || mu.norm() >= 1.0 || mu.norm() <= 0.0 {
@@ -259,7 +326,11 @@ impl Subspace {
             }
             let lambda = mu.ln() * self.sample_rate_hz;
             let omega = lambda.norm();
-            let psi = eigenvector(&a, *mu)?;
+            let w = hessenberg_eigenvector(&t, *mu)?;
+            // C·Q·w: the shape.
+            let psi: Vec<Complex<f64>> = (0..q.nrows())
+                .map(|row| (0..w.len()).map(|k| w[k] * q[(row, k)]).sum())
+                .collect();
             let shape: Vec<Complex<f64>> = (0..self.channels)
                 .map(|row| {
                     (0..psi.len())
@@ -279,32 +350,73 @@ impl Subspace {
     }
 }
 
-/// The eigenvector of `a` for its eigenvalue `mu`, by inverse iteration with a shift a hair
-/// off `mu` (nalgebra gives general matrices' eigenvalues, not their eigenvectors). Two steps
-/// suffice: the shift is 10⁻¹⁰ from the eigenvalue and any other eigenvalue is far further.
-fn eigenvector(a: &DMatrix<f64>, mu: Complex<f64>) -> Result<DVector<Complex<f64>>, ModalError> {
-    let n = a.nrows();
+/// The eigenvector of an upper Hessenberg `h` for its eigenvalue `mu`, by inverse iteration
+/// with a shift a hair off `mu`. Two steps suffice: the shift is 10⁻¹⁰ from the eigenvalue
+/// and any other eigenvalue is far further. Each step is one Hessenberg elimination with
+/// partial pivoting, O(n²).
+fn hessenberg_eigenvector(
+    h: &DMatrix<f64>,
+    mu: Complex<f64>,
+) -> Result<Vec<Complex<f64>>, ModalError> {
+    let n = h.nrows();
     let shift = mu + Complex::new(1e-10, 1e-10) * mu.norm().max(1e-3);
-    let m = DMatrix::from_fn(n, n, |i, j| {
-        let diagonal = if i == j {
-            shift
-        } else {
-            Complex::new(0.0, 0.0)
-        };
-        Complex::new(a[(i, j)], 0.0) - diagonal
-    });
-    let lu = m.lu();
+    let zero = Complex::new(0.0, 0.0);
+    // Row-major copy of H − shift·I; entries below the subdiagonal are zero and never read.
+    let mut lu = vec![zero; n * n];
+    for i in 0..n {
+        for j in i.saturating_sub(1)..n {
+            lu[i * n + j] = Complex::new(h[(i, j)], 0.0) - if i == j { shift } else { zero };
+        }
+    }
+    // Eliminate the subdiagonal once, recording each step's pivot and multiplier.
+    let mut swapped = vec![false; n];
+    let mut multiplier = vec![zero; n];
+    for k in 0..n.saturating_sub(1) {
+        if lu[(k + 1) * n + k].norm() > lu[k * n + k].norm() {
+            for j in k..n {
+                lu.swap(k * n + j, (k + 1) * n + j);
+            }
+            swapped[k] = true;
+        }
+        let pivot = lu[k * n + k];
+        if pivot.norm() == 0.0 {
+            return Err(ModalError::Numerical("inverse iteration"));
+        }
+        let m = lu[(k + 1) * n + k] / pivot;
+        multiplier[k] = m;
+        for j in k..n {
+            let v = lu[k * n + j];
+            lu[(k + 1) * n + j] -= m * v;
+        }
+    }
     // A start with no special relation to any eigenvector.
-    let mut v = DVector::from_fn(n, |i, _| Complex::new(1.0 + 0.1 * i as f64, 0.3));
+    let mut v: Vec<Complex<f64>> = (0..n)
+        .map(|i| Complex::new(1.0 + 0.1 * i as f64, 0.3))
+        .collect();
     for _ in 0..2 {
-        v = lu
-            .solve(&v)
-            .ok_or(ModalError::Numerical("inverse iteration"))?;
-        let norm = v.norm();
+        for k in 0..n.saturating_sub(1) {
+            if swapped[k] {
+                v.swap(k, k + 1);
+            }
+            let vk = v[k];
+            v[k + 1] -= multiplier[k] * vk;
+        }
+        for i in (0..n).rev() {
+            let mut sum = v[i];
+            for j in i + 1..n {
+                sum -= lu[i * n + j] * v[j];
+            }
+            let d = lu[i * n + i];
+            if d.norm() == 0.0 {
+                return Err(ModalError::Numerical("inverse iteration"));
+            }
+            v[i] = sum / d;
+        }
+        let norm = v.iter().map(|x| x.norm_sqr()).sum::<f64>().sqrt();
         if !(norm.is_finite() && norm > 0.0) {
             return Err(ModalError::Numerical("inverse iteration"));
         }
-        v /= Complex::new(norm, 0.0);
+        v.iter_mut().for_each(|x| *x /= norm);
     }
     Ok(v)
 }

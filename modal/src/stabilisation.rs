@@ -43,6 +43,7 @@ pub struct DiagramPole {
 
 /// Criteria of stability and selection.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SelectionCriteria {
     pub frequency_tolerance: f64,
     pub damping_tolerance: f64,

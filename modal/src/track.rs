@@ -31,18 +31,33 @@
 //!
 //! **Decision.** For a new window, the relative residual `r = (f − f̂)/f̂` has the standard
 //! uncertainty of a prediction, `u² = s²·(1 + x₀ᵀ(XᵀX)⁻¹x₀)/f̂²`, Student's t with ν degrees of
-//! freedom under no change. The guard band of the alerting service (`k·u`, ISO/IEC 17025
-//! §7.8.6) is applied to it against `threshold_relative`, for a drop (a loss of stiffness
-//! lowers frequencies) or both sides: `shift` when even the near end of `r ± k·u` is beyond the
-//! threshold, `possible` when the interval reaches it. Two tests share the stated yearly
-//! false-alarm budget half and half: the single window (an abrupt change, seen at once) and the
-//! mean of each block of `average_windows` consecutive windows (a small change: a day of
-//! windows averages the identification's scatter down by √48, while the baseline's own error,
-//! shared by the block, is kept). `k` is Student's quantile at the per-test false-alarm
-//! probability `α`: `P(shift | no change) ≤ P(T_ν > k) = α` per test and track (equality at
-//! threshold 0). This holds for residuals independent from window to window; an environmental
-//! effect the regressors miss makes them correlated, and a Monte Carlo (the crate's tests)
-//! measures the rate that results.
+//! freedom under no change. With `τ = threshold_relative`, the smallest drop that matters (0:
+//! any), and for a drop (a loss of stiffness lowers frequencies; both sides with
+//! `drops_only = false`):
+//!
+//! - `normal`: `r + k_n·u ≥ −τ`, the frequency is inside the environmental model's own
+//!   prediction interval at `normal_probability` (95 %, two-sided, `k_n` Student's at ν),
+//!   widened by `τ`: so a healthy building reads `normal` in 97.5 % of windows when only drops
+//!   are judged (95 % when both sides are), whatever `τ`;
+//! - `shift`: `r + k·u < −τ`, even the near end of the alarm interval is beyond `τ` (the
+//!   guard band of the alerting service, ISO/IEC 17025 §7.8.6), `k` Student's quantile at the
+//!   test's false-alarm probability `α`: `P(shift | no change) ≤ α`;
+//! - `possible`: in between: outside the prediction interval, not beyond the alarm's.
+//!
+//! Three tests share the stated yearly false-alarm budget in thirds: the single window (an
+//! abrupt change, seen at once), the mean of each block of `average_windows` consecutive
+//! windows (a small change: a day of windows averages the identification's scatter down by
+//! √48, while the baseline's own error, shared by the block, is kept), and a sequential test,
+//! Page's CUSUM of the standardised residuals' log-likelihood ratio for a drop of
+//! `cusum_shift` standard uncertainties against none (`ℓ = −δ·z − δ²/2` with
+//! `z = (r + τ)/u`, `S = max(0, S + ℓ)`), which accumulates a persistent small drop window by
+//! window instead of waiting for a block to end: `shift` when `S ≥ h = ln(A)`, and by Lorden's
+//! bound the mean run length to a false alarm is at least `e^h = A`, set to the windows the
+//! test's share of the budget allows (`3·windows_per_year / false_alarms_per_year`); `S`
+//! starts again from 0 after a `shift`. A drop of `d` standard uncertainties is found after
+//! about `h/(δ·d − δ²/2)` windows. Each holds for residuals independent from window to
+//! window; an environmental effect the regressors miss makes them correlated, and a Monte Carlo
+//! (the crate's tests) measures the rate that results.
 
 use nalgebra::{Complex, DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -50,11 +65,11 @@ use serde::{Deserialize, Serialize};
 use crate::identify::Mode;
 use crate::model::Direction;
 use crate::ssi::mac;
-use crate::uncertainty::Estimate;
+use crate::uncertainty::{coverage_factor, Estimate};
 
 /// Settings of the tracker.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct TrackerConfig {
     pub frequency_tolerance: f64,
     pub mac_min: f64,
@@ -76,6 +91,10 @@ pub struct TrackerConfig {
     pub drops_only: bool,
     /// Windows averaged by the block-mean test (48: a day of 30-minute windows).
     pub average_windows: usize,
+    /// Coverage of the prediction interval that bounds `normal` (two-sided).
+    pub normal_probability: f64,
+    /// The drop the sequential test is tuned to, in standard uncertainties of a prediction.
+    pub cusum_shift: f64,
 }
 
 impl Default for TrackerConfig {
@@ -92,22 +111,33 @@ impl Default for TrackerConfig {
             threshold_relative: 0.0,
             drops_only: true,
             average_windows: 48,
+            normal_probability: 0.95,
+            cusum_shift: 1.5,
         }
     }
 }
 
 impl TrackerConfig {
-    /// The per-test false-alarm probability of the single-window test: half the yearly budget
-    /// over the windows of a year.
+    /// The per-test false-alarm probability of the single-window test: a third of the yearly
+    /// budget over the windows of a year.
     pub fn window_false_alarm_probability(&self) -> f64 {
-        0.5 * self.false_alarms_per_year / self.windows_per_year
+        self.false_alarms_per_year / (3.0 * self.windows_per_year)
     }
 
-    /// The per-test false-alarm probability of the block-mean test: the other half over the
-    /// blocks of a year.
+    /// The per-test false-alarm probability of the block-mean test: a third over the blocks of
+    /// a year.
     pub fn block_false_alarm_probability(&self) -> f64 {
-        0.5 * self.false_alarms_per_year * self.average_windows.max(1) as f64
-            / self.windows_per_year
+        self.false_alarms_per_year * self.average_windows.max(1) as f64
+            / (3.0 * self.windows_per_year)
+    }
+
+    /// The sequential test's threshold `h`: the log of the mean run length to a false alarm
+    /// its third of the budget allows (each side half of it when rises are judged too).
+    pub fn cusum_threshold(&self) -> f64 {
+        let sides = if self.drops_only { 1.0 } else { 2.0 };
+        (sides * 3.0 * self.windows_per_year / self.false_alarms_per_year)
+            .max(1.0)
+            .ln()
     }
 
     /// The two-sided coverage probability whose factor is the guard band for a per-test
@@ -219,17 +249,17 @@ impl Baseline {
     }
 }
 
-/// The verdict on a window for one track.
+/// The verdict on a window for one track (the module's documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ShiftVerdict {
     /// The baseline is still being learnt.
     Training,
-    /// The residual's interval is on the safe side of the threshold.
+    /// Inside the environmental model's prediction interval, widened by the threshold.
     Normal,
-    /// The interval reaches beyond the threshold.
+    /// Outside the prediction interval, not beyond the alarm's.
     Possible,
-    /// The whole interval is beyond the threshold: a `modal_shift`.
+    /// Beyond the alarm interval and the threshold: a `modal_shift`.
     Shift,
 }
 
@@ -244,10 +274,17 @@ pub struct TrackUpdate {
     /// `(f − f̂)/f̂` with its standard uncertainty, dof and the guard band's k.
     pub residual_relative: Option<Estimate>,
     pub verdict: ShiftVerdict,
+    /// The coverage factor of the prediction interval that bounds `normal`.
+    pub normal_factor: Option<f64>,
     /// When this window completes a block of `average_windows`: the block's mean relative
     /// residual and its verdict.
     pub block_mean_relative: Option<Estimate>,
     pub block_verdict: Option<ShiftVerdict>,
+    /// The sequential test after this window (the larger side's statistic), its threshold and
+    /// verdict (`normal` or `shift`); none while training.
+    pub cusum: Option<f64>,
+    pub cusum_threshold: Option<f64>,
+    pub cusum_verdict: Option<ShiftVerdict>,
 }
 
 /// A mode followed across windows.
@@ -269,6 +306,9 @@ pub struct Track {
     pub observations: usize,
     /// The current block's (frequency, prediction, regressors).
     pub block: Vec<(f64, f64, Vec<f64>)>,
+    /// The sequential test's statistics for a drop and for a rise.
+    pub cusum_down: f64,
+    pub cusum_up: f64,
 }
 
 /// The prior of a track's frequency scatter, relative, and the windows it counts for.
@@ -294,6 +334,8 @@ impl Track {
             baseline: None,
             observations: 0,
             block: Vec::new(),
+            cusum_down: 0.0,
+            cusum_up: 0.0,
         }
     }
 
@@ -493,8 +535,12 @@ impl ModeTracker {
             predicted_hz: None,
             residual_relative: None,
             verdict: ShiftVerdict::Training,
+            normal_factor: None,
             block_mean_relative: None,
             block_verdict: None,
+            cusum: None,
+            cusum_threshold: None,
+            cusum_verdict: None,
         };
         let Some(baseline) = &track.baseline else {
             track.training_frequencies_hz.push(f);
@@ -508,9 +554,39 @@ impl ModeTracker {
         let (predicted, u) = baseline.predict(regressors);
         let p = config.coverage_probability(config.window_false_alarm_probability());
         let residual = Estimate::new((f - predicted) / predicted, u / predicted, baseline.dof, p);
+        let k_normal = coverage_factor(baseline.dof, config.normal_probability);
         update.predicted_hz = Some(predicted);
         update.residual_relative = Some(residual);
-        update.verdict = decide(&residual, config.threshold_relative, config.drops_only);
+        update.normal_factor = Some(k_normal);
+        update.verdict = decide(
+            &residual,
+            k_normal,
+            config.threshold_relative,
+            config.drops_only,
+        );
+        // The sequential test, on the residual standardised beyond the threshold.
+        let delta = config.cusum_shift;
+        let tau = config.threshold_relative.abs();
+        let u_rel = residual.standard_uncertainty;
+        if u_rel > 0.0 && residual.value.is_finite() {
+            let down = (residual.value + tau) / u_rel;
+            track.cusum_down = (track.cusum_down - delta * down - 0.5 * delta * delta).max(0.0);
+            if !config.drops_only {
+                let up = (residual.value - tau) / u_rel;
+                track.cusum_up = (track.cusum_up + delta * up - 0.5 * delta * delta).max(0.0);
+            }
+        }
+        let h = config.cusum_threshold();
+        let statistic = track.cusum_down.max(track.cusum_up);
+        update.cusum = Some(statistic);
+        update.cusum_threshold = Some(h);
+        update.cusum_verdict = Some(if statistic >= h {
+            track.cusum_down = 0.0;
+            track.cusum_up = 0.0;
+            ShiftVerdict::Shift
+        } else {
+            ShiftVerdict::Normal
+        });
         track.block.push((f, predicted, regressors.to_vec()));
         if track.block.len() >= config.average_windows.max(1) {
             let mean = baseline.block_mean(&track.block);
@@ -519,6 +595,7 @@ impl ModeTracker {
             update.block_mean_relative = Some(estimate);
             update.block_verdict = Some(decide(
                 &estimate,
+                coverage_factor(baseline.dof, config.normal_probability),
                 config.threshold_relative,
                 config.drops_only,
             ));
@@ -598,18 +675,25 @@ fn least_cost_assignment(cost: &[Vec<f64>]) -> Vec<(usize, usize)> {
         .collect()
 }
 
-/// The guard-band rule on a relative residual (see the module's documentation).
-pub fn decide(residual: &Estimate, threshold_relative: f64, drops_only: bool) -> ShiftVerdict {
-    let band = residual.expanded_uncertainty();
-    if !(residual.value.is_finite() && band.is_finite()) {
+/// The verdict on a relative residual (see the module's documentation): `shift` beyond the
+/// alarm interval (the estimate's own `k`), `normal` inside the prediction interval of
+/// coverage factor `k_normal`, both widened by the threshold, `possible` between.
+pub fn decide(
+    residual: &Estimate,
+    k_normal: f64,
+    threshold_relative: f64,
+    drops_only: bool,
+) -> ShiftVerdict {
+    let alarm = residual.expanded_uncertainty();
+    let normal = k_normal * residual.standard_uncertainty;
+    let r = residual.value;
+    if !(r.is_finite() && alarm.is_finite() && normal.is_finite()) {
         return ShiftVerdict::Possible;
     }
-    let low = residual.value - band;
-    let high = residual.value + band;
     let t = threshold_relative.abs();
-    if high < -t || (!drops_only && low > t) {
+    if r + alarm < -t || (!drops_only && r - alarm > t) {
         ShiftVerdict::Shift
-    } else if low < -t || (!drops_only && high > t) {
+    } else if r + normal < -t || (!drops_only && r - normal > t) {
         ShiftVerdict::Possible
     } else {
         ShiftVerdict::Normal

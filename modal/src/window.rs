@@ -91,6 +91,7 @@ impl Window {
 
 /// A channel: one sensor's motion along one direction of the building.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ChannelId {
     pub sensor_id: String,
     pub direction: Direction,
@@ -121,6 +122,7 @@ pub struct Channels {
 
 /// Options of the channel preparation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ChannelOptions {
     /// Directions that become channels.
     pub directions: Vec<Direction>,

@@ -13,9 +13,9 @@ use triax_modal::{
     ModeTracker, ShapePool, ShiftVerdict, TrackUpdate,
 };
 use triax_protocol::messages::{
-    Alert, AlertKind, AlertLevel, BuildingModes, ModalDirection, ModalEstimate, ModalVerdict,
-    ModeReport, ModeShapeComponent, PooledShapeComponent, PooledShapeReport,
-    UnquantifiedModeReport,
+    Alert, AlertKind, AlertLevel, BuildingModes, ModalCusum, ModalDirection, ModalEstimate,
+    ModalSensorCheck, ModalSensorCoverage, ModalVerdict, ModeReport, ModeShapeComponent,
+    PooledShapeComponent, PooledShapeReport, UnquantifiedModeReport,
 };
 use triax_protocol::{BuildingId, CorrectedBatch, SensorId, JSON_FORMAT_VERSION};
 
@@ -60,6 +60,11 @@ pub struct TrackState {
     pub training_regressors: Vec<Vec<f64>>,
     pub observations: usize,
     pub block: Vec<(f64, f64, Vec<f64>)>,
+    /// The sequential test's statistics (a drop, a rise).
+    #[serde(default)]
+    pub cusum_down: f64,
+    #[serde(default)]
+    pub cusum_up: f64,
 }
 
 impl TrackState {
@@ -76,6 +81,8 @@ impl TrackState {
             training_regressors: t.training_regressors.clone(),
             observations: t.observations,
             block: t.block.clone(),
+            cusum_down: t.cusum_down,
+            cusum_up: t.cusum_up,
         }
     }
 
@@ -104,6 +111,8 @@ impl TrackState {
             baseline,
             observations: self.observations,
             block: self.block.clone(),
+            cusum_down: self.cusum_down,
+            cusum_up: self.cusum_up,
         }
     }
 }
@@ -291,6 +300,29 @@ impl Building {
         temperature_c: Option<f64>,
         now: OffsetDateTime,
     ) -> Outcome {
+        let tolerance = self.config.alignment_tolerance;
+        let result = result.map_err(|e| refusal(&e, &closed.coverage, tolerance));
+        self.conclude_with(closed, result, temperature_c, now)
+    }
+
+    /// A window whose identification could not run to its end (the identification thread
+    /// panicked): published and recorded as refused, saying so.
+    pub fn conclude_failed(
+        &mut self,
+        closed: &ClosedWindow,
+        reason: String,
+        now: OffsetDateTime,
+    ) -> Outcome {
+        self.conclude_with(closed, Err(reason), None, now)
+    }
+
+    fn conclude_with(
+        &mut self,
+        closed: &ClosedWindow,
+        result: Result<Identification, String>,
+        temperature_c: Option<f64>,
+        now: OffsetDateTime,
+    ) -> Outcome {
         let start_ns = closed.window.start_timestamp_ns;
         let temperature_c = temperature_c.or_else(|| {
             self.config
@@ -314,19 +346,49 @@ impl Building {
             modes: Vec::new(),
             unquantified: Vec::new(),
             refused: None,
+            warnings: coverage_warnings(&closed.coverage, self.config.alignment_tolerance),
             late: closed.late,
             identified_at: now,
         };
         let identification = match result {
             Ok(i) => i,
-            Err(e) => {
-                modes.refused = Some(e.to_string());
+            Err(reason) => {
+                modes.refused = Some(reason);
                 return Outcome {
                     modes,
                     alerts: Vec::new(),
                 };
             }
         };
+        modes
+            .warnings
+            .extend(identification.warnings.iter().map(ToString::to_string));
+        for check in &identification.checks {
+            for finding in &check.findings {
+                // A pair's finding names both of its sensors: said once.
+                if !modes.warnings.contains(finding) {
+                    modes.warnings.push(finding.clone());
+                }
+            }
+            if let Some(c) = modes
+                .sensors
+                .iter_mut()
+                .find(|c| c.sensor_id.as_str() == check.sensor_id)
+            {
+                c.check = Some(ModalSensorCheck {
+                    tilt_deg: check.tilt_deg.as_ref().map(estimate),
+                    plan_rotation_deg: check.plan_rotation_deg.as_ref().map(estimate),
+                    time_offset_s: check.time_offset_s.as_ref().map(estimate),
+                    findings: check.findings.clone(),
+                });
+            }
+        }
+        let suspect: Vec<&str> = closed
+            .coverage
+            .iter()
+            .filter(|c| c.calibration_suspect > 0)
+            .map(|c| c.sensor_id.as_str())
+            .collect();
         modes.identification_rate_hz = identification.sample_rate_hz;
         modes.unquantified = identification
             .unquantified
@@ -340,6 +402,13 @@ impl Building {
         // A configured source that gave nothing in the window: the baseline's regressors would
         // change length, so the window is published but not tracked.
         let track = !(wants_temperature && temperature_c.is_none());
+        if !track {
+            modes.warnings.push(
+                "the temperature source (temperature_key) gave no reading inside the window: \
+                 identified and published, not tracked"
+                    .into(),
+            );
+        }
         let updates: Vec<Option<TrackUpdate>> = if track {
             let observations: Vec<ModeObservation> = identification
                 .modes
@@ -367,6 +436,7 @@ impl Building {
                         direction: direction(c.direction),
                         real: estimate(&c.real),
                         imag: estimate(&c.imag),
+                        calibration_suspect: suspect.contains(&c.sensor_id.as_str()),
                     })
                 })
                 .collect();
@@ -388,6 +458,7 @@ impl Building {
                                 sensor_id: SensorId::new(c.sensor_id.clone()).ok()?,
                                 direction: direction(c.direction),
                                 real: estimate(&c.real),
+                                calibration_suspect: suspect.contains(&c.sensor_id.as_str()),
                             })
                         })
                         .collect(),
@@ -412,6 +483,14 @@ impl Building {
                     .as_ref()
                     .and_then(|u| u.block_mean_relative.as_ref().map(estimate)),
                 block_verdict: update.as_ref().and_then(|u| u.block_verdict.map(verdict)),
+                normal_coverage_factor: update.as_ref().and_then(|u| u.normal_factor),
+                cusum: update.as_ref().and_then(|u| {
+                    Some(ModalCusum {
+                        statistic: u.cusum?,
+                        threshold: u.cusum_threshold?,
+                        verdict: verdict(u.cusum_verdict?),
+                    })
+                }),
                 shape,
             };
             if let Some(u) = update {
@@ -482,7 +561,7 @@ impl Building {
         };
         let mut alerts = Vec::new();
         let window_ns = (self.config.window_s * 1e9) as i64;
-        let mut raise = |residual: &Estimate, windows: usize, test: &str, alpha: f64| {
+        let mut raise = |residual: &Estimate, windows: usize, test: &str, rate: String| {
             let span_ns = window_ns.saturating_mul(windows as i64);
             alerts.push(Alert {
                 format_version: JSON_FORMAT_VERSION,
@@ -499,11 +578,9 @@ impl Building {
                 flagged_fraction,
                 statement: format!(
                     "Track {} ({:?}, {:.4} Hz): frequency {:.3} % below its environmental \
-                     baseline{} (k = {:.2}, ν = {:.0}), by the {test}; drop beyond {:.3} % even \
-                     at the interval's near end. False-alarm probability of this test {alpha:.2e} \
-                     per {}, the building's budget {} false modal_shift a year shared by its \
-                     {} alerting tracks. The reference sensor of the mode's shape names the \
-                     alert.",
+                     baseline{} (k = {:.2}, ν = {:.0}), by the {test}{}. {rate}, the \
+                     building's budget {} false modal_shift a year shared by its {} alerting \
+                     tracks. The reference sensor of the mode's shape names the alert.",
                     update.track,
                     update.direction,
                     report.frequency_hz.value,
@@ -515,8 +592,14 @@ impl Building {
                     },
                     residual.coverage_factor,
                     residual.dof,
-                    100.0 * tracker.threshold_relative,
-                    if windows == 1 { "window" } else { "block" },
+                    if test.starts_with("sequential") {
+                        String::new()
+                    } else {
+                        format!(
+                            "; drop beyond {:.3} % even at the interval's near end",
+                            100.0 * tracker.threshold_relative
+                        )
+                    },
                     self.config.tracker.false_alarms_per_year,
                     self.config.alert_modes_per_direction
                         * self.config.ssi.channels.directions.len(),
@@ -535,7 +618,10 @@ impl Building {
                     r,
                     1,
                     "single-window test",
-                    tracker.window_false_alarm_probability(),
+                    format!(
+                        "False-alarm probability of this test {:.2e} per window",
+                        tracker.window_false_alarm_probability()
+                    ),
                 );
             }
         }
@@ -545,10 +631,121 @@ impl Building {
                     r,
                     tracker.average_windows.max(1),
                     "block-mean test",
-                    tracker.block_false_alarm_probability(),
+                    format!(
+                        "False-alarm probability of this test {:.2e} per block",
+                        tracker.block_false_alarm_probability()
+                    ),
+                );
+            }
+        }
+        if update.cusum_verdict == Some(ShiftVerdict::Shift) {
+            if let (Some(r), Some(h)) = (&update.residual_relative, update.cusum_threshold) {
+                raise(
+                    r,
+                    1,
+                    "sequential (CUSUM) test",
+                    format!(
+                        "Its CUSUM of the residuals, tuned to a drop of {} standard \
+                         uncertainties, reached h = {h:.2}: mean run length to a false alarm at \
+                         least {:.0} windows (Lorden's bound e^h)",
+                        tracker.cusum_shift,
+                        h.exp()
+                    ),
                 );
             }
         }
         alerts
     }
+}
+
+/// What made a window's points invalid, per sensor, in words: the warnings of a window that
+/// was still identified (a refusal says it in `refused`).
+fn coverage_warnings(coverage: &[ModalSensorCoverage], alignment_tolerance: f64) -> Vec<String> {
+    let mut out = Vec::new();
+    for c in coverage {
+        if c.calibration_suspect > 0 {
+            out.push(format!(
+                "sensor {}: {} of {} grid points flagged calibration_suspect by the gateway's \
+                 field health checks: used, since a gain error moves no frequency or damping; \
+                 its shape components are marked calibration_suspect",
+                c.sensor_id, c.calibration_suspect, c.samples
+            ));
+        }
+        if c.misaligned > 0 {
+            out.push(format!(
+                "sensor {}: {} of {} grid points misaligned: {}",
+                c.sensor_id,
+                c.misaligned,
+                c.samples,
+                misaligned_cause(alignment_tolerance)
+            ));
+        }
+    }
+    out
+}
+
+fn misaligned_cause(alignment_tolerance: f64) -> String {
+    format!(
+        "its samples lie further than alignment_tolerance ({alignment_tolerance} of a period) \
+         from the window's grid, or come at another rate (its node's clock ticks in another \
+         phase or at another rate than the first sensor's), and are left out, never resampled"
+    )
+}
+
+/// Why a window was refused, in words: for too little of a channel usable, the sensor's grid
+/// points by cause, the largest first, so that a misaligned clock reads `misaligned`.
+pub fn refusal(
+    error: &ModalError,
+    coverage: &[ModalSensorCoverage],
+    alignment_tolerance: f64,
+) -> String {
+    let ModalError::TooMuchMissing {
+        sensor_id,
+        direction,
+        valid_fraction,
+        required,
+    } = error
+    else {
+        return error.to_string();
+    };
+    let Some(c) = coverage.iter().find(|c| c.sensor_id.as_str() == sensor_id) else {
+        return error.to_string();
+    };
+    let mut causes = [
+        (c.misaligned, "misaligned"),
+        (c.missing, "missing (no sample: a gap)"),
+        (
+            c.flagged,
+            "flagged (a quality flag other than calibration_suspect, or a non-finite value)",
+        ),
+    ];
+    causes.sort_by_key(|c| std::cmp::Reverse(c.0));
+    let listed: Vec<String> = causes
+        .iter()
+        .filter(|(n, _)| *n > 0)
+        .map(|(n, what)| format!("{n} {what}"))
+        .collect();
+    let main = if causes[0].0 > 0 {
+        causes[0].1.split(' ').next().unwrap_or("invalid")
+    } else {
+        "lost to the decimation filter's margin around invalid stretches"
+    };
+    let mut text = format!(
+        "sensor {sensor_id}, direction {}: {main}: only {:.1} % of the window is usable, {:.1} % \
+         required; of its {} grid points {}",
+        format!("{direction:?}").to_lowercase(),
+        100.0 * valid_fraction,
+        100.0 * required,
+        c.samples,
+        if listed.is_empty() {
+            "none is invalid, but the filter's margins took the rest".to_string()
+        } else {
+            listed.join(", ")
+        }
+    );
+    if c.misaligned > 0 && causes[0].0 == c.misaligned {
+        text.push_str(": ");
+        text.push_str(&misaligned_cause(alignment_tolerance));
+    }
+    text
 }

@@ -177,6 +177,15 @@ impl FileConfig {
                     ));
                 }
             }
+            if let Err(e) = b.ssi.validate() {
+                let (field, reason) = match e {
+                    triax_modal::ModalError::InvalidOption { field, reason } => {
+                        (format!("ssi.{field}"), reason)
+                    }
+                    other => ("ssi".to_string(), other.to_string()),
+                };
+                return Err(ConfigError::invalid(at(&field), reason));
+            }
             if !(b.tracker.false_alarms_per_year.is_finite()
                 && b.tracker.false_alarms_per_year > 0.0)
             {
@@ -208,6 +217,21 @@ impl FileConfig {
                     "must be > 0 (standard deviations of the track's scatter)",
                 ),
                 ("tracker.shape_windows", t.shape_windows >= 1, "must be ≥ 1"),
+                (
+                    "tracker.normal_probability",
+                    t.normal_probability > 0.5 && t.normal_probability < 1.0,
+                    "must be in (0.5, 1)",
+                ),
+                (
+                    "tracker.cusum_shift",
+                    t.cusum_shift.is_finite() && t.cusum_shift > 0.0,
+                    "must be > 0 (standard uncertainties of a prediction)",
+                ),
+                (
+                    "tracker.threshold_relative",
+                    t.threshold_relative.is_finite() && (0.0..1.0).contains(&t.threshold_relative),
+                    "must be in [0, 1) (a relative drop)",
+                ),
             ];
             // NaN fails every comparison above, so it is refused too.
             if let Some((field, _, why)) = matching.iter().find(|(_, ok, _)| !ok) {
@@ -274,6 +298,8 @@ mod tests {
         let t = b.tracker_per_track();
         // One false shift a year per building, shared by three modes in each of x and y.
         assert!((t.false_alarms_per_year - 1.0 / 6.0).abs() < 1e-12);
+        // A third of each track's for the sequential test: ARL ≥ 3·17 532·6 windows.
+        assert!((t.cusum_threshold() - (3.0 * 17_532.0 * 6.0f64).ln()).abs() < 1e-9);
         assert!((t.windows_per_year - 17_532.0).abs() < 1e-9);
         assert_eq!(t.average_windows, 48);
     }
@@ -302,11 +328,36 @@ mod tests {
         let e = Config::from_toml("").unwrap_err().to_string();
         assert!(e.contains("no building"), "{e}");
         for (field, value) in [
+            ("max_order", "1"),
+            ("blocks", "5"),
+            ("selection.mac_min", "1.5"),
+            ("channels.min_valid_fraction", "0.0"),
+            ("lag_span_s", "-1.0"),
+        ] {
+            let (table, key) = match field.rsplit_once('.') {
+                Some((t, k)) => (format!("ssi.{t}"), k),
+                None => ("ssi".to_string(), field),
+            };
+            let text = format!("[buildings.hq]\n{SENSOR}[buildings.hq.{table}]\n{key} = {value}\n");
+            let e = Config::from_toml(&text).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("buildings.hq.ssi.{field}")),
+                "{field}: {e}"
+            );
+        }
+        // A misspelt key is refused, not ignored.
+        let text = format!("[buildings.hq]\n{SENSOR}[buildings.hq.ssi]\nmax_ordr = 80\n");
+        let e = Config::from_toml(&text).unwrap_err().to_string();
+        assert!(e.contains("max_ordr"), "{e}");
+        for (field, value) in [
             ("frequency_tolerance", "0.0"),
             ("mac_min", "1.5"),
             ("mac_min_in_band", "0.9"),
             ("frequency_band", "nan"),
             ("shape_windows", "0"),
+            ("normal_probability", "1.0"),
+            ("cusum_shift", "0.0"),
+            ("threshold_relative", "-0.01"),
         ] {
             let text =
                 format!("[buildings.hq]\n{SENSOR}[buildings.hq.tracker]\n{field} = {value}\n");

@@ -8,9 +8,12 @@
 //! when it lies within `alignment_tolerance` of a period of that point. Nothing is
 //! interpolated or resampled: a sample further off (a node whose clock ticks in another phase,
 //! or at another rate) is left out and counted `misaligned`, and a grid point no sample reached
-//! is `missing`. A sample with any quality flag (its own, or the batch-only flags on the
-//! batch's first sample: `CorrectedBatch::sample_flags`) or a non-finite value is `flagged`.
-//! All three are invalid for identification, which leaves them out of every correlation.
+//! is `missing`. A sample with a quality flag (its own, or the batch-only flags on the batch's
+//! first sample: `CorrectedBatch::sample_flags`) other than those of [`USABLE_FLAGS`], or a
+//! non-finite value, is `flagged`. All three are invalid for identification, which leaves them
+//! out of every correlation. A sample flagged `calibration_suspect` (and nothing else that
+//! matters) is used and counted apart: the field health checks doubt its gain, and a gain
+//! error scales a channel, which moves its shape components but no frequency or damping.
 //!
 //! A window closes when every sensor of the model has delivered a sample at or past its last
 //! grid point, or `close_after_s` of the service's own time (not the sensors') after the first
@@ -24,6 +27,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use triax_client::follow::Position;
 use triax_modal::{BuildingModel, ChainUncertainty, SensorSeries, Window};
+use triax_protocol::batch::flags;
 use triax_protocol::messages::ModalSensorCoverage;
 use triax_protocol::{CorrectedBatch, SensorId};
 
@@ -37,9 +41,16 @@ pub const MAX_PENDING_WINDOWS: usize = 48;
 enum Point {
     Missing = 0,
     Valid,
+    /// Valid, its sample flagged `calibration_suspect` alone.
+    Suspect,
     Flagged,
     Misaligned,
 }
+
+/// Flags that leave a sample usable for identification: a suspect gain moves no frequency or
+/// damping (and the shapes of its sensor say so); a batch fetched late, or one after lost
+/// batches, carries samples as good as any (the lost ones are `missing`).
+pub const USABLE_FLAGS: u16 = flags::CALIBRATION_SUSPECT | flags::LATE | flags::SEQUENCE_GAP;
 
 #[derive(Debug, Clone)]
 struct SensorBuffer {
@@ -290,10 +301,12 @@ impl Gatherer {
             let flags = batch.sample_flags(from + k);
             let finite = sample.accel_mps2.iter().all(|v| v.is_finite());
             buffer.acceleration_mps2[m] = sample.accel_mps2;
-            buffer.points[m] = if flags == 0 && finite {
-                Point::Valid
-            } else {
+            buffer.points[m] = if !finite || flags & !USABLE_FLAGS != 0 {
                 Point::Flagged
+            } else if flags & flags::CALIBRATION_SUSPECT != 0 {
+                Point::Suspect
+            } else {
+                Point::Valid
             };
         }
     }
@@ -350,6 +363,8 @@ impl Gatherer {
                 missing: count(Point::Missing),
                 misaligned: count(Point::Misaligned),
                 calibration_versions: buffer.calibration_versions.into_iter().collect(),
+                calibration_suspect: count(Point::Suspect),
+                check: None,
             });
             series.push(SensorSeries {
                 sensor_id: id.to_string(),
@@ -358,7 +373,11 @@ impl Gatherer {
                     .iter()
                     .map(|a| a.map(f64::from))
                     .collect(),
-                valid: buffer.points.iter().map(|&p| p == Point::Valid).collect(),
+                valid: buffer
+                    .points
+                    .iter()
+                    .map(|&p| matches!(p, Point::Valid | Point::Suspect))
+                    .collect(),
                 chain,
             });
         }

@@ -306,18 +306,27 @@ async fn conclude(
     signing: &LabSigningKey,
 ) {
     let Identified { closed, result, .. } = done;
-    let Some(result) = result else {
-        tracing::error!(building = %building.id, window_start_ns = closed.window.start_timestamp_ns,
-            "identification panicked");
-        return;
+    let outcome = match result {
+        Some(result) => building.conclude(&closed, result, None, OffsetDateTime::now_utc()),
+        None => {
+            tracing::error!(building = %building.id,
+                window_start_ns = closed.window.start_timestamp_ns, "identification panicked");
+            building.conclude_failed(
+                &closed,
+                "the identification failed with an internal error (a panic, in the service's \
+                 log): nothing identified"
+                    .into(),
+                OffsetDateTime::now_utc(),
+            )
+        }
     };
-    let outcome = building.conclude(&closed, result, None, OffsetDateTime::now_utc());
     let m = &outcome.modes;
     tracing::info!(
         building = %building.id,
         window_start_ns = m.window_start_ns,
         modes = m.modes.len(),
         refused = m.refused.as_deref().unwrap_or(""),
+        warnings = m.warnings.len(),
         tracked = m.tracked,
         late = m.late,
         "window identified"

@@ -34,6 +34,7 @@ fn mode(track: Option<u64>, frequency_hz: f64, roof_real: f64, lower_real: f64) 
         direction: ModalDirection::X,
         real: estimate(real, 0.01, 30.0),
         imag: estimate(0.002, 0.004, f64::INFINITY),
+        calibration_suspect: false,
     };
     ModeReport {
         track,
@@ -51,6 +52,8 @@ fn mode(track: Option<u64>, frequency_hz: f64, roof_real: f64, lower_real: f64) 
         verdict: track.map(|_| ModalVerdict::Normal),
         block_mean_relative: None,
         block_verdict: None,
+        normal_coverage_factor: None,
+        cusum: None,
     }
 }
 
@@ -69,6 +72,7 @@ fn window(start_ns: i64, modes: Vec<ModeReport>, refused: Option<&str>) -> Build
         modes,
         unquantified: Vec::new(),
         refused: refused.map(str::to_owned),
+        warnings: Vec::new(),
         late: false,
         identified_at: OffsetDateTime::UNIX_EPOCH,
     }

@@ -148,6 +148,30 @@ fn windows_on_one_grid_leave_out_flags_gaps_and_misaligned_clocks() {
     let second = &closed[1];
     assert_eq!(coverage(second, "s4").misaligned, 6000);
     assert!(second.window.sensors[3].valid.iter().all(|v| !v));
+    // The refusal names the cause: misaligned, not merely "usable".
+    let mut judge = Building::new(
+        BuildingId::new("sim").unwrap(),
+        config(building.model.clone(), window_s),
+        None,
+    );
+    let result = identify_window(&judge.config, second);
+    let outcome = judge.conclude(second, result, None, OffsetDateTime::UNIX_EPOCH);
+    let refused = outcome.modes.refused.expect("refused");
+    assert!(
+        refused.starts_with("sensor s4, direction x: misaligned:")
+            && refused.contains("6000 misaligned")
+            && refused.contains("alignment_tolerance"),
+        "{refused}"
+    );
+    assert!(
+        outcome
+            .modes
+            .warnings
+            .iter()
+            .any(|w| w.contains("s4") && w.contains("misaligned")),
+        "{:?}",
+        outcome.modes.warnings
+    );
     assert_eq!(
         coverage(second, "s1").flagged + coverage(second, "s1").missing,
         0
@@ -404,6 +428,7 @@ fn the_record_keeps_every_window_and_rotates() {
         modes: Vec::new(),
         unquantified: Vec::new(),
         refused: Some("test".into()),
+        warnings: Vec::new(),
         late: false,
         identified_at: OffsetDateTime::UNIX_EPOCH,
     };
@@ -593,4 +618,89 @@ fn cost_of_a_window() {
          {identify_s:.3} s; 100 buildings: {:.2} % of a core",
         100.0 * 100.0 * (gather_s + identify_s) / 1800.0
     );
+}
+
+#[test]
+fn calibration_suspect_samples_are_used_and_said() {
+    // The gateway's field health doubts s2's record (bit 9 on every sample), and some batches
+    // of s3 came late from its node's buffer: the window is identified all the same, s2's
+    // shape components say so, and the message says why.
+    let building = SimBuilding::five_storey(11);
+    let mut core = Building::new(
+        BuildingId::new("sim").unwrap(),
+        config(building.model.clone(), 1800.0),
+        None,
+    );
+    let sim = building.simulate(20.0, 1801.0, EPOCH_NS, 3);
+    let mut stream = interleaved(&sim, 500, 0);
+    for b in stream.iter_mut() {
+        match b.header.sensor_id.as_str() {
+            "s2" => {
+                b.batch_flags |= flags::CALIBRATION_SUSPECT;
+                b.samples
+                    .iter_mut()
+                    .for_each(|s| s.flags |= flags::CALIBRATION_SUSPECT);
+            }
+            "s3" if b.header.sequence % 7 == 0 => b.batch_flags |= flags::LATE,
+            _ => {}
+        }
+    }
+    let closed: Vec<ClosedWindow> = stream
+        .iter()
+        .flat_map(|b| core.on_batch(b, false, 0.0))
+        .collect();
+    let result = identify_window(&core.config, &closed[0]);
+    let modes = core
+        .conclude(&closed[0], result, Some(20.0), OffsetDateTime::UNIX_EPOCH)
+        .modes;
+    assert!(modes.refused.is_none(), "{:?}", modes.refused);
+    let s2 = modes
+        .sensors
+        .iter()
+        .find(|c| c.sensor_id.as_str() == "s2")
+        .unwrap();
+    assert_eq!((s2.calibration_suspect, s2.flagged), (180_000, 0));
+    let s3 = modes
+        .sensors
+        .iter()
+        .find(|c| c.sensor_id.as_str() == "s3")
+        .unwrap();
+    assert_eq!((s3.calibration_suspect, s3.flagged), (0, 0));
+    assert!(modes.modes.len() >= 6, "{} modes", modes.modes.len());
+    for m in &modes.modes {
+        for c in &m.shape {
+            assert_eq!(c.calibration_suspect, c.sensor_id.as_str() == "s2", "{c:?}");
+        }
+        let pooled = m.pooled_shape.as_ref().expect("tracked");
+        assert!(pooled
+            .shape
+            .iter()
+            .all(|c| c.calibration_suspect == (c.sensor_id.as_str() == "s2")));
+    }
+    assert!(
+        modes.warnings.iter().any(|w| w
+            .starts_with("sensor s2: 180000 of 180000 grid points flagged calibration_suspect")),
+        "{:?}",
+        modes.warnings
+    );
+    // Any other flag still leaves the sample out.
+    let mut clipped = stream.clone();
+    for b in clipped
+        .iter_mut()
+        .filter(|b| b.header.sensor_id.as_str() == "s2")
+    {
+        b.samples[0].flags |= flags::CLIPPED;
+    }
+    let mut core = Building::new(core.id.clone(), core.config.clone(), None);
+    let closed: Vec<ClosedWindow> = clipped
+        .iter()
+        .flat_map(|b| core.on_batch(b, false, 0.0))
+        .collect();
+    let s2 = closed[0]
+        .coverage
+        .iter()
+        .find(|c| c.sensor_id.as_str() == "s2")
+        .unwrap();
+    // 360 batches of 5 s in the window, each with its first sample clipped.
+    assert_eq!((s2.flagged, s2.calibration_suspect), (360, 180_000 - 360));
 }

@@ -594,6 +594,10 @@ pub struct ModeShapeComponent {
     pub real: ModalEstimate,
     /// Quadrature part.
     pub imag: ModalEstimate,
+    /// Some of the sensor's samples in the window were flagged `calibration_suspect` (§2.3):
+    /// its gain may be off, which moves this component but no frequency or damping.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub calibration_suspect: bool,
 }
 
 /// A track's mode shape pooled over windows: each in-phase component relative to the
@@ -614,6 +618,9 @@ pub struct PooledShapeComponent {
     pub sensor_id: SensorId,
     pub direction: ModalDirection,
     pub real: ModalEstimate,
+    /// The sensor's samples were flagged `calibration_suspect` in this window.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub calibration_suspect: bool,
 }
 
 /// One identified mode, with its track's judgement.
@@ -650,6 +657,23 @@ pub struct ModeReport {
     /// verdict; absent except on a block's last window.
     pub block_mean_relative: Option<ModalEstimate>,
     pub block_verdict: Option<ModalVerdict>,
+    /// The coverage factor of the prediction interval that bounds `normal`; absent while
+    /// training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_coverage_factor: Option<f64>,
+    /// The sequential (CUSUM) test after this window; absent while training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cusum: Option<ModalCusum>,
+}
+
+/// The sequential test of a track: its statistic, the threshold at which it says `shift`,
+/// and its verdict (`normal` or `shift`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalCusum {
+    pub statistic: f64,
+    pub threshold: f64,
+    pub verdict: ModalVerdict,
 }
 
 /// A mode selected in the stabilisation diagram but found in too few jackknife replicates to
@@ -676,6 +700,40 @@ pub struct ModalSensorCoverage {
     pub misaligned: u64,
     /// Calibration versions of the batches used.
     pub calibration_versions: Vec<u64>,
+    /// Points whose sample was flagged `calibration_suspect` (§2.3) and nothing else: used
+    /// for identification (a gain error moves no frequency or damping), counted here and not
+    /// in `flagged`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub calibration_suspect: u64,
+    /// The building model checked against this window's data for the sensor; absent when the
+    /// window was refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub check: Option<ModalSensorCheck>,
+}
+
+/// What a window's data say of one sensor's declared mounting and its node's clock.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModalSensorCheck {
+    /// Angle between the building's vertical and the sensor's gravity through its declared
+    /// mounting, degrees; absent when the streams carry no gravity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_deg: Option<ModalEstimate>,
+    /// Turn in plan beyond the declared mounting, degrees, counter-clockwise seen from above,
+    /// from the floor's rigid motion; absent for a sensor alone on its floor.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_rotation_deg: Option<ModalEstimate>,
+    /// The node's clock offset against the building's median node, s (its sample stamped `t`
+    /// is the motion at `t + offset`), from the modes' phases; absent without modes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_offset_s: Option<ModalEstimate>,
+    /// Findings that name the sensor, in words; absent when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub findings: Vec<String>,
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
 }
 
 /// The modes of a building over one window, published on `triax/<building>/modes` by the modal
@@ -705,6 +763,11 @@ pub struct BuildingModes {
     pub unquantified: Vec<UnquantifiedModeReport>,
     /// Why the window gave no identification; absent when it did.
     pub refused: Option<String>,
+    /// What degraded an identified (or refused) window, each in words naming the sensor or
+    /// the setting: samples used despite a flag, sensors left out, a diagram that had not
+    /// settled, a window not tracked. Absent when empty.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Some of the window's batches were read back from the gateway's history.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub late: bool,
@@ -788,6 +851,8 @@ mod tests {
                 missing: 2,
                 misaligned: 3,
                 calibration_versions: vec![4],
+                calibration_suspect: 0,
+                check: None,
             }],
             temperature_c: Some(12.5),
             regressors: vec![12.5],
@@ -802,6 +867,7 @@ mod tests {
                     direction: ModalDirection::X,
                     real: estimate(1.0, f64::INFINITY),
                     imag: estimate(0.0, f64::INFINITY),
+                    calibration_suspect: false,
                 }],
                 reference_component: 0,
                 pooled_shape: None,
@@ -813,9 +879,16 @@ mod tests {
                 verdict: Some(ModalVerdict::Normal),
                 block_mean_relative: None,
                 block_verdict: None,
+                normal_coverage_factor: Some(1.97),
+                cusum: Some(ModalCusum {
+                    statistic: 0.5,
+                    threshold: 11.6,
+                    verdict: ModalVerdict::Normal,
+                }),
             }],
             unquantified: Vec::new(),
             refused: None,
+            warnings: Vec::new(),
             late: false,
             identified_at: t(),
         };
@@ -823,6 +896,25 @@ mod tests {
         let text = String::from_utf8(to_json(&modes)).unwrap();
         assert!(text.contains(r#""dof":null"#), "{text}");
         assert!(!text.contains("late"), "absent when false: {text}");
+        // The optional fields added since are absent when empty, and a message without them
+        // (as an older service wrote it) reads as one with them empty.
+        for field in ["warnings", "calibration_suspect"] {
+            assert!(!text.contains(field), "{field} absent when empty: {text}");
+        }
+        let mut with = modes.clone();
+        with.warnings = vec!["sensor roof: used despite calibration_suspect".into()];
+        with.sensors[0].calibration_suspect = 7;
+        with.sensors[0].check = Some(ModalSensorCheck {
+            tilt_deg: Some(estimate(0.2, 11.0)),
+            plan_rotation_deg: None,
+            time_offset_s: Some(estimate(-0.02, 11.0)),
+            findings: vec!["sensor roof: its node's clock is -20 ms off".into()],
+        });
+        with.modes[0].shape[0].calibration_suspect = true;
+        round_trip(&with);
+        let text = String::from_utf8(to_json(&with)).unwrap();
+        assert!(text.contains(r#""calibration_suspect":7"#), "{text}");
+        assert!(text.contains(r#""calibration_suspect":true"#), "{text}");
     }
 
     #[test]

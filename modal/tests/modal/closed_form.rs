@@ -2,11 +2,14 @@
 
 use nalgebra::{Complex, Matrix3};
 use triax_modal::model::{rotation_about_z, ModelError};
-use triax_modal::sim::ShearFrame;
+use triax_modal::sim::{
+    seven_storey_model, ten_storey_model, ModeKind, PlanFrame, PlanMode, ShearFrame, SimBuilding,
+    SimConfig, Structure,
+};
 use triax_modal::uncertainty::{chain_variances, jackknife_variance};
 use triax_modal::window::{ChannelOptions, Channels};
 use triax_modal::{
-    BuildingModel, ChainUncertainty, Direction, SensorPlacement, SensorSeries, Window,
+    BuildingModel, ChainUncertainty, ChannelId, Direction, SensorPlacement, SensorSeries, Window,
 };
 
 #[test]
@@ -230,4 +233,172 @@ fn jackknife_variance_of_a_mean_is_the_variance_of_the_mean() {
     let s2 = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
     let replicates: Vec<f64> = x.iter().map(|v| (n * mean - v) / (n - 1.0)).collect();
     assert!((jackknife_variance(&replicates) / (s2 / n) - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn one_eccentric_storey_couples_sway_and_torsion_as_its_quadratic_says() {
+    // Centre of stiffness e_x off the centre of mass: x stays alone; y and θ solve
+    // det([k_y − ω²m, k_y·e_x; k_y·e_x, k_θ + k_y·e_x² − ω²J]) = 0, a quadratic in ω².
+    let (m, j) = (4.0e5, 4.0e5 * 150.0);
+    let (kx, ky, kt, ex) = (2.0e7, 3.0e7, 3.0e9, 2.0);
+    let frame = PlanFrame {
+        floor_mass_kg: vec![m],
+        floor_inertia_kg_m2: vec![j],
+        centre_of_mass_m: [10.0, 5.0],
+        storey_stiffness_x_n_per_m: vec![kx],
+        storey_stiffness_y_n_per_m: vec![ky],
+        storey_stiffness_torsion_n_m_per_rad: vec![kt],
+        eccentricity_m: [ex, 0.0],
+        damping_ratio: vec![0.02],
+        frequency_change_per_c: 0.0,
+        reference_temperature_c: 20.0,
+        damage: Vec::new(),
+        torque_arm_m: 12.0,
+    };
+    let modes = frame.plan_modes(20.0);
+    let two_pi = 2.0 * std::f64::consts::PI;
+    let x = modes.iter().find(|m| m.kind == ModeKind::X).unwrap();
+    assert!((x.frequency_hz - (kx / m).sqrt() / two_pi).abs() < 1e-9);
+    assert_eq!((x.floor_motion[0][1], x.floor_motion[0][2]), (0.0, 0.0));
+    let (a, b, c) = (
+        m * j,
+        -(m * (kt + ky * ex * ex) + j * ky),
+        ky * (kt + ky * ex * ex) - (ky * ex).powi(2),
+    );
+    let disc = (b * b - 4.0 * a * c).sqrt();
+    let mut expected = [(-b - disc) / (2.0 * a), (-b + disc) / (2.0 * a)];
+    expected.sort_by(f64::total_cmp);
+    let mut coupled: Vec<&PlanMode> = modes.iter().filter(|m| m.kind != ModeKind::X).collect();
+    coupled.sort_by(|p, q| p.frequency_hz.total_cmp(&q.frequency_hz));
+    for (mode, w2) in coupled.iter().zip(expected) {
+        let f = w2.sqrt() / two_pi;
+        assert!(
+            (mode.frequency_hz - f).abs() < 1e-9 * f,
+            "{} vs {f}",
+            mode.frequency_hz
+        );
+        let [_, y, theta] = mode.floor_motion[0];
+        // (k_y − ω²m)·y + k_y·e_x·θ = 0, and mass-normalised.
+        assert!(((ky - w2 * m) * y + ky * ex * theta).abs() < 1e-6 * ky * y.abs().max(1e-9));
+        assert!((m * y * y + j * theta * theta - 1.0).abs() < 1e-9);
+    }
+    // A sensor 4 m along y from the centre of mass sees x − θ·4 in x.
+    let model = BuildingModel::new(
+        "one",
+        vec![SensorPlacement {
+            sensor_id: "a".into(),
+            floor: 1,
+            height_m: 3.0,
+            position_m: [14.0, 9.0],
+            mounting: rotation_about_z(0.0),
+        }],
+    )
+    .unwrap();
+    let building = SimBuilding::new(frame, model, SimConfig::default(), 1);
+    let channels = [Direction::X, Direction::Y].map(|direction| ChannelId {
+        sensor_id: "a".into(),
+        direction,
+    });
+    let shape = building.plan_shape(coupled[0], &channels);
+    let [x0, y0, t0] = coupled[0].floor_motion[0];
+    assert!((shape[0] - (x0 - 4.0 * t0)).abs() < 1e-15);
+    assert!((shape[1] - (y0 + 4.0 * t0)).abs() < 1e-15);
+}
+
+#[test]
+fn the_tuned_buildings_have_their_stated_modes() {
+    let (ten, model) = ten_storey_model();
+    assert_eq!(model.sensors.len(), 12);
+    let modes = ten.plan_modes(20.0);
+    let first = |kind| modes.iter().find(|m| m.kind == kind).unwrap().frequency_hz;
+    for (kind, f) in [
+        (ModeKind::X, 0.85),
+        (ModeKind::Y, 0.90),
+        (ModeKind::Torsion, 1.25),
+    ] {
+        assert!((first(kind) - f).abs() < 1e-8, "{kind:?}: {}", first(kind));
+    }
+    assert_eq!(modes.iter().filter(|m| m.frequency_hz < 8.0).count(), 13);
+    // Eccentric: the torsional fundamental sways too, and the sway modes turn.
+    let t1 = modes.iter().find(|m| m.kind == ModeKind::Torsion).unwrap();
+    assert!(t1.floor_motion[9][0].abs() > 1e-6 && t1.floor_motion[9][1].abs() > 1e-6);
+    let (seven, _) = seven_storey_model();
+    assert_eq!(
+        seven
+            .plan_modes(20.0)
+            .iter()
+            .filter(|m| m.frequency_hz < 8.0)
+            .count(),
+        9
+    );
+    // No eccentricity: the sway modes are the shear frame's.
+    let mut square = PlanFrame::tuned(5, 5.0e5, [20.0, 20.0], [1.0, 1.03, 1.6], [0.0, 0.0], 0.02);
+    square.frequency_change_per_c = -0.0015;
+    let shear = ShearFrame::uniform(5, 1.0, 1.0, 0.02);
+    let xs: Vec<f64> = square
+        .plan_modes(20.0)
+        .iter()
+        .filter(|m| m.kind == ModeKind::X)
+        .map(|m| m.frequency_hz)
+        .collect();
+    for (a, b) in xs.iter().zip(shear.direction_modes(Direction::X, 20.0)) {
+        assert!(
+            (a - b.frequency_hz).abs() < 1e-9,
+            "{a} vs {}",
+            b.frequency_hz
+        );
+    }
+    let warm = square.plan_modes(30.0);
+    assert!((warm[0].frequency_hz / 1.0 - 0.985).abs() < 1e-9);
+}
+
+#[test]
+fn a_late_node_a_misdeclared_mounting_and_gravity_are_rendered_as_stated() {
+    // Two sensors at one point of the roof, perfect and noiseless; the second's stamps are one
+    // period late, so its sample m is the first's sample m − 1; the third is turned 30° more
+    // than declared.
+    let (frame, mut model) = ten_storey_model();
+    model.sensors.truncate(3);
+    for s in &mut model.sensors {
+        s.floor = 10;
+        s.position_m = [3.0, 3.0];
+    }
+    let config = SimConfig {
+        sample_rate_hz: 50.0,
+        noise_std_mps2: 0.0,
+        chain: ChainUncertainty::NONE,
+        gravity_mps2: triax_modal::sim::STANDARD_GRAVITY_MPS2,
+        ..SimConfig::default()
+    };
+    let mut building = SimBuilding::new(frame, model, config, 1);
+    for e in &mut building.errors {
+        e.time_offset_s = 0.0;
+    }
+    building.errors[1].time_offset_s = -1.0 / 50.0;
+    let declared = building.model.sensors[2].rotation();
+    building.true_mounting[0] = Matrix3::identity();
+    building.model.sensors[0].mounting = rotation_about_z(0.0);
+    building.model.sensors[1].mounting = rotation_about_z(0.0);
+    building.true_mounting[1] = Matrix3::identity();
+    let turn = Matrix3::from_row_slice(&rotation_about_z(30f64.to_radians()).concat());
+    building.true_mounting[2] = turn * declared;
+    let window = building.simulate(20.0, 20.0, 0, 4);
+    let (a, late, turned) = (
+        &window.sensors[0].acceleration_mps2,
+        &window.sensors[1].acceleration_mps2,
+        &window.sensors[2].acceleration_mps2,
+    );
+    for m in 1..a.len() {
+        for axis in 0..3 {
+            assert!((late[m][axis] - a[m - 1][axis]).abs() < 1e-12, "sample {m}");
+        }
+        // Gravity along every sensor's z (they turn about the vertical only).
+        assert!((a[m][2] - 9.80665).abs() < 1e-12);
+        // The turned sensor reads the first's building-frame motion through its true mounting.
+        let building_frame = nalgebra::Vector3::new(a[m][0], a[m][1], a[m][2]);
+        let expected = building.true_mounting[2].transpose() * building_frame;
+        for axis in 0..3 {
+            assert!((turned[m][axis] - expected[axis]).abs() < 1e-12);
+        }
+    }
 }

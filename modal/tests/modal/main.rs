@@ -10,6 +10,7 @@
 //!   windows, the cost of a 30-minute window, and a shift found under a temperature cycle.
 //!   Run with `cargo test --release -p triax-modal --test modal -- --ignored --nocapture`.
 
+mod buildings;
 mod closed_form;
 mod identification;
 mod monte_carlo;

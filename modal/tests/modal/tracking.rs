@@ -100,11 +100,16 @@ fn false_alarms_occur_at_the_designed_rate_and_a_drop_is_found() {
     };
     let alpha_window = config.window_false_alarm_probability();
     let alpha_block = config.block_false_alarm_probability();
-    assert!((alpha_window - 0.005).abs() < 1e-12 && (alpha_block - 0.05).abs() < 1e-12);
+    // A third of the budget each: window, block mean, sequential.
+    assert!((alpha_window - 0.01 / 3.0).abs() < 1e-12 && (alpha_block - 0.1 / 3.0).abs() < 1e-12);
+    let run_length = config.cusum_threshold().exp();
+    assert!((run_length - 300.0).abs() < 1e-6, "{run_length}");
     let mut shifts = 0usize;
     let mut judged = 0usize;
     let mut block_shifts = 0usize;
     let mut blocks = 0usize;
+    let mut normal = 0usize;
+    let mut cusum_shifts = 0usize;
     for seed in 0..20u64 {
         let mut rng = SmallRng::seed_from_u64(100 + seed);
         let mut tracker = ModeTracker::new(config.clone());
@@ -116,6 +121,8 @@ fn false_alarms_occur_at_the_designed_rate_and_a_drop_is_found() {
                 if u.verdict != ShiftVerdict::Training {
                     judged += 1;
                     shifts += usize::from(u.verdict == ShiftVerdict::Shift);
+                    normal += usize::from(u.verdict == ShiftVerdict::Normal);
+                    cusum_shifts += usize::from(u.cusum_verdict == Some(ShiftVerdict::Shift));
                 }
                 if let Some(v) = u.block_verdict {
                     blocks += 1;
@@ -131,6 +138,20 @@ fn false_alarms_occur_at_the_designed_rate_and_a_drop_is_found() {
     assert!(
         (rate - alpha_window).abs() < 4.0 * sigma,
         "window false-alarm rate {rate}"
+    );
+    // `normal` inside the prediction interval: 97.5 % when only drops are judged.
+    let normal_share = normal as f64 / judged as f64;
+    let sigma_normal = (0.975 * 0.025 / judged as f64).sqrt();
+    println!("normal {normal_share:.4}, sequential false alarms {cusum_shifts} in {judged} windows (run length ≥ {run_length})");
+    assert!(
+        (normal_share - 0.975).abs() < 4.0 * sigma_normal,
+        "normal in {normal_share} of healthy windows"
+    );
+    // Lorden's bound: at most one false alarm per 300 windows on average.
+    let bound = judged as f64 / run_length;
+    assert!(
+        (cusum_shifts as f64) <= bound + 3.0 * bound.sqrt(),
+        "{cusum_shifts} sequential false alarms, bound {bound:.1}"
     );
     let block_rate = block_shifts as f64 / blocks as f64;
     let sigma_block = (alpha_block * (1.0 - alpha_block) / blocks as f64).sqrt();
@@ -148,6 +169,7 @@ fn false_alarms_occur_at_the_designed_rate_and_a_drop_is_found() {
     };
     let mut tracker = ModeTracker::new(config);
     let mut found_at = None;
+    let mut sequential_at = None;
     for w in 0..336 + 96 {
         let drop = if w >= 336 { 0.005 } else { 0.0 };
         for u in tracker.update(
@@ -167,10 +189,30 @@ fn false_alarms_occur_at_the_designed_rate_and_a_drop_is_found() {
             {
                 found_at = Some(w);
             }
+            if u.direction == Direction::X
+                && u.cusum_verdict == Some(ShiftVerdict::Shift)
+                && sequential_at.is_none()
+            {
+                sequential_at = Some(w);
+            }
+            if u.direction == Direction::Y {
+                assert_ne!(
+                    u.cusum_verdict,
+                    Some(ShiftVerdict::Shift),
+                    "y did not change"
+                );
+            }
         }
     }
     let found_at = found_at.expect("the drop is found");
     assert!(found_at < 336 + 96, "found at window {found_at}");
+    // The sequential test sees it within hours, not at a block's end: a drop of five standard
+    // uncertainties, tuned to 1.5, accumulates 6.4 a window against h = ln(3·17 532) = 10.9.
+    let sequential_at = sequential_at.expect("the sequential test finds the drop");
+    assert!(
+        (336..336 + 4).contains(&sequential_at),
+        "sequential test at window {sequential_at}"
+    );
 }
 
 #[test]
