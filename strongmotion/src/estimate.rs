@@ -2,7 +2,7 @@
 //! the budget that makes one from independent contributions (JCGM 100: variances add, degrees of
 //! freedom by Welch–Satterthwaite, `k` from Student's t at the truncated ν).
 
-use triax_calibration::student::{t_quantile, MAX_DOF};
+use triax_calibration::student::{t_quantile, CoverageTable, MAX_DOF};
 
 /// Probability the intervals claim unless configured otherwise.
 pub const DEFAULT_COVERAGE_PROBABILITY: f64 = 0.95;
@@ -56,8 +56,16 @@ impl Estimate {
 }
 
 /// The two-sided coverage factor at `nu` degrees of freedom: Student's t at ν truncated to the
-/// integer below (JCGM 100 G.4.1), ν above [`MAX_DOF`] or infinite taken as [`MAX_DOF`].
+/// integer below (JCGM 100 G.4.1) and further down to the calibration crate's grid of ν
+/// (`CoverageTable`: every integer to 30, then steps that raise `k` by at most 0.5 %), ν above
+/// [`MAX_DOF`] or infinite taken as [`MAX_DOF`]. The table is computed once per probability.
 pub fn coverage_factor(nu: f64, probability: f64) -> f64 {
+    let nu = if nu.is_nan() { 1.0 } else { nu };
+    CoverageTable::shared(probability).factor(nu.max(1.0))
+}
+
+/// [`coverage_factor`] without the grid: Student's t at ν truncated to the integer below.
+pub fn exact_coverage_factor(nu: f64, probability: f64) -> f64 {
     let nu = if nu.is_nan() || nu < 1.0 {
         1
     } else if nu >= f64::from(MAX_DOF) {
@@ -70,7 +78,7 @@ pub fn coverage_factor(nu: f64, probability: f64) -> f64 {
 
 /// The one-sided factor with `P(T > k) = alpha` at `nu` degrees of freedom.
 pub fn one_sided_factor(nu: f64, alpha: f64) -> f64 {
-    coverage_factor(nu, 1.0 - 2.0 * alpha)
+    exact_coverage_factor(nu, 1.0 - 2.0 * alpha)
 }
 
 /// Independent contributions to one quantity's variance, each with its degrees of freedom.

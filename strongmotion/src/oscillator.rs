@@ -51,7 +51,13 @@ impl Oscillator {
 
     /// Relative displacement `u` at every sample, from rest, under base acceleration `a`.
     pub fn displacement(&self, a: &[f64]) -> Vec<f64> {
+        self.response(a).0
+    }
+
+    /// Relative displacement and velocity at every sample, from rest.
+    pub fn response(&self, a: &[f64]) -> (Vec<f64>, Vec<f64>) {
         let mut out = vec![0.0; a.len()];
+        let mut vel = vec![0.0; a.len()];
         let w2 = self.omega * self.omega;
         let w3 = w2 * self.omega;
         let (mut u, mut v) = (0.0, 0.0);
@@ -63,8 +69,9 @@ impl Oscillator {
             u = p[0][0] * du + p[0][1] * dv + (-a[i + 1] / w2 + 2.0 * self.damping * r / w3);
             v = p[1][0] * du + p[1][1] * dv - r / w2;
             out[i + 1] = u;
+            vel[i + 1] = v;
         }
-        out
+        (out, vel)
     }
 
     /// Pseudo-acceleration `ω²·u` at every sample.

@@ -18,8 +18,10 @@
 //!
 //! CAV's noise term: noise adds `E|s + n| − |s|` to every sample, 0.80σ where there is no
 //! motion and `σ²/(2|s|)` where the motion is strong; no estimator of `|s|` is unbiased, so the
-//! bias is extrapolated away by SIMEX over whole noise records, quadratically in the noise's
-//! deviation ([`crate::peaks::simex`]).
+//! bias is extrapolated away by SIMEX over whole noise records, linearly in the noise's
+//! deviation, which is exact where there is no motion, the part that matters (where the motion
+//! is strong the bias, second order in the noise, is left: `σ²/|s|` per sample, against a
+//! calibration part of the gain's fraction of `|s|`) ([`crate::peaks::simex`]).
 //!
 //! Calibration: first order in the sensitivity's nine entries with the record's covariance
 //! ([`crate::process`]), at the record's ν; noise at its own ν; `k` from Welch–Satterthwaite.
@@ -157,11 +159,6 @@ fn estimate(p: &Processed, value: f64, cal: f64, noise: f64, probability: f64) -
     b.estimate(value, probability)
 }
 
-fn smooth(p: &Processed, value: f64, terms: &[Term], probability: f64) -> Estimate {
-    let (cal, noise) = p.covariance(terms, terms);
-    estimate(p, value, cal, noise, probability)
-}
-
 /// The band-pass kernel's `Σ_lag ρ(lag)²`: how much more variance a sum of squared
 /// band-passed noise samples has than of white ones.
 fn squares_factor(p: &Processed) -> f64 {
@@ -210,20 +207,30 @@ const MAX_CRESTS: usize = 40;
 /// The peak of a smooth series along `w` (`series` its values over the padded record,
 /// `weights(i)` the weights on `b` of its value at `i`), first order when it stands out, by
 /// SIMEX over the crests within seven of its noise deviations when others are
-/// ([`crate::peaks::simex`]).
+/// ([`crate::peaks::simex`]). `correlation(i, j)`, when given, is `⟨M s_i, M s_j⟩` of the unit
+/// weights at `i` and `j` (a stationary shortcut for a time-invariant series); otherwise the
+/// weights are filtered one by one.
 #[allow(clippy::too_many_arguments)]
 fn smooth_peak_value(
     p: &Processed,
     series: &[f64],
     w: Vector3<f64>,
     weights: &dyn Fn(usize, f64) -> Vec<f64>,
+    correlation: Option<&dyn Fn(usize, usize) -> f64>,
     probability: f64,
     draws: usize,
     seed: u64,
 ) -> Value {
     let (i, d) = peak(series);
     let terms = [(w, weights(i, sign(series[i])))];
-    let (cal, noise) = p.covariance(&terms, &terms);
+    let along = (w.transpose() * p.noise_b * w)[(0, 0)];
+    let (cal, noise) = match correlation {
+        Some(r) => (
+            p.calibration_variance(&terms),
+            if p.has_noise() { along * r(i, i) } else { 0.0 },
+        ),
+        None => p.covariance(&terms, &terms),
+    };
     let sd = noise.max(0.0).sqrt();
     let at_s = Some(p.time_s(i));
     let first_order = Value {
@@ -248,24 +255,30 @@ fn smooth_peak_value(
     }
     crests.sort_by(|&a, &b| series[b].abs().total_cmp(&series[a].abs()));
     crests.truncate(MAX_CRESTS);
-    let along = (w.transpose() * p.noise_b * w)[(0, 0)];
-    let filtered: Vec<Vec<f64>> = crests
-        .iter()
-        .map(|&j| {
-            let mut m = weights(j, 1.0);
-            p.band.apply(&mut m);
-            m[p.record_span()].to_vec()
-        })
-        .collect();
     let c = crests.len();
-    let cov = DMatrix::from_fn(c, c, |a, b| {
-        let v: f64 = filtered[a]
-            .iter()
-            .zip(&filtered[b])
-            .map(|(x, y)| x * y)
-            .sum();
-        along * v * if a == b { 1.0 + 1e-9 } else { 1.0 }
-    });
+    let cov = match correlation {
+        Some(r) => DMatrix::from_fn(c, c, |a, b| {
+            along * r(crests[a], crests[b]) * if a == b { 1.0 + 1e-9 } else { 1.0 }
+        }),
+        None => {
+            let filtered: Vec<Vec<f64>> = crests
+                .iter()
+                .map(|&j| {
+                    let mut m = weights(j, 1.0);
+                    p.band.apply(&mut m);
+                    m[p.record_span()].to_vec()
+                })
+                .collect();
+            DMatrix::from_fn(c, c, |a, b| {
+                let v: f64 = filtered[a]
+                    .iter()
+                    .zip(&filtered[b])
+                    .map(|(x, y)| x * y)
+                    .sum();
+                along * v * if a == b { 1.0 + 1e-9 } else { 1.0 }
+            })
+        }
+    };
     let Some(l) = cov.cholesky().map(|ch| ch.l()) else {
         return first_order;
     };
@@ -362,6 +375,25 @@ pub fn sensor_parameters(p: &Processed, config: &ParameterConfig, seed: u64) -> 
         }
     };
     let c_arias = std::f64::consts::PI / (2.0 * STANDARD_GRAVITY_MPS2);
+    // CAV's noise records: band-passed unit white noise over the record, shared by the three
+    // directions (each is judged alone, so their draws may be the same), scaled per direction.
+    let unit_noise: (Vec<Vec<f64>>, Vec<Vec<f64>>) = if p.has_noise() && config.bootstrap_draws >= 2
+    {
+        let mut rng = Rng::new(seed ^ 0xCA7);
+        let mut draw = || -> Vec<f64> {
+            let mut x = vec![0.0; n_pad];
+            for v in &mut x[span.clone()] {
+                *v = rng.normal();
+            }
+            p.band.apply(&mut x);
+            x[span.clone()].to_vec()
+        };
+        let noise = (0..CAV_DRAWS).map(|_| draw()).collect();
+        let replicates = (0..SIMEX_REPLICATES).map(|_| draw()).collect();
+        (noise, replicates)
+    } else {
+        (Vec::new(), Vec::new())
+    };
     let rho2 = squares_factor(p);
     let axes: [AxisParameters; 3] = std::array::from_fn(|k| {
         let w = axis(k);
@@ -379,6 +411,7 @@ pub fn sensor_parameters(p: &Processed, config: &ParameterConfig, seed: u64) -> 
                 series,
                 w,
                 &weights,
+                None,
                 prob,
                 config.bootstrap_draws,
                 seed ^ (salt << 8 | k as u64),
@@ -422,28 +455,38 @@ pub fn sensor_parameters(p: &Processed, config: &ParameterConfig, seed: u64) -> 
             }
             let terms = [(w, s)];
             let (cal, first_order_noise) = p.covariance(&terms, &terms);
-            if sigma2 > 0.0 && config.bootstrap_draws >= 2 {
-                let mut rng = Rng::new(seed ^ (0xCA7 << 8 | k as u64));
+            if sigma2 > 0.0 && !unit_noise.0.is_empty() {
                 let along = (w.transpose() * p.noise_b * w)[(0, 0)].max(0.0).sqrt();
-                let mut draw = || -> Vec<f64> {
-                    let mut x = vec![0.0; n_pad];
-                    for v in &mut x[span.clone()] {
-                        *v = along * rng.normal();
-                    }
-                    p.band.apply(&mut x);
-                    x[span.clone()].to_vec()
+                let scale = |set: &Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+                    set.iter()
+                        .map(|x| x.iter().map(|v| v * along).collect())
+                        .collect()
                 };
-                let noise: Vec<Vec<f64>> = (0..CAV_DRAWS).map(|_| draw()).collect();
-                let replicates: Vec<Vec<f64>> = (0..SIMEX_REPLICATES).map(|_| draw()).collect();
-                let out = simex(
+                let (noise, replicates) = (scale(&unit_noise.0), scale(&unit_noise.1));
+                let mut cav_of = |x: &[f64]| vec![x.iter().map(|v| v.abs()).sum::<f64>() * dt];
+                let (quadratic, sd) = simex(
                     rec,
                     &noise,
                     &replicates,
                     Extrapolant::Quadratic,
-                    &mut |x: &[f64]| vec![x.iter().map(|v| v.abs()).sum::<f64>() * dt],
-                );
-                let (bias, sd) = out[0];
-                Value::of(estimate(p, measured - bias, cal, sd * sd, prob))
+                    &mut cav_of,
+                )[0];
+                let (linear, _) =
+                    simex(rec, &noise, &replicates, Extrapolant::Linear, &mut cav_of)[0];
+                // Where the motion is comparable to the noise, no polynomial in the noise's
+                // deviation reaches back to zero noise (the curve is flat below it): both
+                // extrapolants stop short, the linear one about twice as far as the quadratic.
+                // So the estimate goes past the quadratic by their difference, and half of it is
+                // taken as a standard uncertainty of the extrapolant.
+                let value = measured - quadratic - (quadratic - linear);
+                let extrapolant = 0.5 * (quadratic - linear);
+                Value::of(estimate(
+                    p,
+                    value,
+                    cal,
+                    sd * sd + extrapolant * extrapolant,
+                    prob,
+                ))
             } else {
                 Value::of(estimate(p, measured, cal, first_order_noise, prob))
             }
@@ -553,12 +596,38 @@ fn spectral_ordinate(
         }
         s
     };
+    // The oscillator and the band are time-invariant: the noise of the response at m is the
+    // band's output for the reversed impulse response ending at m, the same at every m away
+    // from the record's ends, so one filtered copy gives every correlation (stationary, first
+    // order: the padding's lack of noise is not taken off).
+    let len = p.len_padded();
+    let mut z = vec![0.0; len];
+    for (j, hj) in h.iter().enumerate() {
+        z[len - 1 - j] = *hj;
+    }
+    p.band.apply(&mut z);
+    let zero_lag: f64 = z.iter().map(|v| v * v).sum();
+    let correlation = |i: usize, j: usize| -> f64 {
+        let lag = i.abs_diff(j);
+        if lag == 0 {
+            zero_lag
+        } else if lag >= len {
+            0.0
+        } else {
+            z[..len - lag]
+                .iter()
+                .zip(&z[lag..])
+                .map(|(a, b)| a * b)
+                .sum()
+        }
+    };
     let axes: [Value; 3] = std::array::from_fn(|k| {
         smooth_peak_value(
             p,
             &response[k],
             axis(k),
             &weights,
+            Some(&correlation),
             prob,
             config.bootstrap_draws,
             seed ^ k as u64,
@@ -567,19 +636,37 @@ fn spectral_ordinate(
     let order = by_magnitude(&response[0], &response[1]);
     let per_angle = rotd_peaks(&response[0], &response[1], &order);
     let rd = rotd(&per_angle);
-    let term = |angle: usize, weight: f64| -> Term {
+    // Terms (direction, peak time, weight with its sign) and their estimate.
+    let term = |angle: usize, weight: f64| -> (Vector3<f64>, usize, f64) {
         let (_, m) = per_angle[angle];
         let w: Vector3<f64> = angle_direction(angle);
         let v = w[0] * response[0][m] + w[1] * response[1][m];
-        (w, weights(m, weight * sign(v)))
+        (w, m, weight * sign(v))
+    };
+    let rotated = |value: f64, terms: &[(Vector3<f64>, usize, f64)]| -> Estimate {
+        let dense: Vec<Term> = terms
+            .iter()
+            .map(|(w, m, c)| (*w, weights(*m, *c)))
+            .collect();
+        let cal = p.calibration_variance(&dense);
+        let mut noise = 0.0;
+        if p.has_noise() {
+            for (wp, mp, cp) in terms {
+                for (wq, mq, cq) in terms {
+                    noise +=
+                        (wp.transpose() * p.noise_b * wq)[(0, 0)] * cp * cq * correlation(*mp, *mq);
+                }
+            }
+        }
+        estimate(p, value, cal, noise, prob)
     };
     let rotd100 = Value {
-        estimate: smooth(p, rd.rotd100, &[term(rd.max_angle, 1.0)], prob),
+        estimate: rotated(rd.rotd100, &[term(rd.max_angle, 1.0)]),
         at_s: Some(p.time_s(per_angle[rd.max_angle].1)),
         angle_deg: Some(rd.max_angle as f64),
     };
     let rotd50 = Value {
-        estimate: smooth(p, rd.rotd50, &rd.median_angles.map(|a| term(a, 0.5)), prob),
+        estimate: rotated(rd.rotd50, &rd.median_angles.map(|a| term(a, 0.5))),
         at_s: Some(p.time_s(per_angle[rd.median_angles[1]].1)),
         angle_deg: Some(rd.median_angles[1] as f64),
     };

@@ -373,6 +373,9 @@ impl Processed {
             Some(sigma) => (self.gradient(a).transpose() * sigma * self.gradient(b))[(0, 0)],
             None => 0.0,
         };
+        if self.noise_b.iter().all(|v| *v == 0.0) {
+            return (cal, 0.0);
+        }
         let fa: Vec<Vec<f64>> = a.iter().map(|(_, s)| self.filtered(s)).collect();
         let fb: Vec<Vec<f64>> = b.iter().map(|(_, s)| self.filtered(s)).collect();
         let mut noise = 0.0;
@@ -385,6 +388,21 @@ impl Processed {
             }
         }
         (cal, noise)
+    }
+
+    /// The calibration part alone of a functional's variance (no filtering).
+    pub fn calibration_variance(&self, terms: &[Term]) -> f64 {
+        match &self.sensitivity_covariance {
+            Some(sigma) => {
+                (self.gradient(terms).transpose() * sigma * self.gradient(terms))[(0, 0)]
+            }
+            None => 0.0,
+        }
+    }
+
+    /// Whether the record states any noise.
+    pub fn has_noise(&self) -> bool {
+        self.noise_b.iter().any(|v| *v != 0.0)
     }
 
     /// A delta at padded sample `i`.

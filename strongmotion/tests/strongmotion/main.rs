@@ -4,6 +4,7 @@
 //!   uncertainty is one gain or one cross-axis term: every parameter and its calibration part
 //!   by hand; the noise parts against a Monte Carlo of the same record.
 
+mod monte_carlo;
 mod noise;
 mod parameters;
 mod util;
