@@ -56,6 +56,8 @@ pub struct StoreyDrift {
     /// The fundamental the bound used, Hz, and whether it was measured in this event.
     pub fundamental_hz: f64,
     pub fundamental_from_event: bool,
+    /// A sensor of either floor was flagged.
+    pub flagged: bool,
 }
 
 struct Floor {
@@ -256,6 +258,11 @@ pub fn storey_drifts(
                 bias_alignment: alignment,
                 fundamental_hz: f1,
                 fundamental_from_event: from_event,
+                flagged: upper
+                    .members
+                    .iter()
+                    .chain(&lower.members)
+                    .any(|(j, _)| sensors[*j].flagged),
             });
         }
     }

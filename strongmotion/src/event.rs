@@ -248,6 +248,8 @@ pub struct Item {
     pub label: String,
     pub estimate: Estimate,
     pub bias_bound: f64,
+    /// From flagged data: judged `possible` at most.
+    pub flagged: bool,
 }
 
 /// A limit's judgement: the item that decides it (the worst verdict, then the largest
@@ -279,10 +281,17 @@ pub struct FrequencyDrop {
 
 /// The items a quantity has in `analysis`.
 pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDrop]) -> Vec<Item> {
-    let item = |label: String, estimate: Estimate| Item {
+    let item = |label: String, estimate: Estimate, flagged: bool| Item {
         label,
         estimate,
         bias_bound: 0.0,
+        flagged,
+    };
+    let flagged_sensor = |id: &str| {
+        analysis
+            .sensors
+            .iter()
+            .any(|s| s.sensor_id == id && s.flagged)
     };
     let lowest = analysis
         .sensors
@@ -319,6 +328,7 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                 ),
                 estimate: d.drift_ratio.estimate,
                 bias_bound: d.bias_bound,
+                flagged: d.flagged,
             })
             .collect(),
         Quantity::PeakFloorAcceleration => analysis
@@ -328,13 +338,20 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                 item(
                     format!("{} horizontal (RotD100)", s.sensor_id),
                     s.pga_rotd100.estimate,
+                    s.flagged,
                 )
             })
             .collect(),
         Quantity::PeakVerticalAcceleration => analysis
             .sensors
             .iter()
-            .map(|s| item(format!("{} z", s.sensor_id), s.axes[2].pga.estimate))
+            .map(|s| {
+                item(
+                    format!("{} z", s.sensor_id),
+                    s.axes[2].pga.estimate,
+                    s.flagged,
+                )
+            })
             .collect(),
         Quantity::PeakFloorVelocity => analysis
             .sensors
@@ -344,6 +361,7 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                     item(
                         format!("{} {}", s.sensor_id, ["x", "y"][k]),
                         s.axes[k].pgv.estimate,
+                        s.flagged,
                     )
                 })
             })
@@ -359,6 +377,7 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                         item(
                             format!("{} at {} s", s.sensor_id, period_s),
                             o.rotd50.estimate,
+                            s.flagged,
                         )
                     })
             })
@@ -366,11 +385,17 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
         Quantity::ResidualTilt => analysis
             .tilts
             .iter()
-            .map(|t| item(t.sensor_id.clone(), t.tilt.change_deg))
+            .map(|t| {
+                item(
+                    t.sensor_id.clone(),
+                    t.tilt.change_deg,
+                    flagged_sensor(&t.sensor_id),
+                )
+            })
             .collect(),
         Quantity::FrequencyDrop => drops
             .iter()
-            .map(|d| item(d.label.clone(), d.drop_percent))
+            .map(|d| item(d.label.clone(), d.drop_percent, false))
             .collect(),
         Quantity::Din4150Foundation { class } => analysis
             .sensors
@@ -389,6 +414,7 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                             f.value
                         ),
                         ratio(&d.peak_mmps[k], reference, slope, Some(&f)),
+                        s.flagged,
                     ))
                 })
             })
@@ -409,6 +435,7 @@ pub fn items(quantity: &Quantity, analysis: &EventAnalysis, drops: &[FrequencyDr
                         item(
                             format!("{} {}", s.sensor_id, ["x", "y"][k]),
                             ratio(&d.peak_mmps[k], reference, 0.0, None),
+                            s.flagged,
                         )
                     })
                 })
@@ -439,9 +466,12 @@ pub fn judge_limits(
                     + it.bias_bound / k.max(1e-12),
                 ..it.estimate
             };
-            let Some(v) = judge(&widened, k, limit.threshold) else {
+            let Some(mut v) = judge(&widened, k, limit.threshold) else {
                 continue;
             };
+            if it.flagged && v == Verdict::Exceeded {
+                v = Verdict::Possible;
+            }
             let score =
                 (it.estimate.value - limit.threshold) / widened.standard_uncertainty.max(1e-300);
             let better = match &best {
@@ -479,4 +509,96 @@ pub fn judge_limits(
             .collect()
     };
     (out, tag, drivers)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn analysis_with_drift(value: f64, u: f64, flagged: bool) -> EventAnalysis {
+        let e = Budget::new()
+            .add(u * u, f64::INFINITY)
+            .estimate(value, 0.95);
+        EventAnalysis {
+            sensors: Vec::new(),
+            din: Vec::new(),
+            drifts: vec![StoreyDrift {
+                lower_floor: 0,
+                upper_floor: 1,
+                storey_height_m: 3.5,
+                direction: 0,
+                lower_sensors: vec!["a".into()],
+                upper_sensors: vec!["b".into()],
+                drift_ratio: Value {
+                    estimate: e,
+                    at_s: Some(1.0),
+                    angle_deg: None,
+                },
+                bias_bound: 0.0,
+                bias_below_band: 0.0,
+                bias_band_gain: 0.0,
+                bias_integration: 0.0,
+                bias_alignment: 0.0,
+                fundamental_hz: 1.0,
+                fundamental_from_event: false,
+                flagged,
+            }],
+            drift_left_out: Vec::new(),
+            tilts: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn limits_tag_the_building_and_flags_cap_a_verdict() {
+        let limits = [
+            Limit {
+                name: "immediate occupancy".into(),
+                quantity: Quantity::DriftRatio,
+                threshold: 0.005,
+                severity: Tag::Yellow,
+            },
+            Limit {
+                name: "life safety".into(),
+                quantity: Quantity::DriftRatio,
+                threshold: 0.015,
+                severity: Tag::Red,
+            },
+        ];
+        let (j, tag, drivers) = judge_limits(
+            &analysis_with_drift(0.01, 0.0005, false),
+            &limits,
+            &[],
+            0.025,
+        );
+        assert_eq!(j[0].verdict, Some(Verdict::Exceeded));
+        assert_eq!(j[1].verdict, Some(Verdict::Below));
+        assert_eq!(tag, Tag::Yellow);
+        assert_eq!(drivers, vec!["immediate occupancy".to_string()]);
+        let (_, tag, drivers) = judge_limits(
+            &analysis_with_drift(0.02, 0.0005, false),
+            &limits,
+            &[],
+            0.025,
+        );
+        assert_eq!((tag, drivers), (Tag::Red, vec!["life safety".to_string()]));
+        // Flagged data never say `exceeded`.
+        let (j, tag, _) = judge_limits(
+            &analysis_with_drift(0.02, 0.0005, true),
+            &limits,
+            &[],
+            0.025,
+        );
+        assert_eq!(j[1].verdict, Some(Verdict::Possible));
+        assert_eq!(tag, Tag::Yellow);
+        // Nothing to judge: no verdict, green.
+        let none = Limit {
+            name: "tilt".into(),
+            quantity: Quantity::ResidualTilt,
+            threshold: 0.1,
+            severity: Tag::Red,
+        };
+        let (j, tag, drivers) =
+            judge_limits(&analysis_with_drift(0.0, 0.1, false), &[none], &[], 0.025);
+        assert_eq!((j[0].verdict, tag, drivers.len()), (None, Tag::Green, 0));
+    }
 }

@@ -131,6 +131,8 @@ pub struct SensorParameters {
     pub spectrum: Vec<SpectralOrdinate>,
     pub samples: usize,
     pub invalid_samples: usize,
+    /// The record's flag ([`crate::process::SensorRecord::flagged`]).
+    pub flagged: bool,
     pub pre_event_baseline: bool,
     /// Standard deviation of one band-passed noise sample per direction, m/s².
     pub noise_mps2: [f64; 3],
@@ -571,6 +573,7 @@ pub fn sensor_parameters(p: &Processed, config: &ParameterConfig, seed: u64) -> 
         spectrum,
         samples: p.n,
         invalid_samples: p.invalid,
+        flagged: p.flagged,
         pre_event_baseline: p.pre_event_baseline,
         noise_mps2: std::array::from_fn(|k| p.noise_variance_along(&axis(k)).sqrt()),
         bootstrap_candidates: noise.candidates,

@@ -80,8 +80,12 @@ pub struct SensorRecord {
     pub sample_rate_hz: f64,
     /// Corrected acceleration in the sensor's axes, m/s² (gravity included).
     pub accel_mps2: Vec<[f64; 3]>,
-    /// Whether each sample is usable: unflagged, present, finite.
+    /// Whether each sample is usable: present, finite, calibrated, not clipped.
     pub valid: Vec<bool>,
+    /// Some usable samples carried quality flags that leave their uncertainty less assured
+    /// (outside the calibrated band or amplitude, an expired or suspect record): decisions on
+    /// this sensor's values go no further than `possible`.
+    pub flagged: bool,
     pub calibration: SensorCalibration,
 }
 
@@ -157,6 +161,7 @@ pub struct Processed {
     pub noise_b: Matrix3<f64>,
     pub noise_dof: f64,
     pub invalid: usize,
+    pub flagged: bool,
     /// The baseline was the mean of the pre-event samples (false: of the whole record).
     pub pre_event_baseline: bool,
 }
@@ -319,6 +324,7 @@ impl Processed {
             noise_b: rotation * noise_s * rotation.transpose(),
             noise_dof: record.calibration.noise_dof,
             invalid,
+            flagged: record.flagged,
             pre_event_baseline,
         })
     }

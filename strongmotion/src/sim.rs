@@ -401,6 +401,7 @@ pub fn record(
         start_s,
         sample_rate_hz: 1.0 / dt,
         valid: vec![true; accel_mps2.len()],
+        flagged: false,
         accel_mps2,
         calibration,
     }

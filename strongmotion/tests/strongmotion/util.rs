@@ -29,6 +29,7 @@ pub fn record(
         start_s,
         sample_rate_hz: rate_hz,
         valid: vec![true; n],
+        flagged: false,
         accel_mps2,
         calibration,
     }
