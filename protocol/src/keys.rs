@@ -15,6 +15,8 @@
 //! triax/<building>/health/<sensor>               SensorHealthReport (JSON), gateway → lab, operators
 //! triax/<building>/buffer/<sensor>               node's buffer query → raw batches (binary), gateway → node
 //! triax/<building>/modes                         BuildingModes (JSON), modal service → operators
+//! triax/<building>/event/<event>                 SignedEvent (JSON), event service → operators (put and queryable)
+//! triax/<building>/events                        EventList (JSON), event service queryable
 //! ```
 //!
 //! Building and sensor ids are 1 to 64 characters from `A–Z a–z 0–9 _ -`. That keeps every key
@@ -155,6 +157,12 @@ id_type!(
     SensorId,
     "sensor"
 );
+id_type!(
+    /// An event of a building, unique within the building (the event service names it by its
+    /// start, `20270115T080112Z`).
+    EventId,
+    "event"
+);
 
 /// A sensor's id held in place, with no allocation behind it: the key of a table looked up
 /// every batch. A key that points to its text elsewhere (a [`SensorId`]) is, at a building's
@@ -256,6 +264,10 @@ pub enum Key {
     Buffer(BuildingId, SensorId),
     /// The building's modes identified over each window (the modal service's publications).
     Modes(BuildingId),
+    /// One event's signed report (the event service's publications, and its queryable).
+    Event(BuildingId, EventId),
+    /// The building's list of events (the event service's queryable).
+    Events(BuildingId),
 }
 
 /// Why a key string is not a Triax key.
@@ -289,7 +301,9 @@ impl Key {
             | Key::Alerting(b)
             | Key::Health(b, _)
             | Key::Buffer(b, _)
-            | Key::Modes(b) => b,
+            | Key::Modes(b)
+            | Key::Event(b, _)
+            | Key::Events(b) => b,
         }
     }
 
@@ -308,7 +322,9 @@ impl Key {
             | Key::Status(_)
             | Key::Heartbeat(_)
             | Key::Alerting(_)
-            | Key::Modes(_) => None,
+            | Key::Modes(_)
+            | Key::Event(_, _)
+            | Key::Events(_) => None,
         }
     }
 
@@ -339,6 +355,8 @@ impl Key {
             ["health", s] => Key::Health(b, sensor(s)?),
             ["buffer", s] => Key::Buffer(b, sensor(s)?),
             ["modes"] => Key::Modes(b),
+            ["event", e] => Key::Event(b, EventId::new(e).map_err(bad_id)?),
+            ["events"] => Key::Events(b),
             _ => return Err(KeyError::UnknownShape { key: key.into() }),
         })
     }
@@ -361,6 +379,8 @@ impl fmt::Display for Key {
             Key::Health(b, s) => write!(f, "{ROOT}/{b}/health/{s}"),
             Key::Buffer(b, s) => write!(f, "{ROOT}/{b}/buffer/{s}"),
             Key::Modes(b) => write!(f, "{ROOT}/{b}/modes"),
+            Key::Event(b, e) => write!(f, "{ROOT}/{b}/event/{e}"),
+            Key::Events(b) => write!(f, "{ROOT}/{b}/events"),
         }
     }
 }
@@ -505,6 +525,22 @@ pub fn all_heartbeats() -> String {
     format!("{ROOT}/*/heartbeat")
 }
 
+/// Key expression for every event report of every building, or of one.
+pub fn all_events(building: Option<&BuildingId>) -> String {
+    match building {
+        Some(b) => format!("{ROOT}/{b}/event/*"),
+        None => format!("{ROOT}/*/event/*"),
+    }
+}
+
+/// Key expression for the event list of every building, or of one.
+pub fn all_event_lists(building: Option<&BuildingId>) -> String {
+    match building {
+        Some(b) => format!("{ROOT}/{b}/events"),
+        None => format!("{ROOT}/*/events"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -570,6 +606,8 @@ mod tests {
             Key::Health(b("hq"), s("acc-01")),
             Key::Buffer(b("hq"), s("acc-01")),
             Key::Modes(b("hq")),
+            Key::Event(b("hq"), EventId::new("20270115T080112Z").unwrap()),
+            Key::Events(b("hq")),
         ];
         for k in keys {
             let text = k.to_string();
@@ -711,5 +749,7 @@ mod tests {
         assert_eq!(all_registries(), "triax/*/calibration/registry");
         assert_eq!(all_statuses(), "triax/*/status");
         assert_eq!(all_heartbeats(), "triax/*/heartbeat");
+        assert_eq!(all_events(Some(&b("hq"))), "triax/hq/event/*");
+        assert_eq!(all_event_lists(None), "triax/*/events");
     }
 }

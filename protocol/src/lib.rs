@@ -5,6 +5,7 @@
 //!   [`batch::CorrectedBatch`]).
 //! - [`record`]: the calibration record ([`record::CalibrationRecord`]), in JSON.
 //! - [`messages`]: signed pushes, acknowledgements, gateway status, tilt and alerts, in JSON.
+//! - [`event`]: the event service's signed reports and its list of events, in JSON.
 //! - [`json`]: the versioned JSON codec every JSON message goes through.
 //!
 //! PROTOCOL.md at the repository root documents every key and payload byte by byte.
@@ -14,6 +15,7 @@
 //! every decoder can be tested on bytes alone. Decoders return typed errors and never panic.
 
 pub mod batch;
+pub mod event;
 pub mod json;
 pub mod keys;
 pub mod messages;
@@ -25,5 +27,5 @@ pub use batch::{
     DecodeError, Mode, RawBatch, RawBatchView,
 };
 pub use json::{from_json, to_json, to_json_pretty, JsonError, JsonMessage, JSON_FORMAT_VERSION};
-pub use keys::{BuildingId, IdError, InlineId, Key, KeyError, SensorId};
+pub use keys::{BuildingId, EventId, IdError, InlineId, Key, KeyError, SensorId};
 pub use record::{CalibrationRecord, CalibrationSet, Domain, RecordError, SetKind};

@@ -9,6 +9,7 @@
 
 use ed25519_dalek::{Signature, Signer, SigningKey, Verifier, VerifyingKey};
 
+use crate::event::{EventReport, SignedEvent};
 use crate::json::{from_json, to_json, JsonError, JSON_FORMAT_VERSION};
 use crate::messages::{Alert, RefusalReason, SignedAlert, SignedRecord, SIGNATURE_ALGORITHM};
 use crate::record::CalibrationRecord;
@@ -133,6 +134,58 @@ pub fn sign_alert(alert: &Alert, key: &SigningKey) -> SignedAlert {
         alert_json,
         signature_hex,
     }
+}
+
+/// Signs an event report: its compact JSON becomes `event_json`, byte for byte what is signed.
+pub fn sign_event(report: &EventReport, key: &SigningKey) -> SignedEvent {
+    // to_json always yields UTF-8 (serde_json writes UTF-8 only).
+    let event_json = String::from_utf8(to_json(report)).expect("JSON is UTF-8");
+    let (public_key_hex, signature_hex) =
+        signed_by(key, &SignedEvent::signing_message(&event_json));
+    SignedEvent {
+        format_version: JSON_FORMAT_VERSION,
+        algorithm: SIGNATURE_ALGORITHM.into(),
+        public_key_hex,
+        event_json,
+        signature_hex,
+    }
+}
+
+/// Reads a signed event report, checked against `trusted` as [`read_alert`] checks an alert
+/// (a bare report is `Unsigned`); the report whatever its trust, an error when the payload is
+/// neither.
+pub fn read_event(
+    payload: &[u8],
+    trusted: &TrustedKeys,
+) -> Result<(EventReport, AlertTrust), JsonError> {
+    let Ok(signed) = from_json::<SignedEvent>(payload) else {
+        return Ok((from_json::<EventReport>(payload)?, AlertTrust::Unsigned));
+    };
+    let report: EventReport = from_json(signed.event_json.as_bytes())?;
+    let key = match public_key_from_hex(&signed.public_key_hex) {
+        Ok(k) if signed.algorithm == SIGNATURE_ALGORITHM => k,
+        _ => {
+            return Ok((
+                report,
+                AlertTrust::BadSignature {
+                    public_key_hex: signed.public_key_hex.clone(),
+                },
+            ))
+        }
+    };
+    let public_key_hex = to_hex(key.as_bytes());
+    let holds = from_hex::<64>("signature", &signed.signature_hex)
+        .map(|b| Signature::from_bytes(&b))
+        .is_ok_and(|sig| {
+            key.verify(&SignedEvent::signing_message(&signed.event_json), &sig)
+                .is_ok()
+        });
+    let trust = match (holds, trusted.keys.contains(&key)) {
+        (false, _) => AlertTrust::BadSignature { public_key_hex },
+        (true, true) => AlertTrust::Verified { public_key_hex },
+        (true, false) => AlertTrust::UnknownKey { public_key_hex },
+    };
+    Ok((report, trust))
 }
 
 /// The signer's public key and its signature of `message`, in hex.
