@@ -191,8 +191,9 @@ impl Browser {
             if tokio::time::Instant::now() > deadline {
                 let page = self.js("return document.body.innerText.slice(0, 3000)");
                 panic!(
-                    "timed out waiting for {what}; the page shows:\n{}",
-                    page.as_str().unwrap_or("")
+                    "timed out waiting for {what}; the page shows:\n{}\nand logged {:#?}",
+                    page.as_str().unwrap_or(""),
+                    self.errors()
                 );
             }
             tokio::time::sleep(Duration::from_millis(100)).await;

@@ -687,7 +687,7 @@
       el('label', {}, 'span ', spanSel),
       el('span', { class: 'meta' }, 'last'),
       [[900, '15 min'], [3600, '1 h'], [86400, '24 h'], [604800, '7 d']].map(([n, t]) => el('button', { class: `last${r.last === n ? ' active' : ''}`, 'data-last': n, onclick: () => { location.hash = sensorBase() + `?last=${n}` + (r.alert ? `&alert=${r.alert}` : '') + processingExtra(r); } }, t)),
-      isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet's deltas every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
+      isLive ? el('label', { title: 'for slow links: a frame a second with only the buckets that changed, the fleet deltas every 5 s (about a fifth of the bytes)' }, el('input', { id: 'lite', type: 'checkbox', checked: liteStream() ? 'checked' : null, onchange: (e) => { localStorage.setItem('triax.lite', e.target.checked ? '1' : '0'); renderSensor(); } }), ' light stream') : null,
       el('label', { title: 'acceleration as corrected, or band-passed, or integrated to velocity or displacement within the band (history views)' }, 'show ',
         el('select', { id: 'quantity' }, Object.keys(QUANTITIES).map((q) => el('option', { value: q, selected: q === r.quantity ? 'selected' : null }, q)))),
       el('label', { title: 'the band in Hz, LOW-HIGH; either may be left out (velocity and displacement need LOW)' }, 'band ', el('input', { id: 'band', type: 'text', size: 8, spellcheck: 'false', placeholder: '0.1-20', value: r.band })), ' Hz ',
