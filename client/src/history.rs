@@ -83,6 +83,11 @@ pub struct Recovered {
 
 /// Reads every batch `request` selects, page by page, handing each to `each` in the order the
 /// gateway sends them (sensor by sensor, in arrival order). Returns how many.
+///
+/// Zenoh ends a query without an error when the link its replies travel on closes (a consumer
+/// that stalled longer than the sending side's `wait_before_close`, 5 s by default), so an
+/// answer shorter than its limit does not prove that the history has no more: the next page is
+/// asked for after the last cursor until one holds nothing.
 pub async fn fetch(
     session: &zenoh::Session,
     request: &HistoryRequest,
@@ -96,7 +101,7 @@ pub async fn fetch(
         let (in_page, last) = page(session, &selector, timeout, each).await?;
         after = last;
         total += in_page;
-        if in_page < PAGE || after.is_none() {
+        if in_page == 0 || after.is_none() {
             return Ok(total);
         }
     }
@@ -135,4 +140,105 @@ async fn page(
         each(Recovered { payload, batch });
     }
     Ok((n, after))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+    use std::sync::Arc;
+
+    use triax_net::{ZenohMode, ZenohSettings};
+    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo, Mode};
+    use zenoh::Wait;
+
+    use super::*;
+
+    fn batch(sequence: u64) -> CorrectedBatch {
+        CorrectedBatch {
+            header: BatchHeader {
+                sensor_id: SensorId::new("acc-01").unwrap(),
+                sequence,
+                timestamp_ns: sequence as i64 * 1_000_000_000,
+                sample_rate_hz: 10.0,
+            },
+            batch_flags: 0,
+            info: CorrectionInfo {
+                calibration_version: 1,
+                mode: Mode::Dynamic,
+                coverage_factor: 2.0,
+            },
+            samples: vec![
+                CorrectedSample {
+                    accel_mps2: [0.0; 3],
+                    uncertainty_mps2: [0.0; 3],
+                    flags: 0,
+                };
+                10
+            ],
+        }
+    }
+
+    fn free_port() -> u16 {
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    /// A history whose first answer ends after three of its five batches, as one whose link
+    /// closed mid-answer does: the fetch asks again after the third and gets the other two.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_answer_cut_short_is_continued_after_its_last_cursor() {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let open = |listen: Vec<String>, connect: Vec<String>| async move {
+            let config = ZenohSettings::loopback(ZenohMode::Peer, listen, connect)
+                .to_config()
+                .unwrap();
+            zenoh::open(config).await.unwrap()
+        };
+        let gateway = open(vec![endpoint.clone()], vec![]).await;
+        let queries = Arc::new(AtomicUsize::new(0));
+        let counted = queries.clone();
+        let _history = gateway
+            .declare_queryable("triax/hq/history/acc-01")
+            .callback(move |q| {
+                counted.fetch_add(1, Relaxed);
+                let params = q.parameters().as_str().to_owned();
+                let after: u64 = params
+                    .split(';')
+                    .find_map(|p| p.strip_prefix("after=acc-01:"))
+                    .map_or(0, |v| v.parse::<u64>().unwrap() + 1);
+                // The first answer stops short of its limit with two batches left.
+                let end = if after == 0 { 3 } else { 5 };
+                for seq in after..end {
+                    q.reply(q.key_expr().clone(), batch(seq).encode())
+                        .attachment(format!("acc-01:{seq}"))
+                        .wait()
+                        .unwrap();
+                }
+            })
+            .await
+            .unwrap();
+        let consumer = open(vec![], vec![endpoint]).await;
+        let request = HistoryRequest::sensor(
+            &BuildingId::new("hq").unwrap(),
+            &SensorId::new("acc-01").unwrap(),
+        );
+        // The consumer's link may take a moment to reach the queryable.
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        let mut got = Vec::new();
+        while got.is_empty() {
+            assert!(std::time::Instant::now() < deadline, "no answer");
+            got.clear();
+            fetch(&consumer, &request, Duration::from_secs(10), &mut |r| {
+                got.push(r.batch.header.sequence)
+            })
+            .await
+            .unwrap();
+        }
+        assert_eq!(got, vec![0, 1, 2, 3, 4]);
+        // The third query found nothing after the last batch: that is the end.
+        assert!(queries.load(Relaxed) >= 3, "{}", queries.load(Relaxed));
+    }
 }

@@ -69,7 +69,7 @@ KIND_CORRECTED = 2
 FORMAT_VERSION = 1
 MAX_SAMPLES = 16384
 RAW_HAS_TEMPERATURE = 0x0001
-FLAGS_ALL = 0x07FF
+FLAGS_ALL = 0x07FF  # the bits defined in this version; readers keep others (PROTOCOL.md §4)
 FLAG_NAMES = [
     "uncalibrated",
     "calibration_expired",
@@ -159,9 +159,8 @@ def encode_raw(sensor, sequence, timestamp_ns, sample_rate_hz, samples, temperat
 def decode_corrected(payload):
     """A corrected batch (§2.2) as a dict; raises DecodeError for anything §2 refuses."""
     payload = bytes(payload)
+    # Flags defined after this reader are kept (any flag means "not clean", PROTOCOL.md §4).
     header, batch_flags, n, off = decode_prefix(payload, KIND_CORRECTED)
-    if batch_flags & ~FLAGS_ALL:
-        raise DecodeError(f"reserved flag bits set in {batch_flags:#06x}")
     expected = off + 14 + CORRECTED_SAMPLE.size * n
     if len(payload) != expected:
         raise DecodeError(f"{n} samples need {expected} bytes, the payload has {len(payload)}")
@@ -173,8 +172,6 @@ def decode_corrected(payload):
     samples = []
     for i in range(n):
         ax, ay, az, ux, uy, uz, flags = CORRECTED_SAMPLE.unpack_from(payload, off + 14 + 26 * i)
-        if flags & ~FLAGS_ALL:
-            raise DecodeError(f"reserved flag bits set in sample {i}: {flags:#06x}")
         samples.append({"accel_mps2": [ax, ay, az], "uncertainty_mps2": [ux, uy, uz], "flags": flags})
     return {
         **header,
@@ -323,7 +320,9 @@ def fetch_history(session, building, sensor, from_seq=None, to_seq=None, timeout
             if reply.ok.attachment is not None:
                 after = reply.ok.attachment.to_bytes().decode()
             n += 1
-        if n < HISTORY_PAGE or after is None:
+        # Zenoh also ends a query, with no error, when its link closes mid-answer: only an
+        # empty page after the last cursor proves the end (PROTOCOL.md §5.1).
+        if n == 0 or after is None:
             return out
 
 

@@ -58,7 +58,9 @@ pub mod flags {
     /// The gateway fetched this batch from the node's buffer after a gap or an outage and
     /// publishes it after later ones: it fills a hole behind the live stream.
     pub const LATE: u16 = 1 << 10;
-    /// Every defined bit; the others are reserved and must be zero.
+    /// Every defined bit. The gateway sets no other; a reader keeps a corrected batch that
+    /// carries one (a flag defined after the reader was written) and treats it as any flag:
+    /// the value is not clean (PROTOCOL.md §4).
     pub const ALL: u16 = (1 << 11) - 1;
     /// The flags that describe a batch, not its samples: set in the batch flags only.
     pub const BATCH_ONLY: u16 = SEQUENCE_GAP | DUPLICATE | LATE;
@@ -545,10 +547,8 @@ impl CorrectedBatch {
     }
 
     pub fn decode(payload: &[u8]) -> Result<CorrectedBatch, DecodeError> {
+        // Flags not defined yet are kept, not refused: a new flag must break no reader.
         let (header, batch_flags, n, mut r) = read_prefix(payload, KIND_CORRECTED)?;
-        if batch_flags & !flags::ALL != 0 {
-            return Err(DecodeError::ReservedFlags(batch_flags));
-        }
         check_len(
             n,
             corrected_len(header.sensor_id.as_str().len(), n),
@@ -566,9 +566,6 @@ impl CorrectedBatch {
         let mut samples = Vec::with_capacity(n);
         for rec in records.chunks_exact(CORRECTED_SAMPLE_BYTES) {
             let flags = u16::from_le_bytes([rec[24], rec[25]]);
-            if flags & !flags::ALL != 0 {
-                return Err(DecodeError::ReservedFlags(flags));
-            }
             samples.push(CorrectedSample {
                 accel_mps2: f32x3_at(rec, 0),
                 uncertainty_mps2: f32x3_at(rec, 12),
@@ -745,6 +742,27 @@ mod tests {
         let bytes = b.encode();
         assert_eq!(bytes.len(), corrected_len(5, 2));
         assert_eq!(CorrectedBatch::decode(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn flags_defined_later_are_kept_by_a_reader() {
+        let later = 1 << 11;
+        let b = CorrectedBatch {
+            header: header(),
+            batch_flags: later | flags::LATE,
+            info: CorrectionInfo {
+                calibration_version: 1,
+                mode: Mode::Dynamic,
+                coverage_factor: 2.0,
+            },
+            samples: vec![CorrectedSample {
+                accel_mps2: [0.1, 0.2, 9.8],
+                uncertainty_mps2: [0.01, 0.02, 0.03],
+                flags: 1 << 15,
+            }],
+        };
+        assert_eq!(CorrectedBatch::decode(&b.encode()).unwrap(), b);
+        assert_eq!(flags::names(later | flags::LATE), vec!["late"]);
     }
 
     #[test]
