@@ -2,7 +2,8 @@
 //! sensors at 100 Hz, their buffers on disk) behind a TCP link the test can cut, a `zenohd`
 //! router, a gateway in a process of its own, and a §5.2 consumer (`triax_client::Follower`).
 //! Faults, in turn: the nodes' link cut, the gateway killed (SIGKILL) and started again, the
-//! router restarted. After each, the consumer must hold every batch the nodes made so far;
+//! router restarted, and one node's link cut with two clean restarts of the gateway during the
+//! cut. After each, the consumer must hold every batch the nodes made so far;
 //! at the end, every batch is in the history once and in the consumer once, and each copy the
 //! consumer holds is the history's replay byte for byte, but for the batches a kill caught
 //! between publishing and the history's flush (the consumer has them live; the restarted
@@ -128,6 +129,15 @@ impl Drop for TempPath {
 type Handed = Arc<Mutex<HashMap<String, Vec<(u64, Vec<u8>)>>>>;
 
 /// Whether the consumer holds every number below `next` of `sensor`.
+/// The highest number the consumer holds of `sensor`.
+fn newest(handed: &Handed, sensor: &str) -> Option<u64> {
+    handed
+        .lock()
+        .unwrap()
+        .get(sensor)
+        .and_then(|got| got.iter().map(|(seq, _)| *seq).max())
+}
+
 fn holds_all(handed: &Handed, sensor: &str, next: u64) -> bool {
     let h = handed.lock().unwrap();
     let Some(got) = h.get(sensor) else {
@@ -224,6 +234,10 @@ enum Fault {
     Cut,
     Kill,
     Router,
+    /// The first node's link cut, and the gateway stopped cleanly and started again twice while
+    /// it is: each start opens a history segment that holds the other nodes and nothing of the
+    /// first, and the backfill must still find what the history holds of it from before.
+    CutRestarts,
 }
 
 /// The figures of a run.
@@ -245,7 +259,9 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
     let store = dir.path().join("store");
     seed_store(&store, &SENSORS.map(|s| sample::record(s, 1)));
     let mut router = Router::start().await;
+    // The first node has a link of its own, which a fault may cut while the others stream on.
     let link = Link::to(&router.endpoint).await;
+    let lone = Link::to(&router.endpoint).await;
     let consumer = {
         let settings =
             ZenohSettings::loopback(ZenohMode::Client, vec![], vec![router.endpoint.clone()]);
@@ -297,11 +313,18 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
         }
     });
 
-    // The nodes, each with its own session through the link.
+    // The nodes, each with its own session through its link.
     let mut nodes: Vec<(oneshot::Sender<()>, tokio::task::JoinHandle<Summary>)> = Vec::new();
     for (i, s) in SENSORS.iter().enumerate() {
-        let settings =
-            ZenohSettings::loopback(ZenohMode::Client, vec![], vec![link.endpoint.clone()]);
+        let settings = ZenohSettings::loopback(
+            ZenohMode::Client,
+            vec![],
+            vec![if i == 0 {
+                lone.endpoint.clone()
+            } else {
+                link.endpoint.clone()
+            }],
+        );
         let session = zenoh::open(triax_net::outbound_config(&settings).unwrap())
             .await
             .unwrap();
@@ -372,12 +395,14 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
     };
     caught_up(consumer.clone(), handed.clone()).await;
     for round in 0..rounds {
-        for fault in [Fault::Cut, Fault::Kill, Fault::Router] {
+        for fault in [Fault::Cut, Fault::Kill, Fault::Router, Fault::CutRestarts] {
             match fault {
                 Fault::Cut => {
                     link.cut();
+                    lone.cut();
                     tokio::time::sleep(down).await;
                     link.restore();
+                    lone.restore();
                 }
                 Fault::Kill => {
                     gateway.kill().unwrap();
@@ -387,6 +412,23 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
                     answering(consumer.clone()).await;
                 }
                 Fault::Router => router.restart_after(down).await,
+                Fault::CutRestarts => {
+                    lone.cut();
+                    for _ in 0..2 {
+                        let status = triax_test_support::child::stop_cleanly(&mut gateway);
+                        assert!(status.success(), "the gateway stopped cleanly: {status}");
+                        let before = newest(&handed, SENSORS[1]);
+                        gateway = start_gateway(&mut runs);
+                        answering(consumer.clone()).await;
+                        // The new run's segment holds the streaming nodes before it stops.
+                        wait_until("a streaming node's batch through the new run", || {
+                            newest(&handed, SENSORS[1]) > before
+                        })
+                        .await;
+                    }
+                    tokio::time::sleep(down).await;
+                    lone.restore();
+                }
             }
             let back = Instant::now();
             caught_up(consumer.clone(), handed.clone()).await;
@@ -394,6 +436,7 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
                 Fault::Cut => "link cut",
                 Fault::Kill => "gateway kill -9",
                 Fault::Router => "router restart",
+                Fault::CutRestarts => "link cut, two restarts during it",
             };
             figures
                 .catch_up_s
