@@ -76,6 +76,11 @@ pub struct FollowOptions {
     /// The last batch handled per sensor before a restart ([`Delivery::position`]): what
     /// follows it is read from the history first.
     pub resume_at: BTreeMap<SensorId, Position>,
+    /// The holes saved with each position ([`Delivery::holes`]): late batches that filled them
+    /// while the consumer was away are read from the history first, and those still to come
+    /// are taken when they arrive. Without them a restarted follower drops every late batch
+    /// behind its positions, as one it has.
+    pub resume_holes: BTreeMap<SensorId, Vec<Hole>>,
     /// The last sequence number alone, as older saved state has it: placed in time through the
     /// history (the newest kept batch with that number), then followed as [`Self::resume_at`].
     /// Wrong only if the node restarted while the consumer was away and its new run passed
@@ -105,6 +110,7 @@ impl FollowOptions {
         FollowOptions {
             building,
             resume_at: BTreeMap::new(),
+            resume_holes: BTreeMap::new(),
             resume_after: BTreeMap::new(),
             new_sensors_from_ns: None,
             query_timeout: Duration::from_secs(10),
@@ -124,12 +130,21 @@ pub struct Delivery {
     pub batch: CorrectedBatch,
     /// Read from the history rather than taken live.
     pub recovered: bool,
+    /// The sensor's holes after this batch (oldest first, at most [`MAX_HOLES`]): numbers
+    /// missing behind its position that a gateway may still fill late. Saved with
+    /// [`Delivery::position`], they are what a restarted follower needs to take those batches
+    /// ([`FollowOptions::resume_holes`]).
+    pub holes: Vec<Hole>,
+    /// The sensor's position after this batch: a `late` or `duplicate` batch leaves it where
+    /// it was.
+    mark: Position,
 }
 
 impl Delivery {
-    /// What to save to resume after this batch ([`FollowOptions::resume_at`]).
+    /// What to save to resume after this batch ([`FollowOptions::resume_at`]), with
+    /// [`Delivery::holes`].
     pub fn position(&self) -> Position {
-        Position::of(&self.batch)
+        self.mark
     }
 }
 
@@ -265,7 +280,12 @@ impl Fleet {
                 .map(|(s, p)| (s.clone(), Mark::at(*p)))
                 .collect(),
             beats: HashMap::new(),
-            holes: HashMap::new(),
+            holes: options
+                .resume_holes
+                .iter()
+                .filter(|(_, h)| !h.is_empty())
+                .map(|(s, h)| (s.clone(), h[h.len().saturating_sub(MAX_HOLES)..].to_vec()))
+                .collect(),
             options,
             tx,
             counters: counters.clone(),
@@ -388,10 +408,10 @@ pub const MAX_HOLES: usize = 64;
 
 /// Batches the numbering says are missing between two handed over: a gateway may still fill
 /// them late. `after` is the last handed over below the hole, `before` the first above.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Hole {
-    after: Position,
-    before: Position,
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Hole {
+    pub after: Position,
+    pub before: Position,
 }
 
 impl Hole {
@@ -559,20 +579,47 @@ impl State {
             &self.counters.live
         };
         c.fetch_add(1, Relaxed);
+        let holes = self
+            .holes
+            .get(&batch.header.sensor_id)
+            .cloned()
+            .unwrap_or_default();
+        let mark = self
+            .marks
+            .get(&batch.header.sensor_id)
+            .map_or_else(|| Position::of(&batch), |m| m.position);
         self.tx
             .send(Delivery {
                 building: self.options.building.clone(),
                 payload,
                 batch,
                 recovered,
+                holes,
+                mark,
             })
             .await
             .is_ok()
     }
 
-    /// Reads what the consumer missed while it was away: places the sequence numbers of
-    /// `resume_after` in time, then reads every resumed sensor's history on from its mark.
+    /// Reads what the consumer missed while it was away: the late batches kept meanwhile in the
+    /// holes it saved, then places the sequence numbers of `resume_after` in time, then reads
+    /// every resumed sensor's history on from its mark.
     async fn resume(&mut self) -> bool {
+        let saved: Vec<(SensorId, Hole)> = self
+            .holes
+            .iter()
+            .flat_map(|(s, holes)| holes.iter().map(|h| (s.clone(), *h)))
+            .collect();
+        for (sensor, hole) in saved {
+            // A hole a batch of an earlier one filled meanwhile is smaller now, or gone.
+            let Some(now) = self.hole_of(&sensor, hole.before.timestamp_ns.saturating_sub(1))
+            else {
+                continue;
+            };
+            if !self.fill_hole(&sensor, now, Until::End).await {
+                return false;
+            }
+        }
         let by_number: Vec<(SensorId, u64)> = self
             .options
             .resume_after

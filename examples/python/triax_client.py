@@ -353,7 +353,7 @@ class Follower:
     alone, since a restarted node numbers a new run from 0 again. Batches flagged `late` fill the
     holes the numbering showed (§5.2 step 6): per sensor it remembers them, at most MAX_HOLES."""
 
-    def __init__(self, session, building, resume=None, new_sensors_from_ns=None):
+    def __init__(self, session, building, resume=None, new_sensors_from_ns=None, holes=None):
         self.session = session
         self.building = building
         # sensor -> (sequence, timestamp_ns, end_ns) of the last batch handed over.
@@ -373,8 +373,14 @@ class Follower:
         self.ready = []
         self.recovered = 0
         self.late = 0
-        # sensor -> list of [after, before] positions around batches still missing.
-        self.holes = {}
+        # sensor -> list of [after, before] positions around batches still missing; saved ones
+        # first: late batches kept in them while we were away come from the history.
+        self.holes = {s: [list(h) for h in hs] for s, hs in (holes or {}).items() if hs}
+        for sensor, hs in list(self.holes.items()):
+            for hole in [list(h) for h in hs]:
+                now = self.hole_of(sensor, hole[1][1] - 1)
+                if now is not None:
+                    self.fill_hole(sensor, now, before=now[1])
         for sensor, mark in list(self.marks.items()):
             self.recover(sensor, mark[1] + 1)
 
@@ -534,30 +540,37 @@ class Follower:
 
 
 def resume_state(path):
-    """The position (sequence, timestamp_ns) of the last batch per sensor in an output file of
-    `follow --out`, duplicates aside. A line cut short by a kill is removed: its batch was not
-    handed over, and comes again from the history."""
-    last = {}
+    """What a follower resumes from, read from an output file of `follow --out`: per sensor the
+    position (sequence, timestamp_ns) of the last batch, duplicates and late batches aside, and
+    the holes still open behind it (§5.2 steps 5 and 6), found by handing the file's batches
+    over again in their order. A line cut short by a kill is removed: its batch was not handed
+    over, and comes again from the history."""
+    replay = Follower.__new__(Follower)
+    replay.marks, replay.holes, replay.ready, replay.late = {}, {}, [], 0
+    # A sensor's first batch in the file opens no hole below it: what came before it is not
+    # known from the file.
+    replay.new_from_ns = 2**63
     try:
         with open(path, "rb") as f:
             data = f.read()
     except FileNotFoundError:
-        return last
+        return {}, {}
     whole = data[: data.rfind(b"\n") + 1]
     if len(whole) != len(data):
         with open(path, "r+b") as f:
             f.truncate(len(whole))
     for line in whole.splitlines():
         b = json.loads(line)
-        if not is_duplicate(b) and not is_late(b):
-            last[b["sensor_id"]] = position(b)
-    return last
+        replay.hand_over(None, b)
+        replay.ready.clear()
+    last = {s: (m[0], m[1]) for s, m in replay.marks.items()}
+    return last, replay.holes
 
 
 def cmd_follow(args):
     session = open_session(args)
-    last = resume_state(args.out) if args.out else {}
-    follower = Follower(session, args.building, last)
+    last, holes = resume_state(args.out) if args.out else ({}, {})
+    follower = Follower(session, args.building, last, holes=holes)
     out = open(args.out, "a", buffering=1) if args.out else sys.stdout
     print(json.dumps({"event": "ready", "resumed_sensors": len(last)}), file=sys.stderr, flush=True)
     handed = 0

@@ -2,8 +2,9 @@
 //! sensors at 100 Hz, their buffers on disk) behind a TCP link the test can cut, a `zenohd`
 //! router, a gateway in a process of its own, and a §5.2 consumer (`triax_client::Follower`).
 //! Faults, in turn: the nodes' link cut, the gateway killed (SIGKILL) and started again, the
-//! router restarted, and one node's link cut with two clean restarts of the gateway during the
-//! cut. After each, the consumer must hold every batch the nodes made so far;
+//! router restarted, one node's link cut with two clean restarts of the gateway during the
+//! cut, and the consumer killed and restarted from its saved positions and holes while the
+//! gateway fills the holes a cut made. After each, the consumer must hold every batch the nodes made so far;
 //! at the end, every batch is in the history once and in the consumer once, and each copy the
 //! consumer holds is the history's replay byte for byte, but for the batches a kill caught
 //! between publishing and the history's flush (the consumer has them live; the restarted
@@ -26,7 +27,7 @@ use triax_test_support::child::Entry;
 
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::oneshot;
-use triax_client::follow::{FollowOptions, Follower};
+use triax_client::follow::{FollowOptions, Follower, Hole, Position};
 use triax_client::{history::fetch, HistoryRequest};
 use triax_net::{ZenohMode, ZenohSettings};
 use triax_node::{NodeConfig, RingConfig, SimSource, Summary};
@@ -128,7 +129,47 @@ impl Drop for TempPath {
 /// What the consumer handed over, per sensor: (sequence, payload), in order.
 type Handed = Arc<Mutex<HashMap<String, Vec<(u64, Vec<u8>)>>>>;
 
-/// Whether the consumer holds every number below `next` of `sensor`.
+/// What the consumer saves after each batch it takes, as a consumer that restarts must (§5.2
+/// step 5): per sensor its position and its holes, and how many late batches it took.
+#[derive(Default)]
+struct Saved {
+    positions: BTreeMap<SensorId, Position>,
+    holes: BTreeMap<SensorId, Vec<Hole>>,
+    late: u64,
+}
+
+/// Starts a follower resumed from `saved`, and the consumer that takes its batches into
+/// `handed` and saves after each one, under the same lock: a kill leaves them agreeing.
+async fn consume(
+    consumer: &zenoh::Session,
+    handed: &Handed,
+    saved: &Arc<Mutex<Saved>>,
+) -> tokio::task::JoinHandle<()> {
+    let mut options = FollowOptions::new(BuildingId::new(BUILDING).unwrap());
+    options.new_sensors_from_ns = Some(i64::MIN);
+    {
+        let s = saved.lock().unwrap();
+        options.resume_at = s.positions.clone();
+        options.resume_holes = s.holes.clone();
+    }
+    let mut follower = Follower::start(consumer, options).await.unwrap();
+    let (h, s) = (handed.clone(), saved.clone());
+    tokio::spawn(async move {
+        while let Some(d) = follower.next().await {
+            let mut handed = h.lock().unwrap();
+            let mut saved = s.lock().unwrap();
+            let sensor = d.batch.header.sensor_id.clone();
+            saved.positions.insert(sensor.clone(), d.position());
+            saved.holes.insert(sensor.clone(), d.holes.clone());
+            saved.late += u64::from(d.batch.batch_flags & flags::LATE != 0);
+            handed
+                .entry(sensor.to_string())
+                .or_default()
+                .push((d.batch.header.sequence, d.payload));
+        }
+    })
+}
+
 /// The highest number the consumer holds of `sensor`.
 fn newest(handed: &Handed, sensor: &str) -> Option<u64> {
     handed
@@ -138,6 +179,7 @@ fn newest(handed: &Handed, sensor: &str) -> Option<u64> {
         .and_then(|got| got.iter().map(|(seq, _)| *seq).max())
 }
 
+/// Whether the consumer holds every number below `next` of `sensor`.
 fn holds_all(handed: &Handed, sensor: &str, next: u64) -> bool {
     let h = handed.lock().unwrap();
     let Some(got) = h.get(sensor) else {
@@ -238,6 +280,10 @@ enum Fault {
     /// it is: each start opens a history segment that holds the other nodes and nothing of the
     /// first, and the backfill must still find what the history holds of it from before.
     CutRestarts,
+    /// Every link cut, and the consumer killed and restarted from what it saved while the
+    /// gateway fills the holes: it must take the late batches still to come and those that
+    /// came while it was away, once each.
+    ConsumerKill,
 }
 
 /// The figures of a run.
@@ -298,20 +344,9 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
     let mut gateway: Child = start_gateway(&mut runs);
     answering(consumer.clone()).await;
 
-    let mut options = FollowOptions::new(BuildingId::new(BUILDING).unwrap());
-    options.new_sensors_from_ns = Some(i64::MIN);
-    let mut follower = Follower::start(&consumer, options).await.unwrap();
     let handed: Handed = Arc::default();
-    let h = handed.clone();
-    let collector = tokio::spawn(async move {
-        while let Some(d) = follower.next().await {
-            h.lock()
-                .unwrap()
-                .entry(d.batch.header.sensor_id.to_string())
-                .or_default()
-                .push((d.batch.header.sequence, d.payload));
-        }
-    });
+    let saved: Arc<Mutex<Saved>> = Arc::default();
+    let mut collector = consume(&consumer, &handed, &saved).await;
 
     // The nodes, each with its own session through its link.
     let mut nodes: Vec<(oneshot::Sender<()>, tokio::task::JoinHandle<Summary>)> = Vec::new();
@@ -395,7 +430,13 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
     };
     caught_up(consumer.clone(), handed.clone()).await;
     for round in 0..rounds {
-        for fault in [Fault::Cut, Fault::Kill, Fault::Router, Fault::CutRestarts] {
+        for fault in [
+            Fault::Cut,
+            Fault::Kill,
+            Fault::Router,
+            Fault::CutRestarts,
+            Fault::ConsumerKill,
+        ] {
             match fault {
                 Fault::Cut => {
                     link.cut();
@@ -412,6 +453,20 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
                     answering(consumer.clone()).await;
                 }
                 Fault::Router => router.restart_after(down).await,
+                Fault::ConsumerKill => {
+                    link.cut();
+                    lone.cut();
+                    tokio::time::sleep(down).await;
+                    let late = saved.lock().unwrap().late;
+                    link.restore();
+                    lone.restore();
+                    // Killed while the gateway fills the holes the cut made: once the first
+                    // late batch is taken, the others still to come.
+                    wait_until("a late batch taken", || saved.lock().unwrap().late > late).await;
+                    collector.abort();
+                    let _ = collector.await;
+                    collector = consume(&consumer, &handed, &saved).await;
+                }
                 Fault::CutRestarts => {
                     lone.cut();
                     for _ in 0..2 {
@@ -437,6 +492,7 @@ async fn run_faults(rounds: usize, down: Duration) -> Figures {
                 Fault::Kill => "gateway kill -9",
                 Fault::Router => "router restart",
                 Fault::CutRestarts => "link cut, two restarts during it",
+                Fault::ConsumerKill => "consumer killed during a backfill",
             };
             figures
                 .catch_up_s
