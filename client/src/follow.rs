@@ -33,8 +33,9 @@
 //! So history answers are taken in time order, and the follower remembers, per sensor, the
 //! holes the numbering showed (at most [`MAX_HOLES`], the oldest forgotten first): a live
 //! batch flagged `late` inside one is handed over (`late` batches go out after later ones),
-//! the history read for any late batch lost before it, and the hole shrinks; one outside every
-//! hole was handed over already. A heartbeat's `late_timestamp_ns` inside a hole reads the
+//! the history read for any late batch lost before it, and the hole shrinks; one behind the
+//! position outside every hole was handed over already, and one ahead of the position is
+//! taken in line as a live batch is (the live batch that would have shown its hole was lost). A heartbeat's `late_timestamp_ns` inside a hole reads the
 //! history up to it: late batches lost on the link, the last ones of a hole included.
 
 use std::collections::{BTreeMap, HashMap};
@@ -662,13 +663,21 @@ impl State {
             tracing::warn!("a corrected batch that does not decode skipped");
             return true;
         };
+        let sensor = batch.header.sensor_id.clone();
         if is_late(&batch) {
             if !self.options.late_batches {
                 return true;
             }
-            return self.late(payload, batch).await;
+            let behind = self
+                .marks
+                .get(&sensor)
+                .is_some_and(|m| batch.header.timestamp_ns <= m.position.timestamp_ns);
+            if behind {
+                return self.late(payload, batch).await;
+            }
+            // Ahead of the position: it overtook (or outlived) the live batch that would have
+            // shown its hole, and is taken in line as a live batch is.
         }
-        let sensor = batch.header.sensor_id.clone();
         match judge(self.marks.get(&sensor), self.new_sensors_from_ns, &batch) {
             Next::Skip => true,
             Next::Deliver => self.deliver(payload, batch, false).await,

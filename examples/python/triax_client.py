@@ -472,9 +472,12 @@ class Follower:
         batch = decode_corrected(payload)
         sensor = batch["sensor_id"]
         seq, ts = position(batch)
-        if is_late(batch):
+        mark = self.marks.get(sensor)
+        if is_late(batch) and mark is not None and ts <= mark[1]:
             self.on_late(payload, batch)
             return
+        # A late batch ahead of the position overtook (or outlived) the live batch that would
+        # have shown its hole: taken in line as a live batch is.
         if is_duplicate(batch):
             self.hand_over(payload, batch)  # a repeat, passed on as the live stream carries it
             return
