@@ -909,15 +909,15 @@ impl State {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use triax_protocol::batch::Mode;
     use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo};
 
     const SECOND: i64 = 1_000_000_000;
 
-    /// A batch of one second (10 samples at 10 Hz) starting at `t_s`.
-    fn batch(sequence: u64, t_s: i64, batch_flags: u16) -> CorrectedBatch {
+    /// A batch of sensor `s`: one second (10 samples at 10 Hz) starting at `t_s`.
+    pub(crate) fn batch(sequence: u64, t_s: i64, batch_flags: u16) -> CorrectedBatch {
         CorrectedBatch {
             header: BatchHeader {
                 sensor_id: SensorId::new("s").unwrap(),

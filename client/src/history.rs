@@ -148,34 +148,14 @@ mod tests {
     use std::sync::Arc;
 
     use triax_net::{ZenohMode, ZenohSettings};
-    use triax_protocol::batch::{BatchHeader, CorrectedSample, CorrectionInfo, Mode};
     use zenoh::Wait;
 
     use super::*;
 
     fn batch(sequence: u64) -> CorrectedBatch {
-        CorrectedBatch {
-            header: BatchHeader {
-                sensor_id: SensorId::new("acc-01").unwrap(),
-                sequence,
-                timestamp_ns: sequence as i64 * 1_000_000_000,
-                sample_rate_hz: 10.0,
-            },
-            batch_flags: 0,
-            info: CorrectionInfo {
-                calibration_version: 1,
-                mode: Mode::Dynamic,
-                coverage_factor: 2.0,
-            },
-            samples: vec![
-                CorrectedSample {
-                    accel_mps2: [0.0; 3],
-                    uncertainty_mps2: [0.0; 3],
-                    flags: 0,
-                };
-                10
-            ],
-        }
+        let mut b = crate::follow::tests::batch(sequence, sequence as i64, 0);
+        b.header.sensor_id = SensorId::new("acc-01").unwrap();
+        b
     }
 
     fn free_port() -> u16 {

@@ -591,7 +591,20 @@ async fn trend_spectrum_and_csv_over_http() {
     let t = console.json(&q("/api/trend", from, now)).await;
     assert_eq!(t["error"], Value::Null, "{}", t["error"]);
     let minutes = t["minutes"].as_array().unwrap();
-    assert!(minutes.len() >= 68, "{}", minutes.len());
+    assert!(
+        minutes.len() >= 68,
+        "{} minutes from {} batches read; the first starts {:?} s after from_ns, the last {:?} s",
+        minutes.len(),
+        t["batches_read"],
+        minutes
+            .first()
+            .and_then(|m| m["start_ns"].as_i64())
+            .map(|t| (t - from) / 1_000_000_000),
+        minutes
+            .last()
+            .and_then(|m| m["start_ns"].as_i64())
+            .map(|t| (t - from) / 1_000_000_000)
+    );
     let m = &minutes[10];
     assert_eq!(m["samples"], 6000);
     assert!(

@@ -141,37 +141,12 @@ impl Site {
         let t0_ns = (now_ns() - history_s * 1_000_000_000) / period_ns * period_ns;
         let history = session
             .declare_queryable("triax/hq/history/*")
+            // Each query answered from a thread of its own, as a gateway answers from its replay
+            // thread: a callback sending thousands of replies with block congestion control holds
+            // the site's receive thread, and everything else its session hears, until the console
+            // has taken them all.
             .callback(move |q| {
-                let key = q.key_expr().as_str().to_owned();
-                let sensor = key.rsplit('/').next().unwrap_or_default().to_owned();
-                let Some(n) = SENSORS.iter().position(|s| *s == sensor) else {
-                    return;
-                };
-                let params = q.parameters().as_str().to_owned();
-                let num = |name| param(&params, name).and_then(|v| v.parse::<i64>().ok());
-                let now = now_ns();
-                let from = num("from_ns").unwrap_or(t0_ns).max(t0_ns);
-                let to = num("to_ns").unwrap_or(now).min(now);
-                let limit = num("limit").unwrap_or(10_000);
-                let after = num("after");
-                let mut seq = ((from - t0_ns) / period_ns).max(0) as u64;
-                if let Some(a) = after {
-                    seq = seq.max(a as u64 + 1);
-                }
-                let mut sent = 0;
-                while sent < limit {
-                    let b = batch(n, &sensor, t0_ns, seq);
-                    // A batch is kept once its last sample is past.
-                    if b.header.timestamp_ns >= to || b.header.timestamp_ns + period_ns > now {
-                        break;
-                    }
-                    let _ = q
-                        .reply(key.as_str(), b.encode())
-                        .attachment(seq.to_string())
-                        .wait();
-                    seq += 1;
-                    sent += 1;
-                }
+                std::thread::spawn(move || answer_history(q, t0_ns, period_ns));
             })
             .await
             .unwrap();
@@ -737,4 +712,43 @@ pub fn base64_decode(s: &str) -> Vec<u8> {
         out.extend_from_slice(&acc.to_be_bytes()[1..chunk.len()]);
     }
     out
+}
+
+/// Answers one history query of the site, as PROTOCOL.md §5.1 says a gateway does. A reply that
+/// cannot be sent ends the answer, said on standard error, so that a short answer is seen.
+fn answer_history(q: zenoh::query::Query, t0_ns: i64, period_ns: i64) {
+    let key = q.key_expr().as_str().to_owned();
+    let sensor = key.rsplit('/').next().unwrap_or_default().to_owned();
+    let Some(n) = SENSORS.iter().position(|s| *s == sensor) else {
+        return;
+    };
+    let params = q.parameters().as_str().to_owned();
+    let num = |name| param(&params, name).and_then(|v| v.parse::<i64>().ok());
+    let now = now_ns();
+    let from = num("from_ns").unwrap_or(t0_ns).max(t0_ns);
+    let to = num("to_ns").unwrap_or(now).min(now);
+    let limit = num("limit").unwrap_or(10_000);
+    let after = num("after");
+    let mut seq = ((from - t0_ns) / period_ns).max(0) as u64;
+    if let Some(a) = after {
+        seq = seq.max(a as u64 + 1);
+    }
+    let mut sent = 0;
+    while sent < limit {
+        let b = batch(n, &sensor, t0_ns, seq);
+        // A batch is kept once its last sample is past.
+        if b.header.timestamp_ns >= to || b.header.timestamp_ns + period_ns > now {
+            break;
+        }
+        if let Err(e) = q
+            .reply(key.as_str(), b.encode())
+            .attachment(seq.to_string())
+            .wait()
+        {
+            eprintln!("site: history reply {seq} of {sensor} not sent: {e}");
+            break;
+        }
+        seq += 1;
+        sent += 1;
+    }
 }
