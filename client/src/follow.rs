@@ -35,8 +35,9 @@
 //! batch flagged `late` inside one is handed over (`late` batches go out after later ones),
 //! the history read for any late batch lost before it, and the hole shrinks; one behind the
 //! position outside every hole was handed over already, and one ahead of the position is
-//! taken in line as a live batch is (the live batch that would have shown its hole was lost). A heartbeat's `late_timestamp_ns` inside a hole reads the
-//! history up to it: late batches lost on the link, the last ones of a hole included.
+//! taken in line as a live batch is (the live batch that would have shown its hole was lost).
+//! A heartbeat's `late_timestamp_ns` inside a hole reads the history up to it: late batches
+//! lost on the link, the last ones of a hole included.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -668,10 +669,14 @@ impl State {
             if !self.options.late_batches {
                 return true;
             }
+            // Behind the position, or, for a sensor not met yet, before it is followed from.
+            let t = batch.header.timestamp_ns;
             let behind = self
                 .marks
                 .get(&sensor)
-                .is_some_and(|m| batch.header.timestamp_ns <= m.position.timestamp_ns);
+                .map_or(t < self.new_sensors_from_ns, |m| {
+                    t <= m.position.timestamp_ns
+                });
             if behind {
                 return self.late(payload, batch).await;
             }

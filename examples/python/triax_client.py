@@ -473,7 +473,8 @@ class Follower:
         sensor = batch["sensor_id"]
         seq, ts = position(batch)
         mark = self.marks.get(sensor)
-        if is_late(batch) and mark is not None and ts <= mark[1]:
+        # Behind the position, or, for a sensor not met yet, before it is followed from.
+        if is_late(batch) and (ts <= mark[1] if mark is not None else ts < self.new_from_ns):
             self.on_late(payload, batch)
             return
         # A late batch ahead of the position overtook (or outlived) the live batch that would
