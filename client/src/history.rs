@@ -148,6 +148,7 @@ mod tests {
     use std::sync::Arc;
 
     use triax_net::{ZenohMode, ZenohSettings};
+    use triax_test_support::free_port;
     use zenoh::Wait;
 
     use super::*;
@@ -156,14 +157,6 @@ mod tests {
         let mut b = crate::follow::tests::batch(sequence, sequence as i64, 0);
         b.header.sensor_id = SensorId::new("acc-01").unwrap();
         b
-    }
-
-    fn free_port() -> u16 {
-        std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
     }
 
     /// A history whose first answer ends after three of its five batches, as one whose link
