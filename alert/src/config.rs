@@ -38,9 +38,11 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use serde::Deserialize;
 pub use triax_net::{ConfigError, ZenohMode, ZenohSettings};
+use triax_protocol::provenance::GatewayKeys;
 use triax_protocol::{BuildingId, SensorId};
 
 use crate::decision::{Direction, Limit};
@@ -194,6 +196,10 @@ pub struct Config {
     /// created with its `.pub` beside it when the file does not exist. None: a key made for
     /// this run only, which consumers cannot have configured.
     pub signing_key_file: Option<PathBuf>,
+    /// `[gateways]`: per building, the gateway key whose seals and signatures make data the
+    /// gateway's (PROTOCOL.md §6). None (no table): everything is taken on trust, and alerts
+    /// may be signed for what any peer put.
+    pub gateway_keys: Option<Arc<GatewayKeys>>,
 }
 
 impl Config {
@@ -245,6 +251,8 @@ struct FileConfig {
     watch_all_buildings: bool,
     state_path: Option<PathBuf>,
     signing_key_file: Option<PathBuf>,
+    #[serde(default)]
+    gateways: BTreeMap<String, String>,
     #[serde(default)]
     zenoh: ZenohSettings,
     #[serde(default)]
@@ -386,6 +394,7 @@ impl FileConfig {
                 Some(p) => Some(p),
             },
             signing_key_file: self.signing_key_file.filter(|p| !p.as_os_str().is_empty()),
+            gateway_keys: triax_net::keys::trusted_gateways(&self.gateways)?,
         })
     }
 }

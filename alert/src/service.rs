@@ -29,7 +29,8 @@ use tokio::sync::mpsc;
 use triax_client::{Delivery, Fleet, FollowOptions, Following};
 use triax_protocol::keys::{all_buildings, all_sensors, Stream};
 use triax_protocol::messages::{Alert, AlertingStatus, TiltSample};
-use triax_protocol::signing::{sign_alert, signing_key_from_hex, to_hex, LabSigningKey};
+use triax_protocol::provenance::verify_message;
+use triax_protocol::signing::{sign_alert, to_hex, LabSigningKey};
 use triax_protocol::{from_json, to_json, BuildingId, CorrectedBatch, Key, SensorId};
 
 use crate::config::Config;
@@ -66,41 +67,22 @@ pub fn signing_key(path: Option<&Path>) -> Result<LabSigningKey, ServiceError> {
         );
         return Ok(key);
     };
-    let failed = |message: String| ServiceError::SigningKey {
-        path: path.display().to_string(),
-        message,
-    };
-    if path.exists() {
-        let text = std::fs::read_to_string(path).map_err(|e| failed(e.to_string()))?;
-        let key = signing_key_from_hex(&text).map_err(|e| failed(e.to_string()))?;
-        tracing::info!(path = %path.display(), public_key = %to_hex(key.verifying_key().as_bytes()), "signing alerts");
-        return Ok(key);
-    }
-    let key = LabSigningKey::generate(&mut rand::rngs::OsRng);
-    write_secret(path, &to_hex(&key.to_bytes())).map_err(|e| failed(e.to_string()))?;
+    let (key, origin) =
+        triax_net::keys::signing_key(path).map_err(|e| ServiceError::SigningKey {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })?;
     let public = to_hex(key.verifying_key().as_bytes());
-    let mut pub_path = path.as_os_str().to_owned();
-    pub_path.push(".pub");
-    std::fs::write(&pub_path, format!("{public}\n")).map_err(|e| failed(e.to_string()))?;
-    tracing::warn!(path = %path.display(), public_key = %public,
-        "created a signing key: give consumers its public key (the .pub beside it)");
-    Ok(key)
-}
-
-/// Writes a secret readable by its owner only.
-fn write_secret(path: &Path, text: &str) -> std::io::Result<()> {
-    use std::io::Write;
-    let mut options = std::fs::OpenOptions::new();
-    options.write(true).create_new(true);
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::OpenOptionsExt;
-        options.mode(0o600);
+    match origin {
+        triax_net::keys::Origin::Read => {
+            tracing::info!(path = %path.display(), public_key = %public, "signing alerts")
+        }
+        triax_net::keys::Origin::Made => {
+            tracing::warn!(path = %path.display(), public_key = %public,
+            "created a signing key: give consumers its public key (the .pub beside it)")
+        }
     }
-    let mut f = options.open(path)?;
-    f.write_all(text.as_bytes())?;
-    f.write_all(b"\n")?;
-    f.sync_all()
+    Ok(key)
 }
 
 fn zenoh_error(what: &'static str) -> impl FnOnce(zenoh::Error) -> ServiceError {
@@ -114,6 +96,7 @@ enum Inbound {
     Tilt {
         key: String,
         payload: Vec<u8>,
+        attachment: Option<Vec<u8>>,
     },
     /// A gateway's heartbeat named a building not followed yet.
     Building(BuildingId),
@@ -330,6 +313,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
                 let msg = Inbound::Tilt {
                     key: sample.key_expr().as_str().to_owned(),
                     payload: sample.payload().to_bytes().into_owned(),
+                    attachment: sample.attachment().map(|a| a.to_bytes().into_owned()),
                 };
                 if tx.try_send(msg).is_err() {
                     dropped.fetch_add(1, Ordering::Relaxed);
@@ -358,7 +342,12 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     let only = (!config.watch_all_buildings && config.buildings.len() == 1)
         .then(|| config.buildings.keys().next().cloned())
         .flatten();
-    let fleet = Fleet::start(&session, only.as_ref())
+    if config.gateway_keys.is_none() {
+        tracing::warn!(
+            "no [gateways] keys: batches and tilt from any peer are judged as the gateway's"
+        );
+    }
+    let fleet = Fleet::start(&session, only.as_ref(), config.gateway_keys.clone())
         .await
         .map_err(|e| ServiceError::Zenoh {
             what: "follow the buildings",
@@ -398,13 +387,29 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
             },
             msg = rx.recv() => match msg {
                 Some(Inbound::Building(b)) => {
-                    if followed.insert(b.clone()) {
+                    // A heartbeat any peer can put: with keys, only a building one is trusted
+                    // for is followed.
+                    let trusted = config
+                        .gateway_keys
+                        .as_ref()
+                        .is_none_or(|k| !k.keys(&b).is_empty());
+                    if trusted && followed.insert(b.clone()) {
                         let resume = resume_points(&progress.positions, &b);
                         followers.push(follow(&fleet, b, resume, deliveries_tx.clone()));
                     }
                     Vec::new()
                 }
-                Some(Inbound::Tilt { key, payload }) => on_tilt(&mut monitor, &key, &payload),
+                Some(Inbound::Tilt { key, payload, attachment }) => {
+                    let genuine = config.gateway_keys.as_ref().is_none_or(|k| {
+                        verify_message(k, &key, "", &payload, attachment.as_deref()).is_ok()
+                    });
+                    if genuine {
+                        on_tilt(&mut monitor, &key, &payload)
+                    } else {
+                        tracing::debug!(key, "a tilt sample not signed by its gateway skipped");
+                        Vec::new()
+                    }
+                }
                 // The sender here keeps the channel open.
                 None => break,
             },

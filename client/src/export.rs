@@ -278,6 +278,7 @@ fn request(a: &Export) -> Result<HistoryRequest, ExportError> {
         from_seq: None,
         to_seq: None,
         calibration: Some(a.calibration.clone()),
+        trusted: None,
     })
 }
 

@@ -48,6 +48,9 @@ use tokio::sync::mpsc;
 use triax_protocol::batch::{flags, CorrectedBatch};
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::Heartbeat;
+use triax_protocol::provenance::{
+    digest, verify_message, Digest, Freshness, GatewayKeys, Seal, SealBook,
+};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
 use crate::history::{fetch, HistoryRequest};
@@ -105,6 +108,9 @@ pub struct FollowOptions {
     /// batches) are handed over. True by default; a consumer that judges the present (alerting,
     /// a window of the live stream) turns it off and reads them from the history when it wants.
     pub late_batches: bool,
+    /// The gateway keys [`Follower::start`] verifies with (see [`Fleet::start`]); a fleet's
+    /// followers use the fleet's. `None` by default: everything is taken on trust.
+    pub trusted: Option<Arc<GatewayKeys>>,
 }
 
 impl FollowOptions {
@@ -118,6 +124,7 @@ impl FollowOptions {
             query_timeout: Duration::from_secs(10),
             buffer_batches: 4096,
             late_batches: true,
+            trusted: None,
         }
     }
 }
@@ -161,6 +168,12 @@ pub struct FollowerCounters {
     pub unrecoverable: AtomicU64,
     pub history_queries: AtomicU64,
     pub history_errors: AtomicU64,
+    /// Live batches dropped because no verified seal listed them in time (PROTOCOL.md §6): a
+    /// peer's forgeries, or the gateway's batches whose seal was lost (those come back from
+    /// the history).
+    pub unverified: AtomicU64,
+    /// Seals and heartbeats refused: unsigned, signed by a key not trusted, altered, replayed.
+    pub refused: AtomicU64,
 }
 
 /// A building's corrected batches, none lost that the history holds.
@@ -173,8 +186,26 @@ pub struct Follower {
 
 /// What a building's follower is told by the subscriptions, in arrival order.
 enum Event {
-    Live(Vec<u8>),
-    Beat(Vec<u8>),
+    /// A corrected batch, and its digest when the fleet verifies.
+    Live(Vec<u8>, Option<Digest>),
+    /// A heartbeat and its attachment.
+    Beat(Vec<u8>, Option<Vec<u8>>),
+    Seal {
+        key: String,
+        payload: Vec<u8>,
+        attachment: Option<Vec<u8>>,
+    },
+}
+
+/// How long a live batch waits for the seal that lists it before it is dropped as unverified.
+/// A gateway seals at least every `seal_interval_ms` (1 ms by default) once it has published.
+pub const SEAL_WAIT: Duration = Duration::from_secs(2);
+
+/// What a verifying follower keeps: whom it trusts, and the batches waiting for their seal.
+struct Verifier {
+    trusted: Arc<GatewayKeys>,
+    book: SealBook<Vec<u8>>,
+    fresh: Freshness,
 }
 
 type Routes = Arc<std::sync::RwLock<HashMap<BuildingId, mpsc::Sender<Event>>>>;
@@ -189,29 +220,59 @@ type Routes = Arc<std::sync::RwLock<HashMap<BuildingId, mpsc::Sender<Event>>>>;
 pub struct Fleet {
     session: zenoh::Session,
     routes: Routes,
+    trusted: Option<Arc<GatewayKeys>>,
     _live: zenoh::pubsub::Subscriber<()>,
     _beats: zenoh::pubsub::Subscriber<()>,
+    _seals: Option<zenoh::pubsub::Subscriber<()>>,
 }
 
 impl Fleet {
     /// Subscribes to the corrected streams and heartbeats of `building`, or of every building
     /// when none is given. Nothing is followed until [`Fleet::follow`].
+    ///
+    /// With `trusted` keys, the followers hand over only batches a seal signed by their
+    /// building's gateway lists, and act only on heartbeats it signed (PROTOCOL.md §6); a
+    /// building with no key trusted then gets nothing. `None`: everything is taken on trust.
     pub async fn start(
         session: &zenoh::Session,
         building: Option<&BuildingId>,
+        trusted: Option<Arc<GatewayKeys>>,
     ) -> Result<Fleet, ClientError> {
         let routes: Routes = Arc::default();
-        let (live_expr, beat_expr) = match building {
+        let (live_expr, beat_expr, seal_expr) = match building {
             Some(b) => (
                 keys::all_sensors(b, Stream::Corrected),
                 Key::Heartbeat(b.clone()).to_string(),
+                Key::Seal(b.clone()).to_string(),
             ),
             None => (
                 keys::all_buildings(Stream::Corrected),
                 "triax/*/heartbeat".to_owned(),
+                "triax/*/seal".to_owned(),
             ),
         };
-        let route = |routes: Routes, wrap: fn(Vec<u8>) -> Event| {
+        let verifying = trusted.is_some();
+        let live: fn(&zenoh::sample::Sample) -> Event = if verifying {
+            |s| {
+                let payload = s.payload().to_bytes().into_owned();
+                let d = digest(s.key_expr().as_str(), &[], &payload);
+                Event::Live(payload, Some(d))
+            }
+        } else {
+            |s| Event::Live(s.payload().to_bytes().into_owned(), None)
+        };
+        let beat: fn(&zenoh::sample::Sample) -> Event = |s| {
+            Event::Beat(
+                s.payload().to_bytes().into_owned(),
+                s.attachment().map(|a| a.to_bytes().into_owned()),
+            )
+        };
+        let seal: fn(&zenoh::sample::Sample) -> Event = |s| Event::Seal {
+            key: s.key_expr().as_str().to_owned(),
+            payload: s.payload().to_bytes().into_owned(),
+            attachment: s.attachment().map(|a| a.to_bytes().into_owned()),
+        };
+        let route = |routes: Routes, wrap: fn(&zenoh::sample::Sample) -> Event| {
             move |sample: zenoh::sample::Sample| {
                 // `triax/<building>/…`: the second chunk.
                 let Some(b) = sample.key_expr().as_str().split('/').nth(1) else {
@@ -226,25 +287,37 @@ impl Fleet {
                 // A follower that cannot keep up loses the batch here and reads it back from
                 // the history when the next one shows the gap; Zenoh's thread never waits.
                 if let Some(tx) = tx {
-                    let _ = tx.try_send(wrap(sample.payload().to_bytes().into_owned()));
+                    let _ = tx.try_send(wrap(&sample));
                 }
             }
         };
         let live = session
             .declare_subscriber(live_expr)
-            .callback(route(routes.clone(), Event::Live))
+            .callback(route(routes.clone(), live))
             .await
             .map_err(zenoh_err("subscribe to corrected streams"))?;
         let beats = session
             .declare_subscriber(beat_expr)
-            .callback(route(routes.clone(), Event::Beat))
+            .callback(route(routes.clone(), beat))
             .await
             .map_err(zenoh_err("subscribe to heartbeats"))?;
+        let seals = match verifying {
+            true => Some(
+                session
+                    .declare_subscriber(seal_expr)
+                    .callback(route(routes.clone(), seal))
+                    .await
+                    .map_err(zenoh_err("subscribe to seals"))?,
+            ),
+            false => None,
+        };
         Ok(Fleet {
             session: session.clone(),
             routes,
+            trusted,
             _live: live,
             _beats: beats,
+            _seals: seals,
         })
     }
 
@@ -291,15 +364,45 @@ impl Fleet {
             options,
             tx,
             counters: counters.clone(),
+            verifier: self.trusted.clone().map(|trusted| Verifier {
+                trusted,
+                book: SealBook::new(SEAL_WAIT.as_nanos() as i64, 65_536),
+                fresh: Freshness::default(),
+            }),
         };
         let task = tokio::spawn(async move {
             if !state.resume().await {
                 return;
             }
-            while let Some(event) = events.recv().await {
+            let verifying = state.verifier.is_some();
+            let mut expiry = tokio::time::interval(SEAL_WAIT / 4);
+            expiry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                let event = tokio::select! {
+                    e = events.recv() => match e {
+                        Some(e) => e,
+                        None => return,
+                    },
+                    _ = expiry.tick(), if verifying => {
+                        state.expire_unsealed();
+                        continue;
+                    }
+                };
                 let open = match event {
-                    Event::Live(payload) => state.live(payload).await,
-                    Event::Beat(payload) => state.heartbeat(&payload).await,
+                    Event::Live(payload, None) => state.live(payload).await,
+                    Event::Live(payload, Some(d)) => state.offer(d, payload).await,
+                    Event::Beat(payload, attachment) => {
+                        if state.beat_is_genuine(&payload, attachment.as_deref()) {
+                            state.heartbeat(&payload).await
+                        } else {
+                            true
+                        }
+                    }
+                    Event::Seal {
+                        key,
+                        payload,
+                        attachment,
+                    } => state.seal(&key, &payload, attachment.as_deref()).await,
                 };
                 if !open {
                     return;
@@ -337,7 +440,7 @@ impl Follower {
         session: &zenoh::Session,
         options: FollowOptions,
     ) -> Result<Follower, ClientError> {
-        let fleet = Fleet::start(session, Some(&options.building)).await?;
+        let fleet = Fleet::start(session, Some(&options.building), options.trusted.clone()).await?;
         let mut follower = fleet.follow(options);
         follower._fleet = Some(fleet);
         Ok(follower)
@@ -521,9 +624,90 @@ struct State {
     beats: HashMap<String, u64>,
     tx: mpsc::Sender<Delivery>,
     counters: Arc<FollowerCounters>,
+    /// None: everything is taken on trust.
+    verifier: Option<Verifier>,
 }
 
 impl State {
+    /// A live batch of a verifying follower: handed on once a seal lists it.
+    async fn offer(&mut self, digest: Digest, payload: Vec<u8>) -> bool {
+        let Some(v) = self.verifier.as_mut() else {
+            return self.live(payload).await;
+        };
+        let mut pushed_out = Vec::new();
+        let now = now_ns();
+        let sealed = v.book.offer(digest, payload, now, &mut pushed_out);
+        v.book.expire(now, &mut pushed_out);
+        self.count_unverified(pushed_out.len());
+        match sealed {
+            Some(p) => self.live(p).await,
+            None => true,
+        }
+    }
+
+    /// A seal: when it is the gateway's, the batches it lists are handed on, in its order.
+    async fn seal(&mut self, key: &str, payload: &[u8], attachment: Option<&[u8]>) -> bool {
+        let Some(v) = self.verifier.as_mut() else {
+            return true;
+        };
+        let checked = verify_message(&v.trusted, key, "", payload, attachment)
+            .and_then(|s| v.fresh.check(key, s.signed_at_ns));
+        let seal = match checked.map(|()| Seal::decode(payload)) {
+            Ok(Ok(seal)) => seal,
+            Ok(Err(e)) => {
+                self.counters.refused.fetch_add(1, Relaxed);
+                tracing::warn!(key, cause = %e, "a signed seal that does not decode skipped");
+                return true;
+            }
+            Err(e) => {
+                self.counters.refused.fetch_add(1, Relaxed);
+                tracing::debug!(key, cause = %e, "a seal refused");
+                return true;
+            }
+        };
+        let mut released = Vec::new();
+        v.book.seal(&seal.digests, now_ns(), &mut released);
+        for p in released {
+            if !self.live(p).await {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Whether a heartbeat is one to act on: any when nothing is verified, else only the
+    /// gateway's, and not a replay.
+    fn beat_is_genuine(&mut self, payload: &[u8], attachment: Option<&[u8]>) -> bool {
+        let Some(v) = self.verifier.as_mut() else {
+            return true;
+        };
+        let key = Key::Heartbeat(self.options.building.clone()).to_string();
+        let checked = verify_message(&v.trusted, &key, "", payload, attachment)
+            .and_then(|s| v.fresh.check(&key, s.signed_at_ns));
+        if let Err(e) = &checked {
+            self.counters.refused.fetch_add(1, Relaxed);
+            tracing::debug!(cause = %e, "a heartbeat refused");
+        }
+        checked.is_ok()
+    }
+
+    /// Drops what waited for a seal longer than [`SEAL_WAIT`].
+    fn expire_unsealed(&mut self) {
+        let Some(v) = self.verifier.as_mut() else {
+            return;
+        };
+        let mut expired = Vec::new();
+        v.book.expire(now_ns(), &mut expired);
+        self.count_unverified(expired.len());
+    }
+
+    fn count_unverified(&self, n: usize) {
+        if n > 0 {
+            self.counters.unverified.fetch_add(n as u64, Relaxed);
+            tracing::debug!(batches = n, "live batches no seal listed were dropped");
+        }
+    }
+
     /// Hands one batch over; false once the consumer has gone.
     async fn deliver(&mut self, payload: Vec<u8>, batch: CorrectedBatch, recovered: bool) -> bool {
         if is_late(&batch) {
@@ -898,9 +1082,11 @@ impl State {
     ) -> Vec<crate::history::Recovered> {
         self.counters.history_queries.fetch_add(1, Relaxed);
         let mut got = Vec::new();
+        let mut request = request.clone();
+        request.trusted = self.verifier.as_ref().map(|v| v.trusted.clone());
         let fetched = fetch(
             &self.session,
-            request,
+            &request,
             self.options.query_timeout,
             &mut |r| got.push(r),
         )

@@ -1,9 +1,18 @@
 //! History queries (PROTOCOL.md §5.1): one sensor's or many sensors' kept batches, corrected
 //! again by the gateway, fetched page by page.
+//!
+//! With trusted gateway keys ([`HistoryRequest::trusted`]) every query carries a fresh nonce
+//! and only the batches a seal signed for that nonce lists are handed over (PROTOCOL.md §6):
+//! any peer can answer a query, and its replies are counted ([`unverified_replies`]) and
+//! dropped.
 
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
 use std::time::Duration;
 
 use triax_protocol::batch::CorrectedBatch;
+use triax_protocol::provenance::{digest, is_seal, verify_message, Digest, GatewayKeys, Seal};
 use triax_protocol::{BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
 
@@ -24,6 +33,8 @@ pub struct HistoryRequest {
     pub to_seq: Option<u64>,
     /// `in_force` (default), `latest` or a version number.
     pub calibration: Option<String>,
+    /// Whose seals make a reply the gateway's; `None`: every reply is taken on trust.
+    pub trusted: Option<Arc<GatewayKeys>>,
 }
 
 impl HistoryRequest {
@@ -37,10 +48,11 @@ impl HistoryRequest {
             from_seq: None,
             to_seq: None,
             calibration: None,
+            trusted: None,
         }
     }
 
-    fn selector(&self, limit: usize, after: Option<&str>) -> String {
+    fn selector(&self, limit: usize, after: Option<&str>, nonce: Option<&str>) -> String {
         let key = match SensorId::new(self.sensors.as_str()) {
             Ok(s) => Key::History(self.building.clone(), s).to_string(),
             // A wildcard chunk: the key module builds only concrete keys.
@@ -54,6 +66,7 @@ impl HistoryRequest {
             ("to_seq", self.to_seq.map(|v| v.to_string())),
             ("calibration", self.calibration.clone()),
             ("after", after.map(str::to_owned)),
+            ("nonce", nonce.map(str::to_owned)),
         ];
         for (name, v) in fields {
             if let Some(v) = v {
@@ -70,7 +83,7 @@ pub async fn any_kept(
     request: &HistoryRequest,
     timeout: Duration,
 ) -> Result<bool, ClientError> {
-    let (n, _) = page(session, &request.selector(1, None), timeout, &mut |_| {}).await?;
+    let (n, _) = page(session, request, 1, None, timeout, &mut |_| {}).await?;
     Ok(n > 0)
 }
 
@@ -97,8 +110,7 @@ pub async fn fetch(
     let mut total = 0;
     let mut after: Option<String> = None;
     loop {
-        let selector = request.selector(PAGE, after.as_deref());
-        let (in_page, last) = page(session, &selector, timeout, each).await?;
+        let (in_page, last) = page(session, request, PAGE, after.as_deref(), timeout, each).await?;
         after = last;
         total += in_page;
         if in_page == 0 || after.is_none() {
@@ -107,37 +119,157 @@ pub async fn fetch(
     }
 }
 
+/// History replies dropped since the process started because no seal of the gateway listed
+/// them (a peer's answers, or a gateway's whose key is not trusted).
+pub fn unverified_replies() -> u64 {
+    UNVERIFIED.load(Relaxed)
+}
+
+static UNVERIFIED: AtomicU64 = AtomicU64::new(0);
+
+/// A nonce no one can guess before the query is sent.
+fn fresh_nonce() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    // Two randomly keyed SipHashes of the time and a counter: 128 bits that differ per query
+    // and per process, from the standard library alone.
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Relaxed);
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default()
+        .as_nanos();
+    let half = || {
+        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+        h.write_u128(t);
+        h.write_u64(n);
+        h.finish()
+    };
+    format!("{:016x}{:016x}", half(), half())
+}
+
+/// Replies of one verified answer waiting for the seal that lists them.
+struct Unsealed {
+    trusted: Arc<GatewayKeys>,
+    nonce: String,
+    waiting: Vec<(Digest, Recovered, Option<String>)>,
+    /// The first refusal of the gateway: shown when nothing verified came.
+    error: Option<String>,
+}
+
+impl Unsealed {
+    /// A verified seal hands over what it lists, in the answer's order; the rest was not the
+    /// gateway's.
+    fn seal(
+        &mut self,
+        listed: &[Digest],
+        n: &mut usize,
+        after: &mut Option<String>,
+        each: &mut (dyn FnMut(Recovered) + Send),
+    ) {
+        let listed: HashSet<&Digest> = listed.iter().collect();
+        for (d, recovered, cursor) in self.waiting.drain(..) {
+            if listed.contains(&d) {
+                *n += 1;
+                *after = cursor;
+                each(recovered);
+            } else {
+                UNVERIFIED.fetch_add(1, Relaxed);
+            }
+        }
+    }
+}
+
 /// One answer of the history query `selector`: how many batches it held, each handed to `each`,
 /// and the cursor of the last one.
 async fn page(
     session: &zenoh::Session,
-    selector: &str,
+    request: &HistoryRequest,
+    limit: usize,
+    after_cursor: Option<&str>,
     timeout: Duration,
     each: &mut (dyn FnMut(Recovered) + Send),
 ) -> Result<(usize, Option<String>), ClientError> {
+    let mut unsealed = request.trusted.clone().map(|trusted| Unsealed {
+        trusted,
+        nonce: fresh_nonce(),
+        waiting: Vec::new(),
+        error: None,
+    });
+    let nonce = unsealed.as_ref().map(|u| u.nonce.as_str());
+    let selector = request.selector(limit, after_cursor, nonce);
     let failed = |message: String| ClientError::History {
-        selector: selector.to_owned(),
+        selector: selector.clone(),
         message,
     };
     let replies = session
-        .get(selector)
+        .get(&selector)
         .consolidation(ConsolidationMode::None)
         .timeout(timeout)
         .await
         .map_err(zenoh_err("history query"))?;
     let (mut n, mut after) = (0, None);
     while let Ok(reply) = replies.recv_async().await {
-        let sample = reply
-            .result()
-            .map_err(|e| failed(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()))?;
+        let sample = match (reply.result(), unsealed.as_mut()) {
+            (Ok(sample), _) => sample,
+            (Err(e), None) => {
+                return Err(failed(
+                    String::from_utf8_lossy(&e.payload().to_bytes()).into_owned(),
+                ))
+            }
+            // A refusal cannot be signed: any peer can send one. It stands only if nothing
+            // the gateway signed came.
+            (Err(e), Some(u)) => {
+                u.error.get_or_insert_with(|| {
+                    String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()
+                });
+                continue;
+            }
+        };
         let payload = sample.payload().to_bytes().to_vec();
-        let batch = CorrectedBatch::decode(&payload)
-            .map_err(|e| failed(format!("a reply does not decode: {e}")))?;
-        after = sample
-            .attachment()
-            .map(|a| String::from_utf8_lossy(&a.to_bytes()).into_owned());
-        n += 1;
-        each(Recovered { payload, batch });
+        let attachment = sample.attachment().map(|a| a.to_bytes().into_owned());
+        let Some(u) = unsealed.as_mut() else {
+            let batch = CorrectedBatch::decode(&payload)
+                .map_err(|e| failed(format!("a reply does not decode: {e}")))?;
+            after = attachment.map(|a| String::from_utf8_lossy(&a).into_owned());
+            n += 1;
+            each(Recovered { payload, batch });
+            continue;
+        };
+        let key = sample.key_expr().as_str();
+        if is_seal(&payload) {
+            let verified =
+                verify_message(&u.trusted, key, &u.nonce, &payload, attachment.as_deref())
+                    .ok()
+                    .and_then(|_| Seal::decode(&payload).ok());
+            match verified {
+                Some(seal) => u.seal(&seal.digests, &mut n, &mut after, each),
+                None => {
+                    UNVERIFIED.fetch_add(1, Relaxed);
+                }
+            }
+            continue;
+        }
+        let Ok(batch) = CorrectedBatch::decode(&payload) else {
+            UNVERIFIED.fetch_add(1, Relaxed);
+            continue;
+        };
+        let cursor = attachment.as_deref().unwrap_or_default();
+        let d = digest(key, cursor, &payload);
+        let cursor = attachment.map(|a| String::from_utf8_lossy(&a).into_owned());
+        u.waiting.push((d, Recovered { payload, batch }, cursor));
+    }
+    if let Some(u) = unsealed {
+        if !u.waiting.is_empty() {
+            UNVERIFIED.fetch_add(u.waiting.len() as u64, Relaxed);
+            tracing::warn!(
+                selector = %selector,
+                replies = u.waiting.len(),
+                "history replies no seal of the gateway listed were dropped"
+            );
+        }
+        if let (0, Some(e)) = (n, u.error) {
+            return Err(failed(e));
+        }
     }
     Ok((n, after))
 }

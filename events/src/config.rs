@@ -24,9 +24,11 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use serde::Deserialize;
 use triax_modal::{BuildingModel, SensorPlacement};
+use triax_protocol::provenance::GatewayKeys;
 use triax_protocol::{BuildingId, SensorId};
 use triax_strongmotion::decision::Tag;
 use triax_strongmotion::detect::DetectorConfig;
@@ -46,6 +48,9 @@ pub struct Config {
     pub state_dir: Option<PathBuf>,
     /// The Ed25519 key every report is signed with.
     pub signing_key_file: Option<PathBuf>,
+    /// `[gateways]`: per building, the gateway key its data must be sealed with (PROTOCOL.md
+    /// §6). None (no table): everything is taken on trust.
+    pub gateway_keys: Option<Arc<GatewayKeys>>,
     /// The miniSEED network code of the events' data.
     pub network: String,
 }
@@ -90,6 +95,8 @@ impl Config {
 struct FileConfig {
     state_dir: Option<PathBuf>,
     signing_key_file: Option<PathBuf>,
+    #[serde(default)]
+    gateways: BTreeMap<String, String>,
     network: Option<String>,
     #[serde(default)]
     zenoh: ZenohSettings,
@@ -394,6 +401,7 @@ impl FileConfig {
             buildings,
             state_dir: self.state_dir,
             signing_key_file: self.signing_key_file,
+            gateway_keys: triax_net::keys::trusted_gateways(&self.gateways)?,
             network: network.to_ascii_uppercase(),
         })
     }

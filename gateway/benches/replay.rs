@@ -113,6 +113,7 @@ fn fixture(n: usize) -> Fixture {
         table: Arc::new(SensorTable::new(config)),
         store: Arc::new(store),
         sink: recorder.sink.clone(),
+        signer: Arc::new(triax_gateway::state::Signer::off()),
     };
     Fixture {
         _dir: dir,

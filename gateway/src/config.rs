@@ -240,9 +240,36 @@ pub struct Config {
     pub health: Option<HealthSettings>,
     /// None: gaps are not filled from the nodes' buffers.
     pub backfill: Option<BackfillSettings>,
+    /// How the gateway signs what it says (PROTOCOL.md §6).
+    pub provenance: ProvenanceSettings,
     /// Settings of sensors not listed in `sensors`.
     pub defaults: SensorSettings,
     pub sensors: BTreeMap<SensorId, SensorSettings>,
+}
+
+/// The gateway's signing key and seals (PROTOCOL.md §6).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProvenanceSettings {
+    /// The gateway's Ed25519 secret key, 64 hex characters. Made at first start when missing,
+    /// with its public key beside it in `<key_file>.pub`, which consumers are given.
+    pub key_file: PathBuf,
+    /// Shortest time between two seals over the live corrected batches.
+    pub seal_interval: Duration,
+    /// Off: nothing is signed and no seal is put (only to measure what signing costs: every
+    /// consumer that verifies then refuses all of the gateway's messages).
+    pub sign: bool,
+}
+
+/// Default `[provenance] seal_interval_ms`.
+pub const DEFAULT_SEAL_INTERVAL_MS: f64 = 1.0;
+
+/// Where the gateway's key lives when `[provenance] key_file` is not set: beside the store,
+/// named for the building.
+pub fn default_key_file(store_path: &Path, building: &BuildingId) -> PathBuf {
+    store_path
+        .parent()
+        .unwrap_or(Path::new(""))
+        .join(format!("triax-gateway-{building}.key"))
 }
 
 impl Config {
@@ -280,6 +307,7 @@ impl Config {
         c.zenoh.multicast_scouting = Some(false);
         c.metrics_listen = None;
         c.health = None;
+        c.provenance.key_file = store_path.with_extension("key");
         c
     }
 }
@@ -311,9 +339,19 @@ pub struct FileConfig {
     #[serde(default)]
     pub backfill: FileBackfill,
     #[serde(default)]
+    pub provenance: FileProvenance,
+    #[serde(default)]
     pub defaults: FileSensor,
     #[serde(default)]
     pub sensors: BTreeMap<String, FileSensor>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileProvenance {
+    pub key_file: Option<PathBuf>,
+    pub seal_interval_ms: Option<f64>,
+    pub sign: Option<bool>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -816,6 +854,7 @@ impl FileConfig {
         let history = history_settings(self.history, &store_path, &building)?;
         let health = health_settings(self.health)?;
         let backfill = backfill_settings(self.backfill)?;
+        let provenance = provenance_settings(self.provenance, &store_path, &building)?;
         let defaults = sensor_settings("defaults", self.defaults, &SensorSettings::default())?;
         let mut sensors = BTreeMap::new();
         for (id, s) in self.sensors {
@@ -841,10 +880,33 @@ impl FileConfig {
             metrics_listen,
             health,
             backfill,
+            provenance,
             defaults,
             sensors,
         })
     }
+}
+
+fn provenance_settings(
+    p: FileProvenance,
+    store_path: &Path,
+    building: &BuildingId,
+) -> Result<ProvenanceSettings, ConfigError> {
+    let interval_ms = p.seal_interval_ms.unwrap_or(DEFAULT_SEAL_INTERVAL_MS);
+    // Longer than a second, a consumer would hold a second of batches before it may use them.
+    if !(interval_ms.is_finite() && (0.0..=1000.0).contains(&interval_ms)) {
+        return Err(ConfigError::invalid(
+            "provenance.seal_interval_ms",
+            format!("{interval_ms} is outside 0..=1000"),
+        ));
+    }
+    Ok(ProvenanceSettings {
+        key_file: p
+            .key_file
+            .unwrap_or_else(|| default_key_file(store_path, building)),
+        seal_interval: Duration::from_secs_f64(interval_ms / 1000.0),
+        sign: p.sign.unwrap_or(true),
+    })
 }
 
 fn calibration_settings(c: FileCalibration) -> Result<CalibrationSettings, ConfigError> {
@@ -1063,6 +1125,10 @@ pub struct ConfigArgs {
     /// Seconds between catch-up requests to the lab's registry; 0: only at start.
     #[arg(long, env = "TRIAX_CATCHUP_INTERVAL_S")]
     pub catchup_interval_s: Option<f64>,
+    /// The gateway's secret signing key (made, with `<file>.pub`, when missing; default
+    /// `triax-gateway-<building>.key` beside the store).
+    #[arg(long, env = "TRIAX_KEY_FILE")]
+    pub key_file: Option<PathBuf>,
 }
 
 impl ConfigArgs {
@@ -1113,6 +1179,9 @@ impl ConfigArgs {
         }
         if let Some(s) = self.catchup_interval_s {
             f.calibration.catchup_interval_s = Some(s);
+        }
+        if let Some(k) = &self.key_file {
+            f.provenance.key_file = Some(k.clone());
         }
     }
 }

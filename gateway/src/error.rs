@@ -34,6 +34,8 @@ pub enum GatewayError {
     Task(String),
     #[error(transparent)]
     History(#[from] triax_history::HistoryError),
+    #[error("{0}")]
+    Key(String),
 }
 
 pub(crate) fn zenoh_err(action: &'static str) -> impl FnOnce(zenoh::Error) -> GatewayError {

@@ -112,6 +112,7 @@ impl Gateway {
         let opened = state::store::open(&config, &table).await?;
         services::memory::release_loading_heap().await?;
         let recorder = sample_path::open_history(&config).await?;
+        let signer = Arc::new(state::Signer::load(&config.provenance)?);
         let session = zenoh::open(config.zenoh.to_publisher_config()?)
             .await
             .map_err(zenoh_err("open session"))?;
@@ -126,6 +127,7 @@ impl Gateway {
             table: table.clone(),
             counters: counters.clone(),
             store: opened.store.clone(),
+            signer: signer.clone(),
             started_at,
             shutdown,
         };
@@ -133,6 +135,7 @@ impl Gateway {
         let holes = backfill.as_ref().map(|(_, (holes, _))| holes.clone());
         let backfill_counters = holes.as_ref().map(|h| h.counters().clone());
         let parts = Parts {
+            signer: signer.clone(),
             table: table.clone(),
             counters: counters.clone(),
             store: opened.store.clone(),
@@ -174,6 +177,7 @@ impl Gateway {
             workers = config.workers,
             overload = ?config.overload,
             history = config.history.is_some(),
+            public_key = signer.public_key_hex().as_deref().unwrap_or("none: nothing is signed"),
             "gateway running"
         );
         Ok(Gateway {

@@ -24,9 +24,11 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use serde::Deserialize;
 use triax_modal::{BuildingModel, ChainUncertainty, SensorPlacement, SsiConfig, TrackerConfig};
+use triax_protocol::provenance::GatewayKeys;
 use triax_protocol::BuildingId;
 
 pub use triax_net::{ConfigError, ZenohMode, ZenohSettings};
@@ -44,6 +46,9 @@ pub struct Config {
     pub state_dir: Option<PathBuf>,
     /// The Ed25519 key every `modal_shift` alert is signed with (as `triax-alert`'s).
     pub signing_key_file: Option<PathBuf>,
+    /// `[gateways]`: per building, the gateway key its data must be sealed with (PROTOCOL.md
+    /// §6). None (no table): everything is taken on trust.
+    pub gateway_keys: Option<Arc<GatewayKeys>>,
 }
 
 /// One building.
@@ -103,6 +108,8 @@ impl Config {
 struct FileConfig {
     state_dir: Option<PathBuf>,
     signing_key_file: Option<PathBuf>,
+    #[serde(default)]
+    gateways: BTreeMap<String, String>,
     #[serde(default)]
     zenoh: ZenohSettings,
     #[serde(default)]
@@ -278,6 +285,7 @@ impl FileConfig {
             buildings,
             state_dir: self.state_dir,
             signing_key_file: self.signing_key_file,
+            gateway_keys: triax_net::keys::trusted_gateways(&self.gateways)?,
         })
     }
 }

@@ -182,7 +182,7 @@ pub async fn run(config: Config, shutdown: impl Future<Output = ()>) -> Result<(
     let only = (config.buildings.len() == 1)
         .then(|| config.buildings.keys().next().cloned())
         .flatten();
-    let fleet = Fleet::start(&session, only.as_ref())
+    let fleet = Fleet::start(&session, only.as_ref(), config.gateway_keys.clone())
         .await
         .map_err(|e| ServiceError::Zenoh {
             what: "follow the buildings",

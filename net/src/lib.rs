@@ -7,7 +7,10 @@
 //! the mode, which defaults to `peer`: a building needs no router.
 //!
 //! Also what the services share to read their own configuration file: [`read_toml`] and
-//! [`ConfigError`], whose `zenoh.<field>` errors come from [`ZenohSettingsError`].
+//! [`ConfigError`], whose `zenoh.<field>` errors come from [`ZenohSettingsError`]; and their
+//! key files ([`keys`]).
+
+pub mod keys;
 
 use std::path::{Path, PathBuf};
 

@@ -11,6 +11,7 @@
 //! triax/<building>/alert/<sensor>                SignedAlert (JSON), alerting → operators
 //! triax/<building>/history/<sensor>              history query → corrected batches (binary)
 //! triax/<building>/heartbeat                     Heartbeat (JSON), gateway → consumers
+//! triax/<building>/seal                          Seal (binary, signed), gateway → consumers
 //! triax/<building>/alerting                      AlertingStatus (JSON), alerting queryable
 //! triax/<building>/health/<sensor>               SensorHealthReport (JSON), gateway → lab, operators
 //! triax/<building>/buffer/<sensor>               node's buffer query → raw batches (binary), gateway → node
@@ -264,6 +265,8 @@ pub enum Key {
     Buffer(BuildingId, SensorId),
     /// The building's modes identified over each window (the modal service's publications).
     Modes(BuildingId),
+    /// The gateway's signed seals over the corrected batches it published (PROTOCOL.md §6).
+    Seal(BuildingId),
     /// One event's signed report (the event service's publications, and its queryable).
     Event(BuildingId, EventId),
     /// The building's list of events (the event service's queryable).
@@ -298,6 +301,7 @@ impl Key {
             | Key::Alert(b, _)
             | Key::History(b, _)
             | Key::Heartbeat(b)
+            | Key::Seal(b)
             | Key::Alerting(b)
             | Key::Health(b, _)
             | Key::Buffer(b, _)
@@ -321,6 +325,7 @@ impl Key {
             Key::CalibrationRegistry(_)
             | Key::Status(_)
             | Key::Heartbeat(_)
+            | Key::Seal(_)
             | Key::Alerting(_)
             | Key::Modes(_)
             | Key::Event(_, _)
@@ -351,6 +356,7 @@ impl Key {
             ["alert", s] => Key::Alert(b, sensor(s)?),
             ["history", s] => Key::History(b, sensor(s)?),
             ["heartbeat"] => Key::Heartbeat(b),
+            ["seal"] => Key::Seal(b),
             ["alerting"] => Key::Alerting(b),
             ["health", s] => Key::Health(b, sensor(s)?),
             ["buffer", s] => Key::Buffer(b, sensor(s)?),
@@ -375,6 +381,7 @@ impl fmt::Display for Key {
             Key::Alert(b, s) => write!(f, "{ROOT}/{b}/alert/{s}"),
             Key::History(b, s) => write!(f, "{ROOT}/{b}/history/{s}"),
             Key::Heartbeat(b) => write!(f, "{ROOT}/{b}/heartbeat"),
+            Key::Seal(b) => write!(f, "{ROOT}/{b}/seal"),
             Key::Alerting(b) => write!(f, "{ROOT}/{b}/alerting"),
             Key::Health(b, s) => write!(f, "{ROOT}/{b}/health/{s}"),
             Key::Buffer(b, s) => write!(f, "{ROOT}/{b}/buffer/{s}"),
@@ -602,6 +609,7 @@ mod tests {
             Key::Alert(b("hq"), s("acc-01")),
             Key::History(b("hq"), s("acc-01")),
             Key::Heartbeat(b("hq")),
+            Key::Seal(b("hq")),
             Key::Alerting(b("hq")),
             Key::Health(b("hq"), s("acc-01")),
             Key::Buffer(b("hq"), s("acc-01")),

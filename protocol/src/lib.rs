@@ -6,6 +6,7 @@
 //! - [`record`]: the calibration record ([`record::CalibrationRecord`]), in JSON.
 //! - [`messages`]: signed pushes, acknowledgements, gateway status, tilt and alerts, in JSON.
 //! - [`event`]: the event service's signed reports and its list of events, in JSON.
+//! - [`provenance`]: the gateway's signatures on what it says, and the seals over its batches.
 //! - [`json`]: the versioned JSON codec every JSON message goes through.
 //!
 //! PROTOCOL.md at the repository root documents every key and payload byte by byte.
@@ -19,6 +20,7 @@ pub mod event;
 pub mod json;
 pub mod keys;
 pub mod messages;
+pub mod provenance;
 pub mod record;
 pub mod signing;
 

@@ -28,6 +28,7 @@ mod intake;
 mod kernel;
 mod late;
 mod outbox;
+mod seal;
 mod sequence;
 mod tilt;
 mod worker;
@@ -50,11 +51,12 @@ use worker::{Arrival, Shards, Shared};
 
 use crate::config::Config;
 use crate::error::GatewayError;
-use crate::state::{GatewayCounters, SensorTable};
+use crate::state::{GatewayCounters, SensorTable, Signer};
 
 /// What the sample path is given: the state it reads and writes, and where it hands what it
 /// does not do itself.
 pub struct Parts {
+    pub signer: Arc<Signer>,
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
     /// The health checks mark suspect records in it (once per record at most), never read on
@@ -76,6 +78,7 @@ pub struct SamplePath {
     shards: worker::Shards,
     workers: Vec<std::thread::JoinHandle<()>>,
     recorder: Option<Recorder>,
+    sealer: Option<seal::Sealer>,
 }
 
 impl SamplePath {
@@ -87,12 +90,26 @@ impl SamplePath {
         parts: Parts,
     ) -> Result<SamplePath, GatewayError> {
         let Parts {
+            signer,
             table,
             counters,
             store,
             recorder,
             holes,
         } = parts;
+        let sealer = match signer.public_key_hex() {
+            Some(_) => Some(
+                seal::Sealer::start(
+                    session.clone(),
+                    &config.building,
+                    signer.clone(),
+                    config.provenance.seal_interval,
+                    counters.clone(),
+                )
+                .map_err(|e| GatewayError::Task(format!("starting the sealer thread: {e}")))?,
+            ),
+            None => None,
+        };
         let shared = Arc::new(worker::Shared {
             building: config.building.clone(),
             session: session.clone(),
@@ -108,7 +125,13 @@ impl SamplePath {
                 clock_watch_ms: h.clock_watch_ms,
             }),
             backfill: holes,
-            outbox: outbox::Outbox::new(session.clone(), counters.clone()),
+            outbox: outbox::Outbox::new(
+                session.clone(),
+                counters.clone(),
+                sealer.as_ref().map(|s| s.queue.clone()),
+            ),
+            seals: sealer.as_ref().map(|s| s.queue.clone()),
+            signer,
         });
         let intake::Started {
             inboxes,
@@ -124,6 +147,7 @@ impl SamplePath {
             shards,
             workers: Vec::new(),
             recorder,
+            sealer,
         })
     }
 
@@ -202,6 +226,9 @@ impl SamplePath {
         }
         // What the last bursts left waiting, should their tasks not have run.
         self.shared.outbox.flush();
+        if let Some(sealer) = self.sealer.as_mut() {
+            sealer.finish();
+        }
         if let Some(mut recorder) = self.recorder.take() {
             let sink = recorder.sink.clone();
             tokio::task::spawn_blocking(move || recorder.stop())

@@ -21,12 +21,14 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::Instant;
 
+use triax_protocol::provenance::digest;
 use zenoh::key_expr::KeyExpr;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
 use super::burst::{self, Burst, Pushed};
 use super::inbox;
+use super::seal::SealQueue;
 use crate::clock::now_ns;
 use crate::state::{GatewayCounters, SensorEntry};
 
@@ -45,14 +47,21 @@ pub struct Outbox {
     counters: Arc<GatewayCounters>,
     /// One queue: a sensor's batches are published in the order they were corrected.
     waiting: Burst<Outgoing>,
+    /// Where the digests of what was put go to be sealed; None when nothing is signed.
+    seals: Option<Arc<SealQueue>>,
 }
 
 impl Outbox {
-    pub fn new(session: zenoh::Session, counters: Arc<GatewayCounters>) -> Arc<Outbox> {
+    pub fn new(
+        session: zenoh::Session,
+        counters: Arc<GatewayCounters>,
+        seals: Option<Arc<SealQueue>>,
+    ) -> Arc<Outbox> {
         Arc::new(Outbox {
             session,
             counters,
             waiting: Burst::new(1),
+            seals,
         })
     }
 
@@ -103,13 +112,29 @@ impl Outbox {
         self.waiting.take(|_, batches| {
             // One look at the clock for the lot: they leave within microseconds of one another.
             let published_ns = now_ns();
-            for out in batches.drain(..) {
-                self.publish(out, published_ns);
+            match &self.seals {
+                None => {
+                    for out in batches.drain(..) {
+                        self.publish(out, published_ns);
+                    }
+                }
+                Some(seals) => {
+                    // One push for the burst: the sealer's lock is taken once.
+                    let mut digests = Vec::with_capacity(batches.len());
+                    for out in batches.drain(..) {
+                        let d = digest(out.key.as_str(), &[], &out.payload);
+                        if self.publish(out, published_ns) {
+                            digests.push(d);
+                        }
+                    }
+                    seals.push(digests);
+                }
             }
         });
     }
 
-    fn publish(&self, out: Outgoing, published_ns: i64) {
+    /// Whether the batch was put.
+    fn publish(&self, out: Outgoing, published_ns: i64) -> bool {
         // Drop rather than block inside Zenoh: a consumer that cannot keep up loses batches
         // on its own link, and catches up from the history; it never holds up the gateway or
         // the other consumers. The key is given up, not lent: lent, Zenoh would count it up
@@ -124,10 +149,12 @@ impl Outbox {
                 self.counters.published_batches.fetch_add(1, Relaxed);
                 out.entry
                     .note_published(out.sequence, out.timestamp_ns, published_ns);
+                true
             }
             Err(e) => {
                 self.counters.publish_errors.fetch_add(1, Relaxed);
                 tracing::warn!(sensor = %out.entry.id, cause = %e, "corrected batch not published");
+                false
             }
         }
     }
@@ -203,7 +230,7 @@ mod tests {
         let counters = Arc::new(GatewayCounters::default());
         let id = SensorId::new("acc-1").expect("valid id");
         Bench {
-            outbox: Outbox::new(session, counters),
+            outbox: Outbox::new(session, counters, None),
             entry: Arc::new(SensorEntry::new(id, SensorSettings::default())),
             key,
             received,

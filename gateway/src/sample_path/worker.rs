@@ -18,6 +18,7 @@ use triax_calibration_store::Store;
 use triax_health::monitor::SensorHealth;
 use triax_protocol::batch::{corrected_len, flags};
 use triax_protocol::messages::TiltSample;
+use triax_protocol::provenance::digest;
 use triax_protocol::{
     to_json, BuildingId, InlineId, Key, Mode, RawBatchView, SensorId, SetKind, JSON_FORMAT_VERSION,
 };
@@ -31,10 +32,11 @@ use super::inbox::{Inbox, Next};
 use super::kernel::{BatchOutcome, Scratch, SensorKernel};
 use super::late::{Holes, LateRun, Need, Request};
 use super::outbox::{Outbox, Outgoing};
+use super::seal::SealQueue;
 use super::sequence::{SequenceTracker, Verdict};
 use crate::clock::now_ns;
 use crate::config::CorrectionMode;
-use crate::state::{GatewayCounters, GroupSlot, SensorEntry, SensorTable};
+use crate::state::{GatewayCounters, GroupSlot, SensorEntry, SensorTable, Signer};
 
 /// A raw batch as it arrived: its sensor (the key's last chunk, checked at intake) and its
 /// payload, copied out of Zenoh's receive buffer.
@@ -71,6 +73,10 @@ pub struct Shared {
     pub backfill: Option<Holes>,
     /// Where corrected batches wait for the end of their receive burst.
     pub outbox: Arc<Outbox>,
+    /// Signs the tilt samples and health reports put from here.
+    pub signer: Arc<Signer>,
+    /// Where the late batches' digests go to be sealed; None when nothing is signed.
+    pub seals: Option<Arc<SealQueue>>,
 }
 
 /// A place in the `declared_keys_max` budget, given back when dropped.
@@ -517,12 +523,11 @@ impl Shard {
             timestamp_ns: view.header.timestamp_ns,
         });
         if let (Some(json), Some(key)) = (corrected.tilt, &state.keys.tilt) {
-            match shared
-                .session
-                .put(key.key_expr(), json)
-                .congestion_control(CongestionControl::Drop)
-                .wait()
-            {
+            let mut put = shared.session.put(key.key_expr(), &json[..]);
+            if let Some(a) = shared.signer.attachment(key.key_expr().as_str(), "", &json) {
+                put = put.attachment(a.to_vec());
+            }
+            match put.congestion_control(CongestionControl::Drop).wait() {
                 Ok(()) => {
                     shared.counters.tilt_samples.fetch_add(1, Relaxed);
                 }
@@ -533,12 +538,11 @@ impl Shard {
             // Rare (a report every `publish_interval_s` of sensor time): a plain key. A lost
             // report is not lost knowledge: the health queryable answers with the latest.
             let key = Key::Health(shared.building.clone(), state.entry.id.clone()).to_string();
-            if let Err(e) = shared
-                .session
-                .put(key, json)
-                .congestion_control(CongestionControl::Drop)
-                .wait()
-            {
+            let mut put = shared.session.put(&key, &json[..]);
+            if let Some(a) = shared.signer.attachment(&key, "", &json) {
+                put = put.attachment(a.to_vec());
+            }
+            if let Err(e) = put.congestion_control(CongestionControl::Drop).wait() {
                 tracing::warn!(sensor, cause = %e, "health report not published");
             }
         }
@@ -977,7 +981,12 @@ pub struct LateOut {
 /// Outside the shard's lock: a live batch waits for no late one.
 pub fn publish_late(shared: &Shared, late: LateOut) -> usize {
     let mut published = 0;
+    let mut digests = Vec::new();
     for (sequence, timestamp_ns, payload) in late.batches {
+        let d = shared
+            .seals
+            .as_ref()
+            .map(|_| digest(late.key.as_str(), &[], &payload));
         match shared
             .session
             .put(&late.key, payload)
@@ -988,12 +997,16 @@ pub fn publish_late(shared: &Shared, late: LateOut) -> usize {
             Ok(()) => {
                 late.entry.note_late(sequence, timestamp_ns);
                 published += 1;
+                digests.extend(d);
             }
             Err(e) => {
                 shared.counters.publish_errors.fetch_add(1, Relaxed);
                 tracing::warn!(sensor = %late.entry.id, cause = %e, "late batch not published");
             }
         }
+    }
+    if let Some(seals) = &shared.seals {
+        seals.push(digests);
     }
     published
 }

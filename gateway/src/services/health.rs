@@ -5,20 +5,26 @@ use std::sync::Arc;
 
 use triax_protocol::keys::{all_sensors, Stream};
 use triax_protocol::messages::HealthVerdict;
+use triax_protocol::provenance::check_nonce;
 use triax_protocol::{BuildingId, Key};
 
 use super::{Context, Task};
 use crate::error::{zenoh_err, GatewayError};
 use crate::shutdown::Shutdown;
-use crate::state::SensorTable;
+use crate::state::{SensorTable, Signer};
 
 /// Why a health query was refused.
 fn parse_query<'a>(
     parameters: impl Iterator<Item = (&'a str, &'a str)>,
-) -> Result<HealthVerdict, String> {
+) -> Result<(HealthVerdict, String), String> {
     let mut least = HealthVerdict::Ok;
+    let mut nonce = String::new();
     for (k, v) in parameters {
         match k {
+            "nonce" => {
+                check_nonce(v).map_err(|e| format!("health query: {e}"))?;
+                nonce = v.to_owned();
+            }
             "verdict" => {
                 least = match v {
                     "ok" => HealthVerdict::Ok,
@@ -33,12 +39,12 @@ fn parse_query<'a>(
             }
             other => {
                 return Err(format!(
-                    "health query: unknown parameter {other:?} (the one parameter is verdict)"
+                    "health query: unknown parameter {other:?} (known: verdict, nonce)"
                 ))
             }
         }
     }
-    Ok(least)
+    Ok((least, nonce))
 }
 
 /// Answers health queries on `triax/<b>/health/*` with the latest report of every sensor whose
@@ -48,6 +54,7 @@ pub async fn serve(
     session: &zenoh::Session,
     building: BuildingId,
     table: Arc<SensorTable>,
+    signer: Arc<Signer>,
     mut shutdown: Shutdown,
 ) -> zenoh::Result<tokio::task::JoinHandle<()>> {
     let queryable = session
@@ -59,7 +66,7 @@ pub async fn serve(
                 q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
                 _ = shutdown.recv() => break,
             };
-            let least = match parse_query(query.parameters().iter()) {
+            let (least, nonce) = match parse_query(query.parameters().iter()) {
                 Ok(l) => l,
                 Err(problem) => {
                     if let Err(e) = query.reply_err(problem).await {
@@ -83,7 +90,11 @@ pub async fn serve(
                 if !query.key_expr().intersects(&k) {
                     continue;
                 }
-                if let Err(e) = query.reply(k, json.to_vec()).await {
+                let mut reply = query.reply(k, json.to_vec());
+                if let Some(a) = signer.attachment(&key, &nonce, &json) {
+                    reply = reply.attachment(a.to_vec());
+                }
+                if let Err(e) = reply.await {
                     tracing::warn!(cause = %e, "health reply failed");
                     break;
                 }
@@ -101,6 +112,7 @@ pub async fn start(ctx: &Context) -> Result<Option<Task>, GatewayError> {
         &ctx.session,
         ctx.config.building.clone(),
         ctx.table.clone(),
+        ctx.signer.clone(),
         ctx.shutdown.clone(),
     );
     Ok(Some(

@@ -16,7 +16,7 @@ use zenoh::qos::CongestionControl;
 use super::{Context, Task};
 use crate::clock::now_ns;
 use crate::shutdown::Shutdown;
-use crate::state::SensorTable;
+use crate::state::{SensorTable, Signer};
 
 pub const INTERVAL: Duration = Duration::from_secs(1);
 /// Sensors that published within this are listed.
@@ -64,6 +64,7 @@ pub async fn run(
     building: BuildingId,
     gateway: String,
     table: Arc<SensorTable>,
+    signer: Arc<Signer>,
     mut shutdown: Shutdown,
 ) {
     let key = Key::Heartbeat(building.clone()).to_string();
@@ -77,10 +78,11 @@ pub async fn run(
         }
         let body = to_json(&heartbeat(&building, &gateway, &table, sequence, now_ns()));
         sequence += 1;
-        let put = session
-            .put(&key, body)
-            .congestion_control(CongestionControl::Drop)
-            .await;
+        let mut put = session.put(&key, &body[..]);
+        if let Some(a) = signer.attachment(&key, "", &body) {
+            put = put.attachment(a.to_vec());
+        }
+        let put = put.congestion_control(CongestionControl::Drop).await;
         if let Err(e) = put {
             tracing::warn!(cause = %e, "heartbeat not published");
         }
@@ -94,6 +96,7 @@ pub fn start(ctx: &Context) -> Task {
         ctx.config.building.clone(),
         ctx.config.gateway_name.clone(),
         ctx.table.clone(),
+        ctx.signer.clone(),
         ctx.shutdown.clone(),
     ))
 }

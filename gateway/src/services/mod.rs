@@ -33,7 +33,7 @@ use triax_calibration_store::Store;
 
 use crate::config::Config;
 use crate::shutdown::Shutdown;
-use crate::state::{GatewayCounters, SensorTable};
+use crate::state::{GatewayCounters, SensorTable, Signer};
 
 /// What every service may be started with.
 pub struct Context {
@@ -42,6 +42,8 @@ pub struct Context {
     pub table: Arc<SensorTable>,
     pub counters: Arc<GatewayCounters>,
     pub store: Arc<Store>,
+    /// Signs every put and reply (PROTOCOL.md §6).
+    pub signer: Arc<Signer>,
     pub started_at: OffsetDateTime,
     pub shutdown: Shutdown,
 }

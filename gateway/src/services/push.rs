@@ -39,7 +39,7 @@ use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId, JSON_FORMAT_
 use super::{Context, Task};
 use crate::error::{zenoh_err, GatewayError};
 use crate::shutdown::Shutdown;
-use crate::state::{GatewayCounters, SensorTable};
+use crate::state::{GatewayCounters, SensorTable, Signer};
 
 /// Which path a record came by, for logs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -269,6 +269,7 @@ impl Updater {
 pub(crate) async fn serve(
     session: zenoh::Session,
     updater: Arc<Updater>,
+    signer: Arc<Signer>,
     mut shutdown: Shutdown,
 ) -> Result<JoinHandle<()>, zenoh::Error> {
     let building = updater.building().clone();
@@ -291,12 +292,17 @@ pub(crate) async fn serve(
                 q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
                 _ = shutdown.recv() => break,
             };
-            answer(&session, &updater, query).await;
+            answer(&session, &updater, &signer, query).await;
         }
     }))
 }
 
-async fn answer(session: &zenoh::Session, updater: &Updater, query: zenoh::query::Query) {
+async fn answer(
+    session: &zenoh::Session,
+    updater: &Updater,
+    signer: &Signer,
+    query: zenoh::query::Query,
+) {
     let sensor = match Key::parse(query.key_expr().as_str()) {
         Ok(Key::CalibrationPush(b, s)) if &b == updater.building() => s,
         // The queryable's key expression admits only this building's push keys, but a chunk
@@ -328,13 +334,21 @@ async fn answer(session: &zenoh::Session, updater: &Updater, query: zenoh::query
     let body = to_json(&updater.ack(&sensor, outcome));
     let b = updater.building().clone();
     let reply_key = Key::CalibrationPush(b.clone(), sensor.clone()).to_string();
-    if let Err(e) = query.reply(reply_key, body.clone()).await {
+    let mut reply = query.reply(&reply_key, body.clone());
+    if let Some(a) = signer.attachment(&reply_key, "", &body) {
+        reply = reply.attachment(a.to_vec());
+    }
+    if let Err(e) = reply.await {
         tracing::warn!(sensor = %sensor, cause = %e, "push reply failed");
     }
     // Finalise the query before the copy: the pusher waits for the final, monitors do not.
     drop(query);
     let ack_key = Key::CalibrationAck(b, sensor.clone()).to_string();
-    if let Err(e) = session.put(ack_key, body).await {
+    let mut put = session.put(&ack_key, &body[..]);
+    if let Some(a) = signer.attachment(&ack_key, "", &body) {
+        put = put.attachment(a.to_vec());
+    }
+    if let Err(e) = put.await {
         tracing::warn!(sensor = %sensor, cause = %e, "push ack copy failed");
     }
 }
@@ -350,9 +364,14 @@ pub async fn start(ctx: &Context) -> Result<(Arc<Updater>, Task), GatewayError> 
         ctx.table.clone(),
         ctx.counters.clone(),
     ));
-    let task = serve(ctx.session.clone(), updater.clone(), ctx.shutdown.clone())
-        .await
-        .map_err(zenoh_err("declare the calibration push queryable"))?;
+    let task = serve(
+        ctx.session.clone(),
+        updater.clone(),
+        ctx.signer.clone(),
+        ctx.shutdown.clone(),
+    )
+    .await
+    .map_err(zenoh_err("declare the calibration push queryable"))?;
     Ok((updater, task))
 }
 

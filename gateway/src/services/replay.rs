@@ -29,6 +29,7 @@ use triax_calibration_store::Store;
 use triax_history::{Block, Query};
 use triax_protocol::batch::BatchHeader;
 use triax_protocol::keys::{self, Stream};
+use triax_protocol::provenance::{check_nonce, digest, Digest, Seal};
 use triax_protocol::{BuildingId, Key, RawBatchView, SensorId};
 use zenoh::key_expr::KeyExpr;
 use zenoh::Wait;
@@ -37,7 +38,7 @@ use super::{Context, Task};
 use crate::error::{zenoh_err, GatewayError};
 use crate::sample_path::{correct_judged, suspect_flag, Scratch, SensorKernel, Sink};
 use crate::shutdown::Shutdown;
-use crate::state::SensorTable;
+use crate::state::{SensorTable, Signer};
 
 /// History queries served at the same time.
 pub const CONCURRENT_QUERIES: usize = 2;
@@ -68,6 +69,8 @@ pub struct HistoryQuery {
     /// Continue after this sensor's batch of this arrival number.
     pub after: Option<(SensorId, u64)>,
     pub calibration: Calibration,
+    /// Asked for: the answer is sealed, the seals bound to it (PROTOCOL.md §6).
+    pub nonce: Option<String>,
 }
 
 impl HistoryQuery {
@@ -83,6 +86,7 @@ impl HistoryQuery {
             limit: DEFAULT_LIMIT,
             after: None,
             calibration: Calibration::InForce,
+            nonce: None,
         };
         fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {
             value
@@ -125,9 +129,13 @@ impl HistoryQuery {
                         },
                     }
                 }
+                "nonce" => {
+                    check_nonce(value).map_err(|e| format!("history query: {e}"))?;
+                    q.nonce = Some(value.to_owned());
+                }
                 other => {
                     return Err(format!(
-                        "history query: unknown parameter {other:?} (known: from_ns, to_ns, from_seq, to_seq, limit, after, calibration)"
+                        "history query: unknown parameter {other:?} (known: from_ns, to_ns, from_seq, to_seq, limit, after, calibration, nonce)"
                     ))
                 }
             }
@@ -158,6 +166,7 @@ pub struct ReplayContext {
     pub table: Arc<SensorTable>,
     pub store: Arc<Store>,
     pub sink: Arc<Sink>,
+    pub signer: Arc<Signer>,
 }
 
 /// The correctors of one replay, by version: each record is read and loaded once.
@@ -390,22 +399,43 @@ fn answer(ctx: &ReplayContext, query: &zenoh::query::Query) {
         }
     }
     let mut left = q.limit;
+    // Asked with a nonce, each sensor's batches are followed by seals over them.
+    let mut sealing = q
+        .nonce
+        .as_deref()
+        .filter(|_| ctx.signer.public_key_hex().is_some())
+        .map(|nonce| AnswerSeals::new(&ctx.signer, nonce));
     for sensor in &sensors {
         let key = Key::History(ctx.building.clone(), sensor.clone()).to_string();
         let mut failed = None;
         let mut emit = |payload: &[u8], arrival: u64| {
+            let cursor = format!("{sensor}:{arrival}");
+            if let Some(s) = sealing.as_mut() {
+                s.add(digest(&key, cursor.as_bytes(), payload));
+            }
             let sent = query
                 .reply(&key, payload.to_vec())
-                .attachment(format!("{sensor}:{arrival}"))
-                .wait();
+                .attachment(cursor)
+                .wait()
+                .map_err(|e| e.to_string())
+                .and_then(|()| match sealing.as_mut() {
+                    Some(s) if s.full() => s.send(query, &key),
+                    _ => Ok(()),
+                });
             if let Err(e) = sent {
-                failed = Some(e.to_string());
+                failed = Some(e);
                 return false;
             }
             left -= 1;
             left > 0
         };
-        match replay(ctx, sensor, &q, &mut emit) {
+        let replayed = replay(ctx, sensor, &q, &mut emit);
+        if let (Some(s), None) = (sealing.as_mut(), &failed) {
+            if let Err(e) = s.send(query, &key) {
+                failed = Some(e);
+            }
+        }
+        match replayed {
             Ok(_) => {}
             Err(problem) => {
                 if let Err(e) = query.reply_err(problem).wait() {
@@ -424,6 +454,54 @@ fn answer(ctx: &ReplayContext, query: &zenoh::query::Query) {
     }
 }
 
+/// The seals of one history answer: every [`SEAL_EVERY`] batches, and after each sensor's.
+struct AnswerSeals<'a> {
+    signer: &'a Signer,
+    nonce: &'a str,
+    sequence: u64,
+    digests: Vec<Digest>,
+}
+
+/// Batches a history seal covers at most: a consumer holds this many before it may use them.
+const SEAL_EVERY: usize = 256;
+
+impl<'a> AnswerSeals<'a> {
+    fn new(signer: &'a Signer, nonce: &'a str) -> AnswerSeals<'a> {
+        AnswerSeals {
+            signer,
+            nonce,
+            sequence: 0,
+            digests: Vec::with_capacity(SEAL_EVERY),
+        }
+    }
+
+    fn add(&mut self, d: Digest) {
+        self.digests.push(d);
+    }
+
+    fn full(&self) -> bool {
+        self.digests.len() >= SEAL_EVERY
+    }
+
+    /// Replies with a seal over what was answered since the last one, if anything was.
+    fn send(&mut self, query: &zenoh::query::Query, key: &str) -> Result<(), String> {
+        if self.digests.is_empty() {
+            return Ok(());
+        }
+        let payload = Seal {
+            sequence: self.sequence,
+            digests: std::mem::take(&mut self.digests),
+        }
+        .encode();
+        self.sequence += 1;
+        let mut reply = query.reply(key, payload.clone());
+        if let Some(a) = self.signer.attachment(key, self.nonce, &payload) {
+            reply = reply.attachment(a.to_vec());
+        }
+        reply.wait().map_err(|e| e.to_string())
+    }
+}
+
 /// Starts the history queryable over what `sink`'s history holds.
 pub async fn start(ctx: &Context, sink: &Arc<Sink>) -> Result<Task, GatewayError> {
     let replay = Arc::new(ReplayContext {
@@ -431,6 +509,7 @@ pub async fn start(ctx: &Context, sink: &Arc<Sink>) -> Result<Task, GatewayError
         table: ctx.table.clone(),
         store: ctx.store.clone(),
         sink: sink.clone(),
+        signer: ctx.signer.clone(),
     });
     serve(ctx.session.clone(), replay, ctx.shutdown.clone())
         .await
@@ -474,6 +553,8 @@ mod tests {
             ("calibration=newest", "calibration"),
             ("from_seq=-1", "from_seq"),
             ("colour=red", "colour"),
+            ("nonce=a*b", "nonce"),
+            ("nonce=", "nonce"),
         ] {
             let e = parse(bad).unwrap_err();
             assert!(e.contains(named), "{bad}: {e}");

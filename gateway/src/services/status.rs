@@ -23,6 +23,7 @@ use time::OffsetDateTime;
 use triax_calibration_store::Store;
 use triax_protocol::keys::RawKeyRefusal;
 use triax_protocol::messages::GatewayStatus;
+use triax_protocol::provenance::check_nonce;
 use triax_protocol::record::CalibrationRecord;
 use triax_protocol::{to_json, Key, SensorId, JSON_FORMAT_VERSION};
 
@@ -31,7 +32,7 @@ use crate::config::Config;
 use crate::error::{zenoh_err, GatewayError};
 use crate::sample_path::Sink;
 use crate::shutdown::Shutdown;
-use crate::state::{BackfillCounters, GatewayCounters, SensorTable};
+use crate::state::{BackfillCounters, GatewayCounters, SensorTable, Signer};
 
 /// Most sensors in one status reply: about 1.5 MiB of JSON.
 pub const STATUS_PAGE_MAX: usize = 5000;
@@ -42,6 +43,8 @@ pub struct StatusQuery {
     pub sensor: Option<SensorId>,
     pub offset: usize,
     pub limit: usize,
+    /// What the reply's signature is bound to (PROTOCOL.md §6); empty when not asked.
+    pub nonce: String,
 }
 
 impl Default for StatusQuery {
@@ -50,6 +53,7 @@ impl Default for StatusQuery {
             sensor: None,
             offset: 0,
             limit: STATUS_PAGE_MAX,
+            nonce: String::new(),
         }
     }
 }
@@ -74,9 +78,13 @@ impl StatusQuery {
                 }
                 "offset" => q.offset = number(name, value)?,
                 "limit" => q.limit = number(name, value)?.min(STATUS_PAGE_MAX),
+                "nonce" => {
+                    check_nonce(value).map_err(|e| format!("status query: {e}"))?;
+                    q.nonce = value.to_owned();
+                }
                 other => {
                     return Err(format!(
-                        "status query: unknown parameter {other:?} (known: sensor, offset, limit)"
+                        "status query: unknown parameter {other:?} (known: sensor, offset, limit, nonce)"
                     ))
                 }
             }
@@ -95,6 +103,7 @@ pub struct StatusContext {
     pub started_at: OffsetDateTime,
     /// Where a one-sensor answer reads the record in force; none: answers carry no record.
     pub store: Option<Arc<Store>>,
+    pub signer: Arc<Signer>,
 }
 
 impl StatusContext {
@@ -180,6 +189,7 @@ pub async fn start(
         backfill,
         started_at: ctx.started_at,
         store: Some(ctx.store.clone()),
+        signer: ctx.signer.clone(),
     };
     serve(&ctx.session, status, ctx.shutdown.clone()).await
 }
@@ -205,6 +215,7 @@ async fn serve(
                 Ok(q) => {
                     // A one-sensor answer reads the store.
                     let c = ctx.clone();
+                    let nonce = q.nonce.clone();
                     let Ok(body) =
                         tokio::task::spawn_blocking(move || to_json(&c.status(&q))).await
                     else {
@@ -212,7 +223,12 @@ async fn serve(
                         continue;
                     };
                     let key = Key::Status(ctx.config.building.clone()).to_string();
-                    query.reply(key, body).await
+                    let signature = ctx.signer.attachment(&key, &nonce, &body);
+                    let mut reply = query.reply(key, body);
+                    if let Some(a) = signature {
+                        reply = reply.attachment(a.to_vec());
+                    }
+                    reply.await
                 }
                 Err(problem) => query.reply_err(problem).await,
             };
@@ -245,6 +261,7 @@ mod tests {
             backfill: None,
             started_at: OffsetDateTime::UNIX_EPOCH,
             store: None,
+            signer: Arc::new(Signer::off()),
         }
     }
 

@@ -18,6 +18,8 @@ pub struct GatewayCounters {
     pub dropped: Arc<AtomicU64>,
     pub published_batches: AtomicU64,
     pub publish_errors: AtomicU64,
+    /// Seals put over the published batches (PROTOCOL.md §6).
+    pub seals: AtomicU64,
     pub tilt_samples: AtomicU64,
     pub pushes_accepted: AtomicU64,
     pub pushes_refused: AtomicU64,

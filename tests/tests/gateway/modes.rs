@@ -119,6 +119,7 @@ pub(crate) fn service_config(
         buildings,
         state_dir: Some(dir.join("modes")),
         signing_key_file: Some(dir.join("modes.key")),
+        gateway_keys: None,
     }
 }
 
