@@ -111,9 +111,12 @@ pub async fn fetch(
     let mut after: Option<String> = None;
     loop {
         let (in_page, last) = page(session, request, PAGE, after.as_deref(), timeout, each).await?;
+        // A cursor that does not move on (a peer answering every query with the same reply,
+        // when nothing is verified) would ask forever.
+        let stuck = last == after;
         after = last;
         total += in_page;
-        if in_page == 0 || after.is_none() {
+        if in_page == 0 || after.is_none() || stuck {
             return Ok(total);
         }
     }

@@ -38,6 +38,8 @@
 //!   reported time, through a restart and until a new record; replays reproduce the flag.
 //! - `history`: replay byte for byte, recalibration in force or latest, losing nothing across an
 //!   outage, retention.
+//! - `provenance`: a hostile peer's relayed, altered, replayed and self-sealed batches and its
+//!   history and status answers, refused by a verifying follower and history read.
 //! - `replay_restart`: the history byte for byte the live stream across clean stops and kills of
 //!   the gateway (split-mode and dynamic sensors).
 //! - `modes`: `triax-modes` identifies a simulated five-storey building's first three modes of
@@ -74,6 +76,8 @@ mod intervals;
 mod modes;
 #[path = "gateway/modes_mc.rs"]
 mod modes_mc;
+#[path = "gateway/provenance.rs"]
+mod provenance;
 #[path = "gateway/replay_restart.rs"]
 mod replay_restart;
 #[path = "gateway/tilt.rs"]
