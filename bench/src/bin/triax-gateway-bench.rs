@@ -25,6 +25,8 @@
 //!   on disk costs, in the same run;
 //! - `gateway-no-health`: the default gateway with its field health checks off: what they
 //!   cost, in the same run;
+//! - `gateway-unsigned`: the default gateway signing nothing and putting no seals
+//!   (`[provenance] sign = false`): what provenance (PROTOCOL.md §6) costs, in the same run;
 //! - `gateway-again`: the default gateway a second time, a process of its own like the first:
 //!   an A/A control. Its ratios to `gateway` within a round are what two processes of the
 //!   same binary differ by, the resolution of every other ratio of that round. With
@@ -243,6 +245,7 @@ enum System {
     GatewayBackpressure,
     GatewayNoHistory,
     GatewayNoHealth,
+    GatewayUnsigned,
     /// The gateway again, a second process of the same binary and settings: its ratio to
     /// `gateway` in one round is the spread between two processes, the bench's own resolution
     /// (an A/A control).
@@ -272,6 +275,7 @@ impl System {
             System::GatewayBackpressure => "gateway-backpressure",
             System::GatewayNoHistory => "gateway-no-history",
             System::GatewayNoHealth => "gateway-no-health",
+            System::GatewayUnsigned => "gateway-unsigned",
             System::GatewayAgain => "gateway-again",
         }
     }
@@ -426,6 +430,7 @@ async fn run_system(system: System, args: &Args) -> Result<PhaseResult> {
         | System::GatewayBackpressure
         | System::GatewayNoHistory
         | System::GatewayNoHealth
+        | System::GatewayUnsigned
         | System::GatewayAgain => {
             let n = args.sensors;
             let sp = store_path.clone();
@@ -808,6 +813,7 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
         System::Gateway,
         System::GatewayNoHistory,
         System::GatewayNoHealth,
+        System::GatewayUnsigned,
         System::GatewayBackpressure,
         System::GatewayAgain,
     ] {
@@ -824,6 +830,11 @@ fn report_building(results: &[(usize, System, BuildingResult)]) {
         "history on / off",
     );
     ratios(System::Gateway, System::GatewayNoHealth, "health on / off");
+    ratios(
+        System::Gateway,
+        System::GatewayUnsigned,
+        "signed / unsigned",
+    );
     ratios(System::GatewayAgain, System::Gateway, again_label());
 }
 
@@ -993,6 +1004,7 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
         | System::GatewayBackpressure
         | System::GatewayNoHistory
         | System::GatewayNoHealth
+        | System::GatewayUnsigned
         | System::GatewayAgain => {
             let store = store.context("--store")?;
             let mut config = Config::for_tests(BUILDING, store, vec![endpoint]);
@@ -1002,6 +1014,7 @@ async fn serve(system: System, store: Option<&std::path::Path>, port: u16) -> Re
                 System::GatewayBackpressure => config.overload = Overload::Backpressure,
                 System::GatewayNoHistory => config.history = None,
                 System::GatewayNoHealth => config.health = None,
+                System::GatewayUnsigned => config.provenance.sign = false,
                 _ => {}
             }
             // Experiments with the key budget (inherited from the bench's environment).
@@ -1356,6 +1369,7 @@ fn main() -> Result<()> {
             System::GatewayNoHistory,
             System::GatewayAgain,
             System::GatewayNoHealth,
+            System::GatewayUnsigned,
         ];
         let wanted = |s: System| args.systems.is_empty() || args.systems.contains(&s);
         if !args.no_throughput {
