@@ -473,6 +473,8 @@ pub async fn run(
     config.building = BuildingId::new("demo").expect("literal building id is valid");
     config.gateway_name = "triax-gateway-demo".into();
     config.store_path = store_path;
+    // The demo makes its own key, in its own folder, as a gateway does at its first start.
+    config.provenance.key_file = dir.path().join("triax-gateway-demo.key");
     if let Some(h) = config.history.as_mut() {
         h.path = dir.path().join("history");
     }
