@@ -97,8 +97,8 @@ impl SamplePath {
             recorder,
             holes,
         } = parts;
-        let sealer = match signer.public_key_hex() {
-            Some(_) => Some(
+        let sealer = match signer.signs() {
+            true => Some(
                 seal::Sealer::start(
                     session.clone(),
                     &config.building,
@@ -108,7 +108,7 @@ impl SamplePath {
                 )
                 .map_err(|e| GatewayError::Task(format!("starting the sealer thread: {e}")))?,
             ),
-            None => None,
+            false => None,
         };
         let shared = Arc::new(worker::Shared {
             building: config.building.clone(),

@@ -131,7 +131,7 @@ fn run(
             // back from the history, sealed there.
             let put = session
                 .put(key, payload)
-                .attachment(attachment.to_vec())
+                .attachment(attachment)
                 .congestion_control(CongestionControl::Drop)
                 .wait();
             match put {

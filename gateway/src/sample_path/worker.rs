@@ -523,10 +523,10 @@ impl Shard {
             timestamp_ns: view.header.timestamp_ns,
         });
         if let (Some(json), Some(key)) = (corrected.tilt, &state.keys.tilt) {
-            let mut put = shared.session.put(key.key_expr(), &json[..]);
-            if let Some(a) = shared.signer.attachment(key.key_expr().as_str(), "", &json) {
-                put = put.attachment(a.to_vec());
-            }
+            let put = shared
+                .session
+                .put(key.key_expr(), &json[..])
+                .attachment(shared.signer.attachment(key.key_expr().as_str(), "", &json));
             match put.congestion_control(CongestionControl::Drop).wait() {
                 Ok(()) => {
                     shared.counters.tilt_samples.fetch_add(1, Relaxed);
@@ -538,10 +538,10 @@ impl Shard {
             // Rare (a report every `publish_interval_s` of sensor time): a plain key. A lost
             // report is not lost knowledge: the health queryable answers with the latest.
             let key = Key::Health(shared.building.clone(), state.entry.id.clone()).to_string();
-            let mut put = shared.session.put(&key, &json[..]);
-            if let Some(a) = shared.signer.attachment(&key, "", &json) {
-                put = put.attachment(a.to_vec());
-            }
+            let put = shared
+                .session
+                .put(&key, &json[..])
+                .attachment(shared.signer.attachment(&key, "", &json));
             if let Err(e) = put.congestion_control(CongestionControl::Drop).wait() {
                 tracing::warn!(sensor, cause = %e, "health report not published");
             }

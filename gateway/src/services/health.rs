@@ -90,10 +90,9 @@ pub async fn serve(
                 if !query.key_expr().intersects(&k) {
                     continue;
                 }
-                let mut reply = query.reply(k, json.to_vec());
-                if let Some(a) = signer.attachment(&key, &nonce, &json) {
-                    reply = reply.attachment(a.to_vec());
-                }
+                let reply = query
+                    .reply(k, json.to_vec())
+                    .attachment(signer.attachment(&key, &nonce, &json));
                 if let Err(e) = reply.await {
                     tracing::warn!(cause = %e, "health reply failed");
                     break;

@@ -78,10 +78,9 @@ pub async fn run(
         }
         let body = to_json(&heartbeat(&building, &gateway, &table, sequence, now_ns()));
         sequence += 1;
-        let mut put = session.put(&key, &body[..]);
-        if let Some(a) = signer.attachment(&key, "", &body) {
-            put = put.attachment(a.to_vec());
-        }
+        let put = session
+            .put(&key, &body[..])
+            .attachment(signer.attachment(&key, "", &body));
         let put = put.congestion_control(CongestionControl::Drop).await;
         if let Err(e) = put {
             tracing::warn!(cause = %e, "heartbeat not published");

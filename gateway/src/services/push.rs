@@ -334,20 +334,18 @@ async fn answer(
     let body = to_json(&updater.ack(&sensor, outcome));
     let b = updater.building().clone();
     let reply_key = Key::CalibrationPush(b.clone(), sensor.clone()).to_string();
-    let mut reply = query.reply(&reply_key, body.clone());
-    if let Some(a) = signer.attachment(&reply_key, "", &body) {
-        reply = reply.attachment(a.to_vec());
-    }
+    let reply = query
+        .reply(&reply_key, body.clone())
+        .attachment(signer.attachment(&reply_key, "", &body));
     if let Err(e) = reply.await {
         tracing::warn!(sensor = %sensor, cause = %e, "push reply failed");
     }
     // Finalise the query before the copy: the pusher waits for the final, monitors do not.
     drop(query);
     let ack_key = Key::CalibrationAck(b, sensor.clone()).to_string();
-    let mut put = session.put(&ack_key, &body[..]);
-    if let Some(a) = signer.attachment(&ack_key, "", &body) {
-        put = put.attachment(a.to_vec());
-    }
+    let put = session
+        .put(&ack_key, &body[..])
+        .attachment(signer.attachment(&ack_key, "", &body));
     if let Err(e) = put.await {
         tracing::warn!(sensor = %sensor, cause = %e, "push ack copy failed");
     }

@@ -403,7 +403,7 @@ fn answer(ctx: &ReplayContext, query: &zenoh::query::Query) {
     let mut sealing = q
         .nonce
         .as_deref()
-        .filter(|_| ctx.signer.public_key_hex().is_some())
+        .filter(|_| ctx.signer.signs())
         .map(|nonce| AnswerSeals::new(&ctx.signer, nonce));
     for sensor in &sensors {
         let key = Key::History(ctx.building.clone(), sensor.clone()).to_string();
@@ -494,10 +494,9 @@ impl<'a> AnswerSeals<'a> {
         }
         .encode();
         self.sequence += 1;
-        let mut reply = query.reply(key, payload.clone());
-        if let Some(a) = self.signer.attachment(key, self.nonce, &payload) {
-            reply = reply.attachment(a.to_vec());
-        }
+        let reply = query
+            .reply(key, payload.clone())
+            .attachment(self.signer.attachment(key, self.nonce, &payload));
         reply.wait().map_err(|e| e.to_string())
     }
 }

@@ -224,10 +224,7 @@ async fn serve(
                     };
                     let key = Key::Status(ctx.config.building.clone()).to_string();
                     let signature = ctx.signer.attachment(&key, &nonce, &body);
-                    let mut reply = query.reply(key, body);
-                    if let Some(a) = signature {
-                        reply = reply.attachment(a.to_vec());
-                    }
+                    let reply = query.reply(key, body).attachment(signature);
                     reply.await
                 }
                 Err(problem) => query.reply_err(problem).await,

@@ -50,6 +50,11 @@ impl Signer {
         Some(sign_message(key, key_expr, nonce, now_ns(), payload))
     }
 
+    /// Whether anything is signed (`[provenance] sign`).
+    pub fn signs(&self) -> bool {
+        self.key.is_some()
+    }
+
     /// The public key consumers are to trust, in hex.
     pub fn public_key_hex(&self) -> Option<String> {
         self.key
