@@ -130,26 +130,6 @@ pub fn unverified_replies() -> u64 {
 
 static UNVERIFIED: AtomicU64 = AtomicU64::new(0);
 
-/// A nonce no one can guess before the query is sent.
-fn fresh_nonce() -> String {
-    use std::hash::{BuildHasher, Hasher};
-    // Two randomly keyed SipHashes of the time and a counter: 128 bits that differ per query
-    // and per process, from the standard library alone.
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let n = COUNTER.fetch_add(1, Relaxed);
-    let t = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap_or_default()
-        .as_nanos();
-    let half = || {
-        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
-        h.write_u128(t);
-        h.write_u64(n);
-        h.finish()
-    };
-    format!("{:016x}{:016x}", half(), half())
-}
-
 /// Replies of one verified answer waiting for the seal that lists them.
 struct Unsealed {
     trusted: Arc<GatewayKeys>,
@@ -194,7 +174,7 @@ async fn page(
 ) -> Result<(usize, Option<String>), ClientError> {
     let mut unsealed = request.trusted.clone().map(|trusted| Unsealed {
         trusted,
-        nonce: fresh_nonce(),
+        nonce: triax_protocol::provenance::fresh_nonce(),
         waiting: Vec::new(),
         error: None,
     });

@@ -64,11 +64,12 @@ fn main() {
         status_interval: Duration::from_secs(2),
         expiry_warning: Duration::from_secs(30 * 86_400),
         trusted_alert_keys: TrustedKeys::default(),
+        provenance: std::sync::Arc::new(triax_console::provenance::Provenance::on_trust()),
     });
     let started = time::OffsetDateTime::now_utc();
     for b in 0..BUILDINGS {
         fleet.status(status(b, started, 0));
-        fleet.heartbeat(&format!("triax/b{b:03}/heartbeat"), &heartbeat(b, 0));
+        fleet.heartbeat(&format!("triax/b{b:03}/heartbeat"), &heartbeat(b, 0), None);
     }
     let snapshot_bytes = serde_json::to_vec(&fleet.snapshot())
         .expect("serialises")
@@ -83,7 +84,11 @@ fn main() {
         let due = t0 + Duration::from_secs(second);
         std::thread::sleep(due.saturating_duration_since(Instant::now()));
         for b in 0..BUILDINGS {
-            fleet.heartbeat(&format!("triax/b{b:03}/heartbeat"), &heartbeat(b, second));
+            fleet.heartbeat(
+                &format!("triax/b{b:03}/heartbeat"),
+                &heartbeat(b, second),
+                None,
+            );
             if second % 2 == 0 {
                 fleet.status(status(b, started, second * 100));
             }

@@ -17,13 +17,15 @@ use time::OffsetDateTime;
 use triax_protocol::batch::Mode;
 use triax_protocol::keys::{self, Stream};
 use triax_protocol::messages::{
-    Alert, AlertLevel, GatewayStatus, HealthVerdict, Heartbeat, HistoryStatus, SensorStatus,
+    Alert, AlertKind, AlertLevel, GatewayStatus, HealthVerdict, Heartbeat, HistoryStatus,
+    SensorStatus,
 };
 use triax_protocol::signing::{read_alert, AlertTrust, TrustedKeys};
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
 
 use crate::alertlog::{self, AlertLog};
+use crate::provenance::{Provenance, ProvenanceView};
 
 /// Most buildings tracked; further ids heard are counted and ignored.
 pub const MAX_BUILDINGS: usize = 1000;
@@ -59,6 +61,8 @@ pub struct FleetOptions {
     pub expiry_warning: Duration,
     /// The alerting services' public keys: only an alert signed by one of them is a verdict.
     pub trusted_alert_keys: TrustedKeys,
+    /// What is checked of the gateways' heartbeats and status answers.
+    pub provenance: Arc<Provenance>,
 }
 
 /// What the console holds of one alert.
@@ -89,7 +93,7 @@ struct BuildingState {
     heartbeat: Option<(Instant, Heartbeat)>,
     status: Option<(Instant, GatewayStatus)>,
     status_error: Option<String>,
-    latest_alerts: BTreeMap<SensorId, AlertEntry>,
+    latest_alerts: BTreeMap<SensorId, SensorAlerts>,
     counters: CounterHistory,
     /// Per sensor, the flagged share as of the latest status answer.
     flagged: BTreeMap<SensorId, FlaggedShare>,
@@ -200,11 +204,99 @@ impl CounterHistory {
     }
 }
 
+/// A sensor's latest verdict, and the latest claim no trusted key vouches for when it came
+/// after: a claim is shown beside the verdict, never instead of it.
+#[derive(Debug, Default, Clone)]
+pub struct SensorAlerts {
+    pub verified: Option<AlertEntry>,
+    pub unverified: Option<AlertEntry>,
+}
+
+impl SensorAlerts {
+    fn received_at(&self) -> Option<OffsetDateTime> {
+        [&self.verified, &self.unverified]
+            .into_iter()
+            .flatten()
+            .map(|e| e.received_at)
+            .max()
+    }
+
+    /// The verdict, else the claim.
+    fn shown(&self) -> Option<&AlertEntry> {
+        self.verified.as_ref().or(self.unverified.as_ref())
+    }
+
+    /// The claim, when it is newer than the verdict (or there is none).
+    fn claim(&self) -> Option<&AlertEntry> {
+        match (&self.verified, &self.unverified) {
+            (Some(v), Some(u)) if u.id > v.id => Some(u),
+            (None, u) => u.as_ref(),
+            _ => None,
+        }
+    }
+}
+
+/// What makes two verified alerts the same verdict: a replay of a signed alert verifies again,
+/// and is one alert, not two.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+struct Verdict {
+    building: BuildingId,
+    sensor: SensorId,
+    kind: AlertKind,
+    level: AlertLevel,
+    at_ns: i128,
+    window_ns: (Option<i64>, Option<i64>),
+    value_bits: u64,
+}
+
+impl Verdict {
+    fn of(a: &Alert) -> Verdict {
+        Verdict {
+            building: a.building.clone(),
+            sensor: a.sensor_id.clone(),
+            kind: a.kind,
+            level: a.level,
+            at_ns: a.at.unix_timestamp_nanos(),
+            window_ns: (a.window_start_ns, a.window_end_ns),
+            value_bits: a.value.to_bits(),
+        }
+    }
+}
+
+/// Verified verdicts remembered to recognise their replays: more than the alert log keeps.
+pub const VERDICTS_REMEMBERED: usize = 2 * alertlog::DEFAULT_MAX_ALERTS;
+
+/// Verdicts seen, oldest first out.
+#[derive(Debug, Default)]
+struct Seen {
+    set: std::collections::HashSet<Verdict>,
+    order: VecDeque<Verdict>,
+}
+
+impl Seen {
+    /// False when `v` was seen before.
+    fn insert(&mut self, v: Verdict) -> bool {
+        if !self.set.insert(v.clone()) {
+            return false;
+        }
+        self.order.push_back(v);
+        while self.order.len() > VERDICTS_REMEMBERED {
+            if let Some(old) = self.order.pop_front() {
+                self.set.remove(&old);
+            }
+        }
+        true
+    }
+}
+
 #[derive(Debug, Default)]
 struct State {
     buildings: BTreeMap<BuildingId, BuildingState>,
     alerts: VecDeque<AlertEntry>,
     alerts_total: u64,
+    /// Verified alerts received again (replays), neither logged nor counted as new.
+    repeated_alerts: u64,
+    verdicts: Seen,
     malformed_messages: u64,
     ignored_buildings: u64,
     log: Option<AlertLog>,
@@ -246,6 +338,9 @@ impl Fleet {
                 Ok(mut entry) => {
                     entry.id = p.id;
                     let mut st = fleet.lock();
+                    if entry.verified() {
+                        st.verdicts.insert(Verdict::of(&entry.alert));
+                    }
                     if fleet
                         .building(&mut st, &entry.alert.building.clone())
                         .is_some()
@@ -291,7 +386,11 @@ impl Fleet {
         self.lock().malformed_messages += 1;
     }
 
-    pub fn heartbeat(&self, key: &str, payload: &[u8]) {
+    /// A heartbeat put on `key`, with the attachment that signs it.
+    pub fn heartbeat(&self, key: &str, payload: &[u8], attachment: Option<&[u8]>) {
+        if !self.options.provenance.put(key, payload, attachment) {
+            return;
+        }
         let hb = match (Key::parse(key), from_json::<Heartbeat>(payload)) {
             (Ok(Key::Heartbeat(b)), Ok(hb)) if hb.building == b => hb,
             (_, Err(e)) => return self.malformed(key, &e.to_string()),
@@ -360,6 +459,10 @@ impl Fleet {
         {
             return;
         }
+        if entry.verified() && !s.verdicts.insert(Verdict::of(&entry.alert)) {
+            s.repeated_alerts += 1;
+            return;
+        }
         let silenced = match &mut s.log {
             Some(log) => log.record(key, payload, &mut entry),
             None => None,
@@ -392,16 +495,33 @@ impl Fleet {
             if let Some(oldest) = st
                 .latest_alerts
                 .iter()
-                .min_by_key(|(_, e)| e.received_at)
+                .min_by_key(|(_, e)| e.received_at())
                 .map(|(k, _)| k.clone())
             {
                 st.latest_alerts.remove(&oldest);
             }
         }
-        st.latest_alerts
-            .insert(entry.alert.sensor_id.clone(), entry.clone());
+        let latest = st
+            .latest_alerts
+            .entry(entry.alert.sensor_id.clone())
+            .or_default();
+        match entry.verified() {
+            true => latest.verified = Some(entry.clone()),
+            false => latest.unverified = Some(entry.clone()),
+        }
         s.alerts.push_front(entry);
-        s.alerts.truncate(MAX_ALERTS);
+        // Past the bound, claims go first: a flood of unverified alerts never pushes a verdict
+        // out.
+        while s.alerts.len() > MAX_ALERTS {
+            match s.alerts.iter().rposition(|a| !a.verified()) {
+                Some(i) => {
+                    s.alerts.remove(i);
+                }
+                None => {
+                    s.alerts.pop_back();
+                }
+            }
+        }
         if new {
             s.alerts_total += 1;
         } else {
@@ -423,6 +543,11 @@ impl Fleet {
     /// wildcard.
     pub fn configured_buildings(&self) -> &[BuildingId] {
         &self.options.buildings
+    }
+
+    /// What the console checks of the gateways' messages.
+    pub fn provenance(&self) -> &Arc<Provenance> {
+        &self.options.provenance
     }
 
     /// The latest alerts held for the fleet view (at most [`MAX_ALERTS`]), newest first.
@@ -477,7 +602,9 @@ impl Fleet {
             alerts_restored: s.alerts_restored,
             alerts_open: s.log.as_ref().map_or(0, |l| l.open_count()),
             malformed_messages: s.malformed_messages,
+            repeated_alerts: s.repeated_alerts,
             ignored_buildings: s.ignored_buildings,
+            provenance: self.options.provenance.view(),
             expiry_warning_days: self.options.expiry_warning.as_secs_f64() / 86_400.0,
         }
     }
@@ -505,7 +632,10 @@ impl Fleet {
                             status_age.unwrap_or_default(),
                             wall,
                             self.options.expiry_warning,
-                            b.latest_alerts.get(&s.sensor_id),
+                            b.latest_alerts
+                                .get(&s.sensor_id)
+                                .cloned()
+                                .unwrap_or_default(),
                             b.flagged.get(&s.sensor_id).copied(),
                         )
                     })
@@ -674,14 +804,19 @@ pub struct SensorView {
     pub valid_until: Option<OffsetDateTime>,
     /// Days until `valid_until` (negative: expired).
     pub expires_in_days: Option<f64>,
+    /// The latest verified alert (a verdict); without one, the latest alert no trusted key
+    /// vouches for.
     pub latest_alert: Option<AlertEntry>,
+    /// An alert newer than the verdict in `latest_alert` that no trusted key vouches for: shown
+    /// beside the verdict, never instead of it.
+    pub unverified_claim: Option<AlertEntry>,
     /// Listed in the gateway's status (false: known from an alert only).
     pub in_status: bool,
 }
 
 impl SensorView {
-    fn alert_only(sensor_id: SensorId, a: &AlertEntry) -> SensorView {
-        let mut states = alert_states(Some(a));
+    fn alert_only(sensor_id: SensorId, a: &SensorAlerts) -> SensorView {
+        let mut states = alert_states(a);
         if states.is_empty() {
             states.push(SensorState::Ok);
         }
@@ -702,19 +837,24 @@ impl SensorView {
             valid_from: None,
             valid_until: None,
             expires_in_days: None,
-            latest_alert: Some(a.clone()),
+            latest_alert: a.shown().cloned(),
+            unverified_claim: a.verified.as_ref().and(a.claim()).cloned(),
             in_status: false,
         }
     }
 }
 
-fn alert_states(a: Option<&AlertEntry>) -> Vec<SensorState> {
-    match a.map(|a| (a.verified(), a.alert.level)) {
-        Some((false, _)) => vec![SensorState::Unverified],
-        Some((true, AlertLevel::Exceeded)) => vec![SensorState::Exceeded],
-        Some((true, AlertLevel::Possible | AlertLevel::Stale)) => vec![SensorState::Alert],
+/// The states of the latest verdict, and `unverified` beside them for a newer claim.
+fn alert_states(a: &SensorAlerts) -> Vec<SensorState> {
+    let mut states = match a.verified.as_ref().map(|v| v.alert.level) {
+        Some(AlertLevel::Exceeded) => vec![SensorState::Exceeded],
+        Some(AlertLevel::Possible | AlertLevel::Stale) => vec![SensorState::Alert],
         None => vec![],
+    };
+    if a.claim().is_some() {
+        states.push(SensorState::Unverified);
     }
+    states
 }
 
 /// A sensor's row from its gateway's status (`reported_at` by the gateway's clock, received
@@ -728,10 +868,10 @@ pub fn sensor_view(
     status_age: Duration,
     now: OffsetDateTime,
     expiry_warning: Duration,
-    alert: Option<&AlertEntry>,
+    alerts: SensorAlerts,
     flagged: Option<FlaggedShare>,
 ) -> SensorView {
-    let mut states = alert_states(alert);
+    let mut states = alert_states(&alerts);
     let days = |d: time::Duration| d.as_seconds_f64() / 86_400.0;
     let expires_in = s.valid_until.map(|u| u - now);
     if s.calibration_version.is_none() {
@@ -782,7 +922,8 @@ pub fn sensor_view(
         valid_from: s.valid_from,
         valid_until: s.valid_until,
         expires_in_days: expires_in.map(days),
-        latest_alert: alert.cloned(),
+        latest_alert: alerts.shown().cloned(),
+        unverified_claim: alerts.verified.as_ref().and(alerts.claim()).cloned(),
         in_status: true,
     }
 }
@@ -826,8 +967,12 @@ pub struct Snapshot {
     pub alerts_open: usize,
     /// Heartbeats, alerts and status answers that did not decode or contradicted their key.
     pub malformed_messages: u64,
+    /// Verified alerts received again (replays of a verdict already held): not new alerts.
+    pub repeated_alerts: u64,
     /// Buildings heard of beyond [`MAX_BUILDINGS`].
     pub ignored_buildings: u64,
+    /// Whether the gateways' messages are verified, and what was dropped as not theirs.
+    pub provenance: ProvenanceView,
     pub expiry_warning_days: f64,
 }
 
@@ -872,6 +1017,7 @@ pub struct Brief {
     pub alerts_open: usize,
     pub malformed_messages: u64,
     pub ignored_buildings: u64,
+    pub provenance: ProvenanceView,
     pub expiry_warning_days: f64,
 }
 
@@ -920,6 +1066,7 @@ impl Brief {
             alerts_open: snap.alerts_open,
             malformed_messages: snap.malformed_messages,
             ignored_buildings: snap.ignored_buildings,
+            provenance: snap.provenance.clone(),
             expiry_warning_days: snap.expiry_warning_days,
         }
     }
@@ -940,6 +1087,7 @@ impl Brief {
             alerts_open: self.alerts_open,
             malformed_messages: self.malformed_messages,
             ignored_buildings: self.ignored_buildings,
+            refused_messages: self.provenance.refused.values().sum(),
             buildings: Vec::new(),
             sensors: Vec::new(),
             removed_sensors: Vec::new(),
@@ -1015,6 +1163,8 @@ pub struct Delta {
     pub alerts_open: usize,
     pub malformed_messages: u64,
     pub ignored_buildings: u64,
+    /// Messages dropped as not verified, all reasons together (by reason in `/api/fleet`).
+    pub refused_messages: u64,
     /// Buildings new or changed (without their sensors).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub buildings: Vec<BuildingBrief>,
@@ -1068,7 +1218,8 @@ pub async fn watch(session: &zenoh::Session, fleet: &Arc<Fleet>) -> zenoh::Resul
                 let payload = sample.payload().to_bytes();
                 let key = sample.key_expr().as_str();
                 if heartbeat {
-                    f.heartbeat(key, &payload);
+                    let attachment = sample.attachment().map(|a| a.to_bytes());
+                    f.heartbeat(key, &payload, attachment.as_deref());
                 } else {
                     f.alert(key, &payload);
                 }
@@ -1096,13 +1247,17 @@ pub async fn poll_status(
             _ = stop.changed() => return,
         }
         let timeout = interval.max(Duration::from_millis(500));
-        let params = format!("limit={STATUS_PAGE}");
+        let nonce = fleet.options.provenance.nonce();
+        let params = match &nonce {
+            Some(n) => format!("limit={STATUS_PAGE};nonce={n}"),
+            None => format!("limit={STATUS_PAGE}"),
+        };
         if fleet.configured_buildings().is_empty() {
             poll_once(
                 &session,
                 &fleet,
                 &keys::all_statuses(),
-                &params,
+                (&params, nonce.as_deref()),
                 timeout,
                 None,
             )
@@ -1110,7 +1265,8 @@ pub async fn poll_status(
         } else {
             for b in fleet.configured_buildings() {
                 let key = Key::Status(b.clone()).to_string();
-                poll_once(&session, &fleet, &key, &params, timeout, Some(b)).await;
+                let query = (params.as_str(), nonce.as_deref());
+                poll_once(&session, &fleet, &key, query, timeout, Some(b)).await;
             }
         }
     }
@@ -1120,7 +1276,7 @@ async fn poll_once(
     session: &zenoh::Session,
     fleet: &Fleet,
     key: &str,
-    params: &str,
+    (params, nonce): (&str, Option<&str>),
     timeout: Duration,
     building: Option<&BuildingId>,
 ) {
@@ -1137,10 +1293,20 @@ async fn poll_once(
         }
     };
     let mut answered = false;
+    let mut refusal = None;
     while let Ok(reply) = replies.recv_async().await {
         match reply.result() {
             Ok(sample) => {
                 let payload = sample.payload().to_bytes();
+                let attachment = sample.attachment().map(|a| a.to_bytes());
+                let key = sample.key_expr().as_str();
+                if !fleet
+                    .options
+                    .provenance
+                    .reply(key, nonce, &payload, attachment.as_deref())
+                {
+                    continue;
+                }
                 match from_json::<GatewayStatus>(&payload) {
                     Ok(st)
                         if Key::Status(st.building.clone()).to_string()
@@ -1153,16 +1319,19 @@ async fn poll_once(
                     Err(e) => fleet.malformed(sample.key_expr().as_str(), &e.to_string()),
                 }
             }
-            Err(e) => {
-                let text = String::from_utf8_lossy(&e.payload().to_bytes()).into_owned();
-                if let Some(b) = building {
-                    fleet.status_error(b, format!("status query refused: {text}"));
-                }
-            }
+            // An error reply carries no signature: it is shown, as what it claims, only when
+            // no verified answer came.
+            Err(e) => refusal = Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
         }
     }
     if let (Some(b), false) = (building, answered) {
-        fleet.status_error(b, "no status answer".into());
+        let message = match (refusal, fleet.options.provenance.verifying()) {
+            (Some(text), false) => format!("status query refused: {text}"),
+            (Some(text), true) => format!("no verified status answer; an unsigned refusal: {text}"),
+            (None, false) => "no status answer".into(),
+            (None, true) => "no verified status answer".into(),
+        };
+        fleet.status_error(b, message);
     }
 }
 
@@ -1211,24 +1380,48 @@ mod tests {
             Duration::ZERO,
             t(1),
             WARN,
-            None,
+            SensorAlerts::default(),
             None,
         );
         assert_eq!(v.states, [SensorState::Ok]);
-        let v = sensor_view(&status(None), t(1), Duration::ZERO, t(1), WARN, None, None);
+        let v = sensor_view(
+            &status(None),
+            t(1),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(v.states, [SensorState::Uncalibrated]);
 
         let mut s = status(Some(1));
         s.gaps = 2;
         s.rejects = 1;
-        let v = sensor_view(&s, t(60), Duration::ZERO, t(1), WARN, None, None);
+        let v = sensor_view(
+            &s,
+            t(60),
+            Duration::ZERO,
+            t(1),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(
             v.states,
             [SensorState::Silent, SensorState::Gaps, SensorState::Rejects],
             "silent by the gateway's clock: 60 s since the last batch"
         );
         assert_eq!(v.last_seen_age_s, Some(60.0));
-        let v = sensor_view(&s, t(1), Duration::from_secs(30), t(1), WARN, None, None);
+        let v = sensor_view(
+            &s,
+            t(1),
+            Duration::from_secs(30),
+            t(1),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(
             (v.states[0], v.last_seen_age_s),
             (SensorState::Silent, Some(31.0)),
@@ -1240,7 +1433,15 @@ mod tests {
     fn validity_warns_before_expiry_and_says_expired_after() {
         let mut s = status(Some(1));
         s.valid_until = Some(t(10 * 86_400));
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None, None);
+        let v = sensor_view(
+            &s,
+            t(0),
+            Duration::ZERO,
+            t(0),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(v.states, [SensorState::Expiring]);
         assert!((v.expires_in_days.unwrap() - 10.0).abs() < 1e-9);
         let v = sensor_view(
@@ -1249,15 +1450,31 @@ mod tests {
             Duration::ZERO,
             t(0),
             Duration::from_secs(86_400),
-            None,
+            SensorAlerts::default(),
             None,
         );
         assert_eq!(v.states, [SensorState::Ok], "outside a one-day warning");
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(10 * 86_400), WARN, None, None);
+        let v = sensor_view(
+            &s,
+            t(0),
+            Duration::ZERO,
+            t(10 * 86_400),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(v.states, [SensorState::Expired]);
         s.valid_from = Some(t(5));
         s.valid_until = None;
-        let v = sensor_view(&s, t(0), Duration::ZERO, t(0), WARN, None, None);
+        let v = sensor_view(
+            &s,
+            t(0),
+            Duration::ZERO,
+            t(0),
+            WARN,
+            SensorAlerts::default(),
+            None,
+        );
         assert_eq!(v.states, [SensorState::NotYetValid]);
     }
 
@@ -1335,7 +1552,16 @@ mod tests {
         let view = |h| {
             let mut st = status(Some(1));
             st.health = h;
-            sensor_view(&st, t(1), Duration::ZERO, t(1), WARN, None, None).states
+            sensor_view(
+                &st,
+                t(1),
+                Duration::ZERO,
+                t(1),
+                WARN,
+                SensorAlerts::default(),
+                None,
+            )
+            .states
         };
         assert_eq!(
             view(Some(HealthVerdict::Suspect)),
@@ -1355,7 +1581,7 @@ mod tests {
             Duration::ZERO,
             t(1),
             WARN,
-            None,
+            SensorAlerts::default(),
             share(6000, 6000),
         );
         assert_eq!(v.states, [SensorState::Flagged]);
@@ -1365,7 +1591,7 @@ mod tests {
             Duration::ZERO,
             t(1),
             WARN,
-            None,
+            SensorAlerts::default(),
             share(6000, 1200),
         );
         assert_eq!(v.states, [SensorState::Ok], "20 % is not above 20 %");
@@ -1375,7 +1601,7 @@ mod tests {
             Duration::ZERO,
             t(1),
             WARN,
-            None,
+            SensorAlerts::default(),
             share(6000, 6000),
         );
         assert_eq!(
@@ -1390,6 +1616,7 @@ mod tests {
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
             trusted_alert_keys: TrustedKeys::default(),
+            provenance: Arc::new(Provenance::on_trust()),
         });
         let mut st = gateway_status(0, vec![counted("a", 100, 0), counted("b", 100, 100)]);
         st.reported_at = OffsetDateTime::now_utc();
@@ -1439,6 +1666,7 @@ mod tests {
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
             trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
+            provenance: Arc::new(Provenance::on_trust()),
         });
         f.alert(
             "triax/hq/alert/acc-01",
@@ -1499,12 +1727,79 @@ mod tests {
     }
 
     #[test]
+    fn a_verdict_is_neither_replayed_nor_masked_nor_flooded_out() {
+        let f = Fleet::new(FleetOptions {
+            buildings: vec![],
+            status_interval: Duration::from_secs(2),
+            expiry_warning: WARN,
+            trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
+            provenance: Arc::new(Provenance::on_trust()),
+        });
+        let genuine = signed_json(&service_key(), "hq", "acc-01", "exceeded", "real");
+        f.alert("triax/hq/alert/acc-01", &genuine);
+        // A peer replays it, unaltered: it verifies, and is the same verdict.
+        for _ in 0..80 {
+            f.alert("triax/hq/alert/acc-01", &genuine);
+        }
+        let snap = f.snapshot();
+        assert_eq!((snap.alerts_total, snap.repeated_alerts), (1, 80));
+        assert_eq!(f.with_log(|l| l.len()), 1, "one alert in the log");
+        // An unsigned claim after it: shown beside the verdict, not instead of it.
+        f.alert(
+            "triax/hq/alert/acc-01",
+            &alert_json("hq", "acc-01", "possible", "all is well, says the peer"),
+        );
+        let snap = f.snapshot();
+        let s = &snap.buildings[0].sensors[0];
+        assert_eq!(s.states, [SensorState::Exceeded, SensorState::Unverified]);
+        assert_eq!(s.latest_alert.as_ref().unwrap().alert.statement, "real");
+        assert_eq!(
+            s.unverified_claim.as_ref().unwrap().alert.statement,
+            "all is well, says the peer"
+        );
+        // A flood of claims: the verdict stays in the fleet's alerts and in the log.
+        for i in 0..(2 * MAX_ALERTS) {
+            f.alert(
+                "triax/hq/alert/acc-02",
+                &alert_json("hq", "acc-02", "exceeded", &i.to_string()),
+            );
+        }
+        assert!(f
+            .alerts()
+            .iter()
+            .any(|a| a.verified() && a.alert.statement == "real"));
+        let verified = f.with_log(|l| {
+            l.query(&crate::alertlog::AlertQuery {
+                level: Some(crate::alertlog::LevelFilter::Verified(AlertLevel::Exceeded)),
+                limit: 10,
+                ..Default::default()
+            })
+            .matched
+        });
+        assert_eq!(verified, 1);
+        // A second verdict on the same sensor is new, and the latest.
+        f.alert(
+            "triax/hq/alert/acc-01",
+            &signed_json(&service_key(), "hq", "acc-01", "possible", "later"),
+        );
+        let snap = f.snapshot();
+        let s = &snap.buildings[0].sensors[0];
+        assert_eq!(snap.alerts_total, 3 + 2 * MAX_ALERTS as u64);
+        assert_eq!(s.states, [SensorState::Alert]);
+        assert!(
+            s.unverified_claim.is_none(),
+            "the claim is older than the verdict"
+        );
+    }
+
+    #[test]
     fn the_fleet_delta_carries_what_changed_and_nothing_that_only_counts() {
         let f = Fleet::new(FleetOptions {
             buildings: vec![],
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
             trusted_alert_keys: TrustedKeys::new(vec![service_key().verifying_key()]),
+            provenance: Arc::new(Provenance::on_trust()),
         });
         let answer = |samples: u64, flagged: u64| {
             let mut st = gateway_status(
@@ -1567,6 +1862,7 @@ mod tests {
             status_interval: Duration::from_secs(2),
             expiry_warning: WARN,
             trusted_alert_keys: TrustedKeys::default(),
+            provenance: Arc::new(Provenance::on_trust()),
         });
         f.alert(
             "triax/other/alert/x",

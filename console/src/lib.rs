@@ -34,6 +34,7 @@ pub mod modes;
 pub mod notify;
 pub mod operators;
 pub mod process;
+pub mod provenance;
 pub mod server;
 pub mod spectrum;
 pub mod trend;
@@ -49,6 +50,7 @@ use triax_protocol::BuildingId;
 use crate::fleet::{Fleet, FleetOptions};
 use crate::live::Feeds;
 use crate::server::Context;
+use triax_protocol::provenance::GatewayKeys;
 use triax_protocol::signing::TrustedKeys;
 
 /// Default address of the page.
@@ -79,6 +81,10 @@ pub struct ConsoleOptions {
     /// The alerting services' public keys (PROTOCOL.md §3.6): only an alert signed by one of
     /// them is shown as a verdict.
     pub trusted_alert_keys: TrustedKeys,
+    /// The buildings' gateway keys (PROTOCOL.md §6): with them, only what a building's
+    /// gateway signed or sealed is shown, and only keyed buildings are watched. None: every
+    /// message is taken on trust ([`provenance`]).
+    pub gateway_keys: Option<Arc<GatewayKeys>>,
     /// Where the alert log is kept ([`alertlog::FILE_NAME`] in it); None: in memory only.
     pub state_dir: Option<std::path::PathBuf>,
     /// Alerts the log keeps at most.
@@ -147,6 +153,7 @@ impl Default for ConsoleOptions {
             max_history_queries: 2,
             history_timeout: Duration::from_secs(20),
             trusted_alert_keys: TrustedKeys::default(),
+            gateway_keys: None,
             state_dir: None,
             max_logged_alerts: alertlog::DEFAULT_MAX_ALERTS,
             alert_retention: alertlog::DEFAULT_RETENTION,
@@ -226,6 +233,29 @@ pub fn url(addr: SocketAddr) -> String {
     format!("http://{addr}/")
 }
 
+/// With gateway keys, the buildings watched are the keyed ones (all of them when none are
+/// named); a building named without a key is refused, as it could only show what is taken on
+/// trust.
+fn watched_buildings(mut options: ConsoleOptions) -> Result<ConsoleOptions, ConsoleError> {
+    let Some(keys) = &options.gateway_keys else {
+        return Ok(options);
+    };
+    if options.buildings.is_empty() {
+        options.buildings = keys.buildings().cloned().collect();
+        options.buildings.sort();
+    }
+    if let Some(b) = options.buildings.iter().find(|b| keys.keys(b).is_empty()) {
+        return Err(ConsoleError::Option {
+            field: "buildings",
+            reason: format!(
+                "building {b} is watched but no gateway key is given for it: add \
+                 --gateway-key {b}=KEY, or leave it out of --buildings"
+            ),
+        });
+    }
+    Ok(options)
+}
+
 /// Serves the console on `listener` until `shutdown` completes.
 ///
 /// Refuses a listener on a non-loopback address unless `options.allow_remote`.
@@ -263,6 +293,8 @@ pub async fn serve(
             reason: "must be positive".into(),
         });
     }
+    let options = watched_buildings(options)?;
+    let provenance = Arc::new(provenance::Provenance::new(options.gateway_keys.clone()));
     let log = match &options.state_dir {
         Some(dir) => {
             alertlog::AlertLog::open(dir, options.max_logged_alerts, options.alert_retention)?
@@ -275,6 +307,7 @@ pub async fn serve(
             status_interval: options.status_interval,
             expiry_warning: options.expiry_warning,
             trusted_alert_keys: options.trusted_alert_keys.clone(),
+            provenance: provenance.clone(),
         },
         log,
     ));
@@ -343,7 +376,7 @@ pub async fn serve(
     let ctx = Arc::new(Context {
         session: session.clone(),
         fleet,
-        feeds: Feeds::new(session, options.history_timeout),
+        feeds: Feeds::new(session, options.history_timeout, provenance),
         fleet_events,
         streams: Arc::new(Semaphore::new(options.max_streams)),
         history_queries: Arc::new(Semaphore::new(options.max_history_queries)),

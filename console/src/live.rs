@@ -14,11 +14,13 @@ use std::sync::{Arc, Mutex, MutexGuard, Weak};
 
 use triax_protocol::batch::CorrectedBatch;
 use triax_protocol::messages::TiltSample;
+use triax_protocol::provenance::digest;
 use triax_protocol::{from_json, BuildingId, Key, SensorId};
 
 use triax_client::HistoryRequest;
 
 use crate::buckets::{Aggregator, RangeError, View};
+use crate::provenance::{Provenance, SealWatch};
 
 pub fn wall_clock_ns() -> i64 {
     std::time::SystemTime::now()
@@ -114,6 +116,8 @@ pub struct Feed {
     ring: Arc<Mutex<Ring>>,
     _corrected: zenoh::pubsub::Subscriber<()>,
     _tilt: zenoh::pubsub::Subscriber<()>,
+    /// The building's seals, while the console verifies its gateway.
+    _seals: Option<Arc<SealWatch>>,
 }
 
 fn lock(ring: &Mutex<Ring>) -> MutexGuard<'_, Ring> {
@@ -190,14 +194,29 @@ pub struct Feeds {
     /// How long the history read on opening may take.
     timeout: std::time::Duration,
     feeds: Mutex<HashMap<(BuildingId, SensorId), Weak<Feed>>>,
+    provenance: Arc<Provenance>,
+}
+
+/// Pushes a corrected payload to a feed's ring, if it decodes and names the feed's sensor.
+fn push_corrected(ring: &Mutex<Ring>, expected: &SensorId, payload: &[u8]) {
+    let mut g = lock(ring);
+    match CorrectedBatch::decode(payload) {
+        Ok(b) if b.header.sensor_id == *expected => g.push(b),
+        _ => g.malformed += 1,
+    }
 }
 
 impl Feeds {
-    pub fn new(session: zenoh::Session, timeout: std::time::Duration) -> Feeds {
+    pub fn new(
+        session: zenoh::Session,
+        timeout: std::time::Duration,
+        provenance: Arc<Provenance>,
+    ) -> Feeds {
         Feeds {
             session,
             timeout,
             feeds: Mutex::new(HashMap::new()),
+            provenance,
         }
     }
 
@@ -208,27 +227,36 @@ impl Feeds {
             return Ok(f);
         }
         let ring = Arc::new(Mutex::new(Ring::default()));
-        let r = ring.clone();
-        let expected = sensor.clone();
+        let seals = self.provenance.seal_watch(&self.session, building).await?;
+        let (r, expected, w) = (ring.clone(), sensor.clone(), seals.clone());
         let corrected = self
             .session
             .declare_subscriber(Key::Corrected(building.clone(), sensor.clone()).to_string())
             .callback(move |sample| {
-                let mut g = lock(&r);
-                match CorrectedBatch::decode(&sample.payload().to_bytes()) {
-                    Ok(b) if b.header.sensor_id == expected => g.push(b),
-                    _ => g.malformed += 1,
+                let payload = sample.payload().to_bytes();
+                match &w {
+                    None => push_corrected(&r, &expected, &payload),
+                    Some(w) => {
+                        let (r, expected) = (r.clone(), expected.clone());
+                        let d = digest(sample.key_expr().as_str(), &[], &payload);
+                        let owned = payload.into_owned();
+                        w.offer(d, Box::new(move || push_corrected(&r, &expected, &owned)));
+                    }
                 }
             })
             .await?;
-        let r = ring.clone();
-        let expected = sensor.clone();
+        let (r, expected, p) = (ring.clone(), sensor.clone(), self.provenance.clone());
         let tilt = self
             .session
             .declare_subscriber(Key::Tilt(building.clone(), sensor.clone()).to_string())
             .callback(move |sample| {
+                let payload = sample.payload().to_bytes();
+                let attachment = sample.attachment().map(|a| a.to_bytes());
+                if !p.put(sample.key_expr().as_str(), &payload, attachment.as_deref()) {
+                    return;
+                }
                 let mut g = lock(&r);
-                match from_json::<TiltSample>(&sample.payload().to_bytes()) {
+                match from_json::<TiltSample>(&payload) {
                     Ok(t) if t.sensor_id == expected => g.push_tilt(t),
                     _ => g.malformed += 1,
                 }
@@ -240,6 +268,7 @@ impl Feeds {
             ring,
             _corrected: corrected,
             _tilt: tilt,
+            _seals: seals,
         });
         let mut map = self.lock();
         // Another page may have opened it meanwhile: keep one.
@@ -252,6 +281,7 @@ impl Feeds {
         // The recent past, from the history, while the live stream already flows.
         let mut request = HistoryRequest::sensor(building, sensor);
         request.from_ns = Some(wall_clock_ns().saturating_sub(KEEP_NS));
+        request.trusted = self.provenance.keys().cloned();
         let (session, ring, timeout) = (self.session.clone(), feed.ring.clone(), self.timeout);
         tokio::spawn(async move {
             let mut older = Vec::new();

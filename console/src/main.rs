@@ -84,6 +84,18 @@ struct Cli {
     /// A file holding one such key, e.g. the service's triax-alert.key.pub (repeatable).
     #[arg(long, value_name = "FILE")]
     trusted_alert_key_file: Vec<std::path::PathBuf>,
+    /// A building's gateway key, BUILDING=KEY with KEY 64 hex characters or the file holding
+    /// them (the gateway's triax-gateway-<building>.key.pub); repeatable, or comma-separated.
+    /// With any, only keyed buildings are watched and only what their gateway signed or sealed
+    /// is shown (heartbeats, status, live batches, tilt, history, exports); the rest is counted
+    /// and dropped (PROTOCOL.md §6). Default: none, everything is taken on trust.
+    #[arg(
+        long,
+        value_name = "BUILDING=KEY",
+        env = "TRIAX_CONSOLE_GATEWAY_KEYS",
+        value_delimiter = ','
+    )]
+    gateway_key: Vec<String>,
     /// Directory of the console's own state: the alert log (alerts.jsonl), which keeps the
     /// alerts received, their acknowledgements and the silences across restarts, the
     /// annotations (annotations.jsonl) and the operators' accounts (operators). Default:
@@ -227,6 +239,24 @@ fn seconds(flag: &str, s: f64) -> anyhow::Result<Duration> {
 }
 
 /// The alerting keys of `--trusted-alert-key` and `--trusted-alert-key-file`, each named when bad.
+/// `--gateway-key BUILDING=KEY`, as a consumer's `[gateways]` table.
+fn gateway_keys(
+    cli: &Cli,
+) -> anyhow::Result<Option<std::sync::Arc<triax_protocol::provenance::GatewayKeys>>> {
+    let mut table = std::collections::BTreeMap::new();
+    for entry in &cli.gateway_key {
+        let (building, key) = entry
+            .split_once('=')
+            .with_context(|| format!("--gateway-key {entry:?}: not BUILDING=KEY"))?;
+        anyhow::ensure!(
+            table.insert(building.to_owned(), key.to_owned()).is_none(),
+            "--gateway-key: building {building} given twice"
+        );
+    }
+    triax_net::keys::trusted_gateways(&table)
+        .map_err(|e| anyhow::anyhow!("{e}").context("--gateway-key"))
+}
+
 fn trusted_alert_keys(cli: &Cli) -> anyhow::Result<TrustedKeys> {
     let mut texts: Vec<(String, String)> = cli
         .trusted_alert_key
@@ -279,6 +309,7 @@ async fn main() -> anyhow::Result<()> {
         expiry_warning: seconds("--expiry-warning-days", cli.expiry_warning_days * 86_400.0)?,
         allow_remote: cli.allow_remote,
         trusted_alert_keys: trusted_alert_keys(&cli)?,
+        gateway_keys: gateway_keys(&cli)?,
         state_dir: state_dir(&cli)?,
         max_logged_alerts: cli.max_logged_alerts,
         alert_retention: seconds(

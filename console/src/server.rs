@@ -48,6 +48,7 @@ use crate::fleet::{Fleet, GatewayState};
 use crate::http::{self, Refusal, Request};
 use crate::live::{Feeds, KEEP_NS};
 use crate::operators::{Login, Operator, Operators, Role};
+use crate::provenance::Provenance;
 use crate::ConsoleOptions;
 
 const INDEX_HTML: &str = include_str!("assets/index.html");
@@ -429,7 +430,7 @@ async fn route(ctx: &Arc<Context>, stream: &mut TcpStream, req: &Request) -> Res
         "/api/sensor" => {
             p.only(&["building", "sensor"])?;
             let (b, s) = (p.building()?, p.sensor()?);
-            let body = sensor_detail(&ctx.session, &b, &s).await;
+            let body = sensor_detail(&ctx.session, ctx.fleet.provenance(), &b, &s).await;
             ok(stream, JSON, json(&body), head_only).await
         }
         "/api/history" => {
@@ -953,25 +954,56 @@ impl Params<'_> {
 /// query; `error` says why there is none.
 async fn sensor_detail(
     session: &zenoh::Session,
+    provenance: &Provenance,
     b: &BuildingId,
     s: &SensorId,
 ) -> serde_json::Value {
-    let selector = format!("{}?sensor={s}", Key::Status(b.clone()));
+    let key = Key::Status(b.clone()).to_string();
+    let nonce = provenance.nonce();
+    let selector = match &nonce {
+        Some(n) => format!("{key}?sensor={s};nonce={n}"),
+        None => format!("{key}?sensor={s}"),
+    };
     let err = |m: String| serde_json::json!({ "building": b, "sensor_id": s, "error": m });
-    let replies = match session.get(&selector).timeout(Duration::from_secs(2)).await {
+    let replies = match session
+        .get(&selector)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_secs(2))
+        .await
+    {
         Ok(r) => r,
         Err(e) => return err(format!("status query failed: {e}")),
     };
-    let Ok(reply) = replies.recv_async().await else {
-        return err(format!("no answer from the gateway of building {b}"));
-    };
-    let status = match reply.result() {
-        Ok(sample) => from_json::<GatewayStatus>(&sample.payload().to_bytes()),
-        Err(e) => {
-            return err(format!(
-                "the gateway refused: {}",
-                String::from_utf8_lossy(&e.payload().to_bytes())
-            ))
+    // The first answer the gateway signed; any peer may answer too, and first.
+    let mut refused = None;
+    let status = loop {
+        let Ok(reply) = replies.recv_async().await else {
+            return err(match (refused, provenance.verifying()) {
+                (Some(text), false) => format!("the gateway refused: {text}"),
+                (Some(text), true) => {
+                    format!("no verified answer from the gateway of building {b}; an unsigned refusal: {text}")
+                }
+                (None, false) => format!("no answer from the gateway of building {b}"),
+                (None, true) => format!("no verified answer from the gateway of building {b}"),
+            });
+        };
+        match reply.result() {
+            Ok(sample) => {
+                let payload = sample.payload().to_bytes();
+                let attachment = sample.attachment().map(|a| a.to_bytes());
+                let replied_on = sample.key_expr().as_str();
+                if replied_on == key
+                    && provenance.reply(
+                        replied_on,
+                        nonce.as_deref(),
+                        &payload,
+                        attachment.as_deref(),
+                    )
+                {
+                    break from_json::<GatewayStatus>(&payload);
+                }
+            }
+            Err(e) => refused = Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
         }
     };
     match status {
@@ -1038,6 +1070,7 @@ async fn history(ctx: &Context, p: &Params<'_>) -> Result<serde_json::Value, Ref
     request.from_ns = Some(from_ns.saturating_sub(HISTORY_LEAD_NS));
     request.to_ns = Some(to_ns);
     request.calibration = calibration;
+    request.trusted = ctx.fleet.provenance().keys().cloned();
     let fetched = triax_client::history::fetch(
         &ctx.session,
         &request,
@@ -1098,6 +1131,7 @@ async fn read_history(
     let mut request = HistoryRequest::sensor(b, s);
     request.from_ns = Some(from_ns.saturating_sub(HISTORY_LEAD_NS));
     request.to_ns = Some(to_ns);
+    request.trusted = ctx.fleet.provenance().keys().cloned();
     let fetched = triax_client::history::fetch(
         &ctx.session,
         &request,

@@ -173,6 +173,15 @@ pub fn check_nonce(value: &str) -> Result<(), String> {
     }
 }
 
+/// A nonce for a query: 128 bits from the operating system's random source, as 32 hex
+/// characters, so that no one can have an answer signed before the query is sent.
+pub fn fresh_nonce() -> String {
+    use rand::RngCore;
+    let mut bytes = [0u8; 16];
+    rand::rngs::OsRng.fill_bytes(&mut bytes);
+    to_hex(&bytes)
+}
+
 /// The building chunk of a `triax/<building>/…` key expression.
 pub fn building_of(key_expr: &str) -> Result<BuildingId, ProvenanceError> {
     key_expr

@@ -274,6 +274,7 @@
 
   function onFleetWhole(f) {
     fleet = f; fleetSeq = f.seq;
+    fleet.refused_messages = Object.values((f.provenance && f.provenance.refused) || {}).reduce((x, y) => x + y, 0);
     remember(f.alerts);
     onFleet(true);
   }
@@ -282,7 +283,7 @@
     if (!fleet) return;
     if (d.seq !== fleetSeq + 1) { connect(query); return; }   // one missed: start again whole
     fleetSeq = d.seq;
-    for (const k of ['now', 'alerts_total', 'alerts_open', 'malformed_messages', 'ignored_buildings']) fleet[k] = d[k];
+    for (const k of ['now', 'alerts_total', 'alerts_open', 'malformed_messages', 'ignored_buildings', 'refused_messages']) fleet[k] = d[k];
     const building = (id) => fleet.buildings.find((b) => b.building === id);
     for (const b of d.buildings || []) {
       const x = building(b.building);
@@ -363,6 +364,8 @@
     if (!sections.length) sections.push(el('p', { class: 'notice' }, 'No building heard yet: no gateway has answered a status query or sent a heartbeat.'));
     const extra = [];
     if (fleet.malformed_messages) extra.push(el('p', { class: 'notice' }, `${fleet.malformed_messages} messages skipped (did not decode or contradicted their key).`));
+    if (fleet.provenance && !fleet.provenance.verifying) extra.push(el('p', { class: 'notice', id: 'on-trust' }, 'Not verified: the console holds no gateway keys (--gateway-key), so what it shows of the gateways is taken on trust.'));
+    if (fleet.refused_messages) extra.push(el('p', { class: 'warning', id: 'refused' }, `${fleet.refused_messages} messages dropped: not signed or sealed by their building's gateway.`));
     view.replaceChildren(el('div', { id: 'fleet', 'data-buildings': fleet.buildings.length }, sections, extra));
   }
 
