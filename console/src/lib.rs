@@ -320,7 +320,7 @@ pub async fn serve(
     let modes = Arc::new(std::sync::Mutex::new(modes::ModesBook::new(
         options.buildings.clone(),
     )));
-    let _modes_watch = modes::watch(&session, &modes)
+    let _modes_watch = modes::watch(&session, &modes, options.trusted_alert_keys.clone())
         .await
         .map_err(|e| ConsoleError::Zenoh {
             action: "subscribe to the buildings' modes",

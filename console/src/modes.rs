@@ -14,6 +14,8 @@ use std::sync::{Arc, Mutex};
 
 use serde_json::{json, Value};
 use triax_protocol::messages::{BuildingModes, ModalDirection, ModalVerdict};
+use triax_protocol::provenance::{verify_with, Freshness};
+use triax_protocol::signing::TrustedKeys;
 use triax_protocol::{from_json, BuildingId, Key};
 
 /// Windows kept per building: two weeks of 30-minute windows.
@@ -29,6 +31,11 @@ pub struct ModesBook {
     pub malformed: u64,
     /// Windows of buildings beyond [`crate::fleet::MAX_BUILDINGS`], not kept.
     pub dropped: u64,
+    /// Whether windows are verified: true when the console trusts alerting keys, which sign
+    /// `triax-modes`' windows as they sign its alerts.
+    pub verifying: bool,
+    /// Windows dropped as not signed by a trusted key (`unsigned`, `unknown_key`, …).
+    pub unverified: u64,
 }
 
 fn direction(d: ModalDirection) -> &'static str {
@@ -112,7 +119,8 @@ impl ModesBook {
     pub fn view(&self, building: &BuildingId) -> Value {
         let Some(windows) = self.buildings.get(building) else {
             return json!({"building": building.as_str(), "windows": 0, "tracks": [],
-                          "latest": null, "malformed": self.malformed});
+                          "latest": null, "malformed": self.malformed,
+                          "verifying": self.verifying, "unverified": self.unverified});
         };
         let mut tracks: BTreeMap<u64, (ModalDirection, Vec<Value>)> = BTreeMap::new();
         for w in windows {
@@ -188,24 +196,52 @@ impl ModesBook {
             "last_refusal": last_refusal.map(|(t, r)| json!({"start_ns": t, "reason": r})),
             "malformed": self.malformed,
             "dropped": self.dropped,
+            "verifying": self.verifying,
+            "unverified": self.unverified,
         })
     }
 }
 
 /// Subscribes to every building's modes into `book`; the subscription lasts as long as the
-/// returned handle.
+/// returned handle. With `trusted` keys (the alerting keys the console trusts), only a window
+/// signed by one of them is kept, and not one signed more than 5 s before the newest.
 pub async fn watch(
     session: &zenoh::Session,
     book: &Arc<Mutex<ModesBook>>,
+    trusted: TrustedKeys,
 ) -> zenoh::Result<zenoh::pubsub::Subscriber<()>> {
     let book = book.clone();
+    let verifying = !trusted.is_empty();
+    book.lock().unwrap_or_else(|p| p.into_inner()).verifying = verifying;
+    let fresh = Mutex::new(Freshness::default());
     session
         .declare_subscriber("triax/*/modes")
         .callback(move |sample| {
             let payload = sample.payload().to_bytes();
+            let key = sample.key_expr().as_str();
+            let checked = match verifying {
+                false => Ok(()),
+                true => {
+                    let attachment = sample.attachment().map(|a| a.to_bytes());
+                    verify_with(trusted.keys(), key, "", &payload, attachment.as_deref()).and_then(
+                        |s| {
+                            fresh
+                                .lock()
+                                .unwrap_or_else(|p| p.into_inner())
+                                .check(key, s.signed_at_ns)
+                        },
+                    )
+                }
+            };
             // A poisoned lock means a panic mid-update elsewhere: keep serving what is there.
             let mut b = book.lock().unwrap_or_else(|p| p.into_inner());
-            b.on_message(sample.key_expr().as_str(), &payload);
+            match checked {
+                Ok(()) => b.on_message(key, &payload),
+                Err(e) => {
+                    tracing::debug!(key, cause = %e, "modes window not verified, dropped");
+                    b.unverified += 1;
+                }
+            }
         })
         .await
 }

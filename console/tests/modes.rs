@@ -11,6 +11,7 @@ use time::OffsetDateTime;
 use triax_protocol::messages::{
     BuildingModes, ModalDirection, ModalEstimate, ModalVerdict, ModeReport, ModeShapeComponent,
 };
+use triax_protocol::provenance::sign_message;
 use triax_protocol::{to_json, BuildingId, SensorId};
 use zenoh::qos::CongestionControl;
 
@@ -111,9 +112,13 @@ async fn modes_trend_and_shapes_over_http_and_in_a_browser() {
     let put = |m: BuildingModes| {
         let session = site.session.clone();
         async move {
-            // As the modes service publishes: a full link waits rather than drops.
+            // As the modes service publishes: signed with its alerting key, and a full link
+            // waits rather than drops.
+            let payload = to_json(&m);
+            let signed = sign_message(&service_key(), "triax/hq/modes", "", now_ns(), &payload);
             session
-                .put("triax/hq/modes", to_json(&m))
+                .put("triax/hq/modes", payload)
+                .attachment(signed.to_vec())
                 .congestion_control(CongestionControl::Block)
                 .await
                 .unwrap()
@@ -138,8 +143,10 @@ async fn modes_trend_and_shapes_over_http_and_in_a_browser() {
         put(window("hq", i, t0_ns, false)).await;
     }
     put(window("hq", 6, t0_ns, true)).await;
+    put(window("b2", 7, t0_ns, false)).await;
+    // And one a peer put, unsigned: dropped as unverified.
     site.session
-        .put("triax/hq/modes", to_json(&window("b2", 7, t0_ns, false)))
+        .put("triax/hq/modes", to_json(&window("hq", 8, t0_ns, false)))
         .congestion_control(CongestionControl::Block)
         .await
         .unwrap();
@@ -147,7 +154,7 @@ async fn modes_trend_and_shapes_over_http_and_in_a_browser() {
         .wait_json(
             "seven windows and the malformed one",
             "/api/modes?building=hq",
-            |v| v["windows"] == 7 && v["malformed"] == 1,
+            |v| v["windows"] == 7 && v["malformed"] == 1 && v["unverified"] == 1,
         )
         .await;
     let tracks = v["tracks"].as_array().unwrap();

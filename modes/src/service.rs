@@ -30,6 +30,7 @@ use time::OffsetDateTime;
 use tokio::sync::mpsc;
 use triax_client::{Delivery, Fleet, FollowOptions};
 use triax_protocol::messages::Alert;
+use triax_protocol::provenance::sign_message;
 use triax_protocol::signing::{sign_alert, LabSigningKey};
 use triax_protocol::{to_json, BuildingId, Key};
 use zenoh::qos::CongestionControl;
@@ -349,10 +350,17 @@ async fn conclude(
         }
     }
     let key = Key::Modes(building.id.clone()).to_string();
+    let payload = to_json(m);
+    // Signed with the service's key, as its alerts are (PROTOCOL.md §3.10, §6): a window a peer
+    // puts does not verify.
+    let signed_at_ns =
+        i64::try_from(OffsetDateTime::now_utc().unix_timestamp_nanos()).unwrap_or(i64::MAX);
+    let attachment = sign_message(signing, &key, "", signed_at_ns, &payload);
     // Zenoh's default for a put drops it when a link's queue is full: a window, a few a hour,
     // and an alert must wait instead, as `triax-alert`'s alerts do.
     let put = session
-        .put(&key, to_json(m))
+        .put(&key, payload)
+        .attachment(attachment.to_vec())
         .congestion_control(CongestionControl::Block);
     if let Err(e) = put.await {
         tracing::error!(key = %key, cause = %e, "modes not published");

@@ -200,6 +200,25 @@ pub fn verify_message(
     payload: &[u8],
     attachment: Option<&[u8]>,
 ) -> Result<Signed, ProvenanceError> {
+    let building = building_of(key_expr)?;
+    verify_with(
+        trusted.keys(&building),
+        key_expr,
+        nonce,
+        payload,
+        attachment,
+    )
+}
+
+/// Checks that `payload` on `key_expr` was signed, with `nonce`, by one of `keys`: for a
+/// service's messages (a modes window), whose key is the service's, not a building's.
+pub fn verify_with(
+    keys: &[VerifyingKey],
+    key_expr: &str,
+    nonce: &str,
+    payload: &[u8],
+    attachment: Option<&[u8]>,
+) -> Result<Signed, ProvenanceError> {
     let a = attachment.ok_or(ProvenanceError::Unsigned)?;
     if a.len() != ATTACHMENT_LEN {
         return Err(ProvenanceError::Malformed("wrong length"));
@@ -213,11 +232,7 @@ pub fn verify_message(
     let signature = Signature::from_bytes(&a[44..].try_into().expect("64 bytes"));
     let building = building_of(key_expr)?;
     let public_key_hex = to_hex(&key_bytes);
-    let Some(key) = trusted
-        .keys(&building)
-        .iter()
-        .find(|k| k.as_bytes() == &key_bytes)
-    else {
+    let Some(key) = keys.iter().find(|k| k.as_bytes() == &key_bytes) else {
         return Err(ProvenanceError::UnknownKey {
             public_key_hex,
             building: building.to_string(),

@@ -281,6 +281,11 @@ impl TrustedKeys {
         Ok(TrustedKeys { keys })
     }
 
+    /// The keys, in the order given.
+    pub fn keys(&self) -> &[VerifyingKey] {
+        &self.keys
+    }
+
     pub fn is_empty(&self) -> bool {
         self.keys.is_empty()
     }

@@ -188,10 +188,25 @@ async fn status_answers_and_publishing_goes_on_while_a_consumer_stalls() {
                 .unwrap();
         }
     }
-    wait_until("every batch published despite the stall", || {
-        counters.published_batches.load(Relaxed) == 2 * per_sensor
+    let published = || counters.published_batches.load(Relaxed);
+    let all = tokio::time::timeout(TIMEOUT, async {
+        while published() < 2 * per_sensor {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
     })
     .await;
+    // What the gateway had done when it stopped, to tell a stuck worker from lost input.
+    assert!(
+        all.is_ok(),
+        "not every batch published despite the stall: {} of {} published, {} received, {} \
+         dropped, {} publish errors, {} seals",
+        published(),
+        2 * per_sensor,
+        counters.received_batches.load(Relaxed),
+        counters.dropped.load(Relaxed),
+        counters.publish_errors.load(Relaxed),
+        counters.seals.load(Relaxed),
+    );
     // Asked from a thread of its own with a deadline of its own.
     let querier = session.clone();
     let answered = std::thread::spawn(move || {

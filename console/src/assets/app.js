@@ -1845,7 +1845,8 @@
     }
     const refusal = m.last_refusal ? ` Last refused window ${fmtTime(nsToMs(m.last_refusal.start_ns))}: ${m.last_refusal.reason}.` : '';
     status.textContent = `${m.windows} windows heard, ${fmtTime(nsToMs(m.first_start_ns))} – ${fmtTime(nsToMs(m.last_end_ns))}; ${m.tracks.length} tracks.` +
-      (m.refused_since_latest ? ` ${m.refused_since_latest} refused since the latest identified one.` : '') + refusal;
+      (m.refused_since_latest ? ` ${m.refused_since_latest} refused since the latest identified one.` : '') + refusal +
+      (m.verifying ? (m.unverified ? ` ${m.unverified} windows dropped: not signed by a trusted key.` : '') : ' Not verified: no trusted alerting key is given, so these windows are taken on trust.');
     const x0 = nsToMs(m.first_start_ns), x1 = nsToMs(m.last_end_ns);
     $('modes-trends').replaceChildren(...m.tracks.map((t, i) => {
       const f = t.points[t.points.length - 1];

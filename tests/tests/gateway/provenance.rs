@@ -14,7 +14,8 @@
 //!   phantom building and gateway and exports the peer's history answer (the attack is real);
 //!   the verifying one draws only the genuine stream, lists only the keyed building with its
 //!   gateway's name and its sensor, exports every genuine sample once and nothing else, and
-//!   counts what it dropped.
+//!   counts what it dropped; of three modes windows (the modal service's, the peer's signed
+//!   with its own key, the peer's unsigned) it keeps the service's only.
 
 use std::collections::BTreeSet;
 use std::sync::atomic::Ordering::Relaxed;
@@ -24,10 +25,10 @@ use std::time::Duration;
 use triax_client::{history::fetch, FollowOptions, Follower, HistoryRequest};
 use triax_net::keys::public_path;
 use triax_protocol::batch::CorrectedBatch;
-use triax_protocol::messages::{GatewayStatus, Heartbeat};
+use triax_protocol::messages::{BuildingModes, GatewayStatus, Heartbeat};
 use triax_protocol::provenance::{digest, sign_message, verify_message, GatewayKeys, Seal};
 use triax_protocol::record::sample;
-use triax_protocol::signing::public_key_from_hex;
+use triax_protocol::signing::{public_key_from_hex, TrustedKeys};
 use triax_protocol::{from_json, to_json, BuildingId, Key, SensorId};
 use zenoh::query::ConsolidationMode;
 use zenoh::sample::Locality;
@@ -49,6 +50,11 @@ const FORGED_GATEWAY: &str = "forged-gw";
 
 fn now_ns() -> i64 {
     triax_console::live::wall_clock_ns()
+}
+
+/// The peer's own key.
+fn peer_key() -> ed25519_dalek::SigningKey {
+    ed25519_dalek::SigningKey::from_bytes(&[9; 32])
 }
 
 /// The hostile peer: a session of its own that listens (the consumers connect to it) and
@@ -84,7 +90,7 @@ impl HostilePeer {
             zenoh::open(c).await.unwrap()
         };
         // The peer's own key: its seals and answers are well signed, by the wrong key.
-        let peer_key = ed25519_dalek::SigningKey::from_bytes(&[9; 32]);
+        let peer_key = peer_key();
         let forged = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let last_genuine: Arc<std::sync::Mutex<Option<Vec<u8>>>> = Arc::default();
         let relay = {
@@ -395,6 +401,7 @@ async fn a_verifying_follower_hands_over_the_gateways_batches_and_nothing_of_the
 async fn console(
     connect: &[&str],
     keys: Option<Arc<GatewayKeys>>,
+    alert_keys: TrustedKeys,
 ) -> (
     std::net::SocketAddr,
     tokio::sync::oneshot::Sender<()>,
@@ -408,6 +415,7 @@ async fn console(
     let options = triax_console::ConsoleOptions {
         status_interval: Duration::from_millis(500),
         gateway_keys: keys,
+        trusted_alert_keys: alert_keys,
         ..triax_console::ConsoleOptions::default()
     };
     let task = tokio::spawn(triax_console::serve(
@@ -500,9 +508,19 @@ async fn a_verifying_console_shows_the_gateways_data_and_nothing_of_the_peers() 
     let peer = HostilePeer::start(&gw.endpoint).await;
     let node = client(&gw.endpoint).await;
     // Two consoles on the same site: one holds the gateway's key, the other takes all on trust.
-    let site = [gw.endpoint.as_str(), peer.endpoint.as_str()];
-    let (verifying, stop_v, task_v, session_v) = console(&site, Some(trusted)).await;
-    let (on_trust, stop_t, task_t, session_t) = console(&site, None).await;
+    // The modal service listens, and the consoles connect to it (peers do not relay).
+    let service_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let service = listening_peer(&service_endpoint).await;
+    let site = [
+        gw.endpoint.as_str(),
+        peer.endpoint.as_str(),
+        service_endpoint.as_str(),
+    ];
+    // The modal service's key, which signs its windows as it signs its alerts.
+    let service_key = ed25519_dalek::SigningKey::from_bytes(&[5; 32]);
+    let alert_keys = TrustedKeys::new(vec![service_key.verifying_key()]);
+    let (verifying, stop_v, task_v, session_v) = console(&site, Some(trusted), alert_keys).await;
+    let (on_trust, stop_t, task_t, session_t) = console(&site, None, TrustedKeys::default()).await;
     let fleet = |addr| async move {
         serde_json::from_str::<serde_json::Value>(&http_get(addr, "/api/fleet").await).unwrap()
     };
@@ -619,6 +637,68 @@ async fn a_verifying_console_shows_the_gateways_data_and_nothing_of_the_peers() 
         csv.contains(&forged_row),
         "on trust, the peer's history answer is exported"
     );
+
+    // A modes window from the service, and one from the peer (signed with its own key, then
+    // unsigned): the verifying console keeps the service's only.
+    let window = |reason: &str| {
+        to_json(&BuildingModes {
+            format_version: triax_protocol::JSON_FORMAT_VERSION,
+            building: b("pv"),
+            window_start_ns: from_ns,
+            window_end_ns: from_ns + 1_800_000_000_000,
+            sample_rate_hz: 100.0,
+            identification_rate_hz: 0.0,
+            sensors: Vec::new(),
+            temperature_c: None,
+            regressors: Vec::new(),
+            tracked: false,
+            modes: Vec::new(),
+            unquantified: Vec::new(),
+            refused: Some(reason.into()),
+            warnings: Vec::new(),
+            late: false,
+            identified_at: time::OffsetDateTime::UNIX_EPOCH,
+        })
+    };
+    let modes_key = Key::Modes(b("pv")).to_string();
+    let genuine = window("genuine");
+    let signed = sign_message(&service_key, &modes_key, "", now_ns(), &genuine);
+    service
+        .put(&modes_key, genuine)
+        .attachment(signed.to_vec())
+        .await
+        .unwrap();
+    let modes = |addr| async move {
+        serde_json::from_str::<serde_json::Value>(&http_get(addr, "/api/modes?building=pv").await)
+            .unwrap()
+    };
+    for addr in [verifying, on_trust] {
+        wait_until_async("both consoles hold the service's window", || async {
+            modes(addr).await["last_refusal"]["reason"] == "genuine"
+        })
+        .await;
+    }
+    let forged = window("forged");
+    let signed = sign_message(&peer_key(), &modes_key, "", now_ns(), &forged);
+    peer.session
+        .put(&modes_key, forged.clone())
+        .attachment(signed.to_vec())
+        .await
+        .unwrap();
+    peer.session.put(&modes_key, forged).await.unwrap();
+    wait_until_async("on trust, a forgery replaces the window", || async {
+        modes(on_trust).await["last_refusal"]["reason"] == "forged"
+    })
+    .await;
+    wait_until_async("the verifying console drops the peer's windows", || async {
+        modes(verifying).await["unverified"].as_u64() >= Some(2)
+    })
+    .await;
+    let m = modes(verifying).await;
+    assert_eq!(m["windows"], 1, "{m}");
+    assert_eq!(m["last_refusal"]["reason"], "genuine", "{m}");
+    assert_eq!(m["verifying"], true);
+    service.close().await.unwrap();
 
     for p in pages {
         p.abort();
