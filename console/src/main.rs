@@ -253,8 +253,13 @@ fn gateway_keys(
             "--gateway-key: building {building} given twice"
         );
     }
-    triax_net::keys::trusted_gateways(&table)
-        .map_err(|e| anyhow::anyhow!("{e}").context("--gateway-key"))
+    if table.is_empty() {
+        return Ok(None);
+    }
+    // Errors name the flag and the building: `--gateway-key.hq: cannot read …`.
+    let keys = triax_net::keys::gateway_keys("--gateway-key", &table)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(Some(std::sync::Arc::new(keys)))
 }
 
 fn trusted_alert_keys(cli: &Cli) -> anyhow::Result<TrustedKeys> {

@@ -4,6 +4,8 @@
 //! - `a_named_page_address_and_no_zenoh_listener`: `--listen localhost:0` is resolved and
 //!   served, and the process listens on no other TCP port than the page's: no Zenoh endpoint
 //!   unless asked (issue 26).
+//! - `gateway_keys_that_cannot_work_are_refused_at_start_naming_them`: a `--gateway-key`
+//!   without `=`, with a bad key or file, given twice, or a watched building without one.
 
 use std::collections::HashSet;
 use std::io::{BufRead, BufReader, Read, Write};
@@ -210,5 +212,49 @@ fn operators_are_managed_from_the_command_line() {
     assert!(
         said.contains("line 1: role \"boss\" is not view, operate or admin"),
         "{said}"
+    );
+}
+
+/// A console started with `args` that must refuse to run; its standard error.
+fn refused(args: &[&str]) -> String {
+    let out = Command::new(BIN)
+        .args([
+            "--no-state",
+            "--no-multicast-scouting",
+            "--listen",
+            "127.0.0.1:0",
+        ])
+        .args(args)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!out.status.success(), "{args:?} was accepted");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn gateway_keys_that_cannot_work_are_refused_at_start_naming_them() {
+    let e = refused(&["--gateway-key", "hq"]);
+    assert!(e.contains("--gateway-key \"hq\": not BUILDING=KEY"), "{e}");
+    let e = refused(&["--gateway-key", "hq=zz"]);
+    assert!(e.contains("--gateway-key.hq"), "{e}");
+    let e = refused(&["--gateway-key", "hq=/nonexistent/gw.key.pub"]);
+    assert!(
+        e.contains("--gateway-key.hq") && e.contains("cannot read"),
+        "{e}"
+    );
+    let public = triax_protocol::signing::LabSigningKey::from_bytes(&[1; 32]).verifying_key();
+    let key = triax_protocol::signing::to_hex(public.as_bytes());
+    let e = refused(&["--gateway-key", &format!("hq={key},hq={key}")]);
+    assert!(e.contains("building hq given twice"), "{e}");
+    let e = refused(&[
+        "--gateway-key",
+        &format!("hq={key}"),
+        "--buildings",
+        "hq,annex",
+    ]);
+    assert!(
+        e.contains("building annex is watched but no gateway key is given for it"),
+        "{e}"
     );
 }
